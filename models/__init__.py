@@ -1,0 +1,1 @@
+"""Shipped sensor model files (TOML), installed as ``polins.models`` package data."""

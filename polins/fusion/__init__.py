@@ -1,0 +1,1 @@
+"""Fusion of IMU with polarization measurements: measurement models, ESKF and GTSAM backends."""

@@ -1,0 +1,1 @@
+"""Recorded logs: manifest, IMU tables, image folders and solution outputs."""

@@ -1,0 +1,1 @@
+"""Simulation: sky, polarization images, trajectories and IMU data (never imported by library code)."""
