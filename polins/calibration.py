@@ -253,6 +253,27 @@ class CameraModel:
         """Camera-to-body rotation."""
         return Rotation.from_matrix(self.mat_bc)
 
+    def downscaled(self, factor: int) -> CameraModel:
+        """The same lens and sensor imaged at ``1/factor`` resolution (for fast runs).
+
+        Intrinsics scale about pixel centres: ``f' = f / factor``,
+        ``c' = (c + 0.5) / factor - 0.5``; occlusion polygons scale likewise.
+        """
+        if factor < 1 or self.width_px % (2 * factor) or self.height_px % (2 * factor):
+            raise ValueError(
+                f"factor {factor} must divide the superpixel image {self.superpixel_shape}"
+            )
+        k = self.camera_matrix.copy()
+        k[:2, :2] /= factor
+        k[:2, 2] = (k[:2, 2] + 0.5) / factor - 0.5
+        return self.with_changes(
+            name=f"{self.name}/{factor}",
+            width_px=self.width_px // factor,
+            height_px=self.height_px // factor,
+            camera_matrix=k,
+            occlusion_polygons=tuple((p + 0.5) / factor - 0.5 for p in self.occlusion_polygons),
+        )
+
     def with_changes(self, **changes: Any) -> CameraModel:
         """A copy with some fields replaced (e.g. a swapped channel calibration)."""
         fields = {k: getattr(self, k) for k in self.__dataclass_fields__}

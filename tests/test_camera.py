@@ -121,3 +121,12 @@ def test_lens_models_differ_off_axis_and_agree_on_axis():
     np.testing.assert_allclose(
         doubled_aop_from_evector(e0, axis, "meridian"), [np.cos(0.6), np.sin(0.6)], atol=1e-12
     )
+
+
+def test_downscaled_camera_sees_the_same_rays():
+    small = CAM.downscaled(4)
+    assert small.shape == (512, 612) and small.superpixel_shape == (256, 306)
+    rays = _random_rays(np.random.default_rng(4), 100, np.radians(80.0))
+    np.testing.assert_allclose(
+        (project(small, rays) + 0.5) * 4 - 0.5, project(CAM, rays), atol=1e-9
+    )
