@@ -58,8 +58,174 @@ def _cmd_sun(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    print("polins demo: the paper reproduction is not yet available in this version.")
+    from polins.sim.paper import run_demo
+
+    downscale = 1 if args.full else args.downscale
+    n_images = args.images if args.images is not None else (100 if args.full else 20)
+    print(
+        f"polins demo: the paper's Section 4.1 simulation (SPEC 11), {n_images} images at "
+        f"1/{downscale} resolution{' (use --full for full resolution)' if downscale > 1 else ''}",
+        flush=True,
+    )
+    report, _ = run_demo(
+        downscale=downscale,
+        n_images=n_images,
+        seed=args.seed,
+        out=None if args.no_plots else args.out,
+        progress=not args.quiet,
+        occluder=not args.no_occluder,
+    )
+    print(report)
     return 0
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    import time
+    from pathlib import Path
+
+    from polins.sim.scenario import simulate_log
+
+    start = time.perf_counter()
+    sim = simulate_log(
+        Path(args.out),
+        scenario=args.scenario,
+        duration_s=args.duration,
+        image_rate_hz=args.image_rate,
+        downscale=args.downscale,
+        imu=args.imu,
+        seed=args.seed,
+        epoch_utc=args.epoch,
+        lat_deg=args.lat,
+        lon_deg=args.lon,
+        alt_m=args.alt,
+        progress=not args.quiet,
+    )
+    elapsed = time.perf_counter() - start
+    traj, cam = sim.trajectory, sim.camera
+    elevation = np.degrees(np.arcsin(np.clip(sim.sun_n[:, 2], -1.0, 1.0)))
+    print(f"wrote {sim.manifest}  ({elapsed:.1f} s)")
+    print(f"scenario          {sim.scenario}, {traj.t[-1]:g} s, seed {args.seed}")
+    print(f"imu               {len(sim.imu)} samples at {traj.rate_hz:g} Hz, {sim.imu_model.name}")
+    print(f"images            {len(sim.image_t)} at {args.image_rate:g} Hz, {cam.name}")
+    print(f"image size        {cam.shape[1]} x {cam.shape[0]} px (downscale {args.downscale})")
+    print(f"truth             {len(traj)} rows (attitude, velocity, position, IMU errors)")
+    print(f"epoch (UTC)       {sim.epoch_utc.isoformat()}")
+    print(f"sun elevation     {elevation.min():.2f} .. {elevation.max():.2f} deg")
+    if elevation.min() <= 0.0:
+        print("note: the sun is below the horizon in part of the log", file=sys.stderr)
+    return 0
+
+
+def _cmd_fuse(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from polins.attitude import rot_nb_from_euler, yaw_from_heading_deg
+    from polins.io import read_log
+    from polins.io.report import format_summary, summarize, write_report
+    from polins.pipeline import LoopOptions, run_log
+
+    try:
+        log = read_log(args.manifest, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
+    except ImportError as exc:  # a ROS bag without the optional extra
+        raise ValueError(str(exc)) from None
+    rot_nb0 = None
+    if args.rot0 is not None:
+        roll, pitch, heading = (float(v) for v in args.rot0.split(","))
+        yaw = float(yaw_from_heading_deg(heading))
+        rot_nb0 = rot_nb_from_euler(yaw, np.radians(pitch), np.radians(roll))
+    options = LoopOptions(method=args.method, update=args.update, prior_lag_s=args.prior_lag)
+    fuse_options = {"nhc_std": args.nhc} if args.nhc is not None else {}
+    result = run_log(
+        log,
+        options=options,
+        backend=args.backend,
+        smooth=args.smooth,
+        workers=args.workers,
+        rot_nb0=rot_nb0,
+        fuse_options=fuse_options,
+        progress=not args.quiet,
+    )
+    summary = summarize(
+        result.solution,
+        result.measurements,
+        result.events,
+        truth=log.truth,
+        timing=result.timing,
+        settings=result.settings,
+        settle_s=args.settle,
+    )
+    files = write_report(
+        Path(args.out),
+        result.solution,
+        result.measurements,
+        result.events,
+        summary,
+        truth=log.truth,
+        plots=not args.no_plots,
+        title=log.manifest_path.parent.name,
+    )
+    print(format_summary(summary))
+    print(f"wrote {', '.join(sorted(p.name for p in files.values()))} to {args.out}")
+    return 0
+
+
+def _cmd_heading(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import cv2
+
+    from polins.attitude import rot_nb_from_euler
+    from polins.calibration import load_camera
+    from polins.compass import measure
+    from polins.ephemeris import sun_position, sun_vector_n, to_utc_index
+
+    path = Path(args.image)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise ValueError(f"cannot read {path} as an image (a 16-bit PNG or TIFF raw mosaic)")
+    if raw.ndim != 2:
+        raise ValueError(f"{path}: expected a single-channel raw mosaic, got shape {raw.shape}")
+    cam = load_camera(args.camera)
+    sun = sun_position(args.time, args.lat, args.lon, args.alt)
+    sun_n = sun_vector_n(sun.azimuth, sun.zenith)
+    rot = rot_nb_from_euler(
+        np.radians(args.yaw_prior), np.radians(args.pitch), np.radians(args.roll)
+    )
+    m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, method=args.method)
+    report: dict[str, object] = {
+        "image": str(path),
+        "camera": cam.name,
+        "time_utc": to_utc_index(args.time)[0].isoformat(),
+        "sun_azimuth_deg": float(np.degrees(sun.azimuth)),
+        "sun_zenith_deg": float(np.degrees(sun.zenith)),
+        "heading_std_deg": float(np.degrees(m.yaw_std)) if m.ok else None,
+        "yaw_deg": float(np.degrees(m.yaw)) if m.ok else None,
+        **m.as_dict(),
+    }
+    if args.out:
+        Path(args.out).write_text(json.dumps(report, indent=2) + "\n")
+    if args.json:
+        print(json.dumps(report, indent=2))
+    elif not m.ok:
+        print(f"no heading ({args.method}): {m.reason}")
+    else:
+        sun_b = ", ".join(f"{x:+.6f}" for x in m.sun_b)
+        print(f"heading           {m.heading_deg:.4f} deg  (compass, clockwise from North)")
+        print(
+            f"sigma             {np.degrees(m.yaw_std):.4f} deg  (filter; measurement only "
+            f"{np.degrees(m.yaw_std_meas):.5f} deg)"
+        )
+        print(f"yaw (ENU)         {np.degrees(m.yaw):.4f} deg  (counter-clockwise from East)")
+        print(f"sun (body)        [{sun_b}]")
+        if np.isfinite(m.epsilon_std):
+            print(f"epsilon           {m.epsilon:.5f} +- {m.epsilon_std:.5f}")
+        print(
+            f"pixels            {m.n_pixels}  (eigen-gap {m.eigen_gap:.3f}, "
+            f"residual RMS {m.residual_rms:.2f})"
+        )
+    return 0 if m.ok else 1
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -77,7 +243,81 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=_cmd_sun)
 
     p = sub.add_parser("demo", help="reproduce the paper's Section 4.1 simulation (table+plots)")
+    p.add_argument("--full", action="store_true", help="full resolution, 100 images (minutes)")
+    p.add_argument("--downscale", type=int, default=4, help="render at 1/K resolution (default 4)")
+    p.add_argument("--images", type=int, default=None, help="images (default 20; 100 with --full)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--out", default="out/demo", help="folder for plots and CSV tables (default out/demo)"
+    )
+    p.add_argument("--no-plots", action="store_true", help="print the table only, write nothing")
+    p.add_argument("--no-occluder", action="store_true", help="skip the occluder case")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_demo)
+
+    p = sub.add_parser("simulate", help="simulate a scenario log (IMU, raw sky images, truth)")
+    p.add_argument("--scenario", choices=["turntable", "ugv"], required=True)
+    p.add_argument("--out", required=True, help="output folder of the log")
+    p.add_argument(
+        "--duration", type=float, default=None, help="[s] (default 100 turntable, 300 ugv)"
+    )
+    p.add_argument("--image-rate", type=float, default=5.0, help="camera rate [Hz] (default 5)")
+    p.add_argument(
+        "--imu", default="fins-paper", help="IMU model: fins-paper, mems-typical or a .toml path"
+    )
+    p.add_argument(
+        "--downscale", type=int, default=4, help="render at 1/K resolution (1, 2, 4, 8; default 4)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--epoch", default="2023-09-05T15:06+08:00", help="timezone-aware time of t = 0")
+    p.add_argument("--lat", type=float, default=45.6234, help="site latitude [deg]")
+    p.add_argument("--lon", type=float, default=126.7264, help="site longitude [deg]")
+    p.add_argument("--alt", type=float, default=148.74, help="site height [m]")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_cmd_simulate)
+
+    p = sub.add_parser("heading", help="heading from one raw polarization image (PNG/TIFF)")
+    p.add_argument("image", help="raw DoFP mosaic, 16-bit PNG or TIFF, full resolution")
+    p.add_argument("--camera", default="paper-table1", help="camera model name or .toml path")
+    _add_site_args(p)
+    p.add_argument("--roll", type=float, default=0.0, help="prior roll [deg] (FLU, right down +)")
+    p.add_argument("--pitch", type=float, default=0.0, help="prior pitch [deg] (nose down +)")
+    p.add_argument(
+        "--yaw-prior",
+        type=float,
+        default=0.0,
+        help="prior ENU yaw [deg, counter-clockwise from East]; used only near the horizon",
+    )
+    p.add_argument(
+        "--method", choices=["compensated", "traditional", "paper"], default="compensated"
+    )
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--out", default=None, help="also write the JSON report to this file")
+    p.set_defaults(handler=_cmd_heading)
+
+    p = sub.add_parser(
+        "fuse", help="measure every image of a log and fuse with the IMU (solution, report)"
+    )
+    p.add_argument("manifest", help="manifest.toml of the log (or its folder)")
+    p.add_argument("--out", required=True, help="output folder (CSV, JSON summary, PNG plots)")
+    p.add_argument("--backend", choices=["eskf", "graph"], default="eskf")
+    p.add_argument("--smooth", action="store_true", help="RTS smoother (ESKF backend)")
+    p.add_argument("--workers", type=int, default=None, help="image processes (default all cores)")
+    p.add_argument(
+        "--method", choices=["compensated", "traditional", "paper"], default="compensated"
+    )
+    p.add_argument("--update", choices=["yaw", "sun"], default="yaw", help="filter update kind")
+    p.add_argument("--prior-lag", type=float, default=1.0, help="age of the image prior [s]")
+    p.add_argument("--nhc", type=float, default=None, help="non-holonomic constraint sigma [m/s]")
+    p.add_argument(
+        "--rot0", default=None, help="initial ROLL,PITCH,HEADING [deg] (default self-alignment)"
+    )
+    p.add_argument("--gyro-unit", choices=["rad/s", "deg/s"], default=None)
+    p.add_argument("--accel-unit", choices=["m/s^2", "g"], default=None)
+    p.add_argument("--settle", type=float, default=5.0, help="skip [s] in the error statistics")
+    p.add_argument("--no-plots", action="store_true", help="write tables and JSON only")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=_cmd_fuse)
     return parser
 
 

@@ -1,0 +1,273 @@
+"""Validation of the fusion inputs: the IMU table and the measurements table (CONVENTIONS.md).
+
+Every problem raises ``ValueError`` with a message naming the column, the row and what was
+expected. Gaps in the IMU stream are reported, never bridged silently; unit mistakes that
+can be detected (gyro in deg/s, accelerometer in g or mg, yaw in degrees) are rejected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from polins.fusion.eskf import MeasurementItem, measurement_items
+
+FloatArray = NDArray[np.float64]
+
+IMU_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
+YAW_COLUMNS = ("yaw", "yaw_std")
+SUN_COLUMNS = ("sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny", "sun_nz", "sun_std")
+ZUPT_COLUMNS = ("zupt_std",)
+
+# Plausibility limits for unit checks.
+GYRO_MAX_RAD_S = 35.0  # ~2000 deg/s: full scale of common gyros; larger is deg/s data
+GYRO_P99_RAD_S = 10.0  # a vehicle does not turn at > 570 deg/s for 1 % of the time
+ACCEL_MEDIAN_RANGE = (6.0, 14.0)  # median |f| [m/s^2] of data near the Earth's surface
+
+
+@dataclass(frozen=True, eq=False)
+class ImuArrays:
+    """Validated IMU samples: ``t`` (N,) [s], ``gyro_b`` (N, 3) [rad/s], ``accel_b`` (N, 3)
+    [m/s^2], and the median sample interval ``dt`` [s]."""
+
+    t: FloatArray
+    gyro_b: FloatArray
+    accel_b: FloatArray
+    dt: float
+
+
+def _require_frame(df: object, what: str) -> pd.DataFrame:
+    if not isinstance(df, pd.DataFrame):
+        raise ValueError(f"{what} must be a pandas DataFrame, got {type(df).__name__}")
+    return df
+
+
+def _numeric(df: pd.DataFrame, cols: tuple[str, ...], what: str) -> FloatArray:
+    try:
+        return df[list(cols)].to_numpy(dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what} columns {list(cols)} must be numeric: {exc}") from exc
+
+
+def _check_times(t: FloatArray, what: str) -> None:
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise ValueError(f"{what}: t is NaN/inf at row {bad[0]} ({bad.size} rows)")
+    d = np.diff(t)
+    dup = np.flatnonzero(d == 0)
+    if dup.size:
+        i = int(dup[0])
+        raise ValueError(
+            f"{what}: duplicated timestamp t={t[i]!r} at rows {i} and {i + 1} "
+            f"({dup.size} duplicates); timestamps must be strictly increasing"
+        )
+    back = np.flatnonzero(d < 0)
+    if back.size:
+        i = int(back[0])
+        raise ValueError(
+            f"{what}: timestamps are not monotonic: t={t[i + 1]!r} at row {i + 1} follows "
+            f"t={t[i]!r} at row {i} ({back.size} backward steps); sort the table by t"
+        )
+
+
+def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArrays:
+    """Check an IMU table and return its arrays.
+
+    Parameters
+    ----------
+    imu : DataFrame
+        Columns ``t`` [s], ``gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2] (body FLU,
+        specific force), one row per sample.
+    max_gap_s : float, optional
+        Longest allowed interval between samples [s]; default 5 times the median interval.
+
+    Returns
+    -------
+    ImuArrays
+
+    Raises
+    ------
+    ValueError
+        Missing columns, fewer than 2 rows, NaN/inf values, duplicated or non-monotonic
+        timestamps, gaps longer than ``max_gap_s``, gyro values that look like deg/s,
+        specific force that looks like g or mg.
+    """
+    df = _require_frame(imu, "imu")
+    missing = [c for c in IMU_COLUMNS if c not in df.columns]
+    if missing:
+        raise ValueError(f"imu table lacks columns {missing}; expected {list(IMU_COLUMNS)}")
+    if len(df) < 2:
+        raise ValueError(f"imu table needs at least 2 samples, got {len(df)}")
+    data = _numeric(df, IMU_COLUMNS, "imu")
+    t = data[:, 0]
+    _check_times(t, "imu")
+    bad = np.argwhere(~np.isfinite(data[:, 1:]))
+    if bad.size:
+        r, c = bad[0]
+        raise ValueError(
+            f"imu: NaN/inf sample in column {IMU_COLUMNS[c + 1]!r} at row {r} (t={t[r]}); "
+            f"{len(bad)} bad values. Drop or repair those rows (gaps are then reported)"
+        )
+    d = np.diff(t)
+    dt = float(np.median(d))
+    limit = 5.0 * dt if max_gap_s is None else float(max_gap_s)
+    gaps = np.flatnonzero(d > limit)
+    if gaps.size:
+        listing = ", ".join(f"{d[i]:.4g} s after t={t[i]:.6g}" for i in gaps[:5])
+        raise ValueError(
+            f"imu: {gaps.size} gap(s) longer than {limit:.4g} s (median interval {dt:.4g} s): "
+            f"{listing}{' ...' if gaps.size > 5 else ''}. Gaps are not bridged; split the log "
+            "or pass a larger max_gap_s if the interpolation over them is acceptable"
+        )
+    gyro = data[:, 1:4]
+    accel = data[:, 4:7]
+    w = np.linalg.norm(gyro, axis=1)
+    if w.max() > GYRO_MAX_RAD_S or np.percentile(w, 99) > GYRO_P99_RAD_S:
+        raise ValueError(
+            f"imu: gyro magnitudes up to {w.max():.3g} (99th percentile "
+            f"{np.percentile(w, 99):.3g}) are implausible in rad/s; the gyro looks like "
+            "deg/s: multiply by pi/180"
+        )
+    f_med = float(np.median(np.linalg.norm(accel, axis=1)))
+    lo, hi = ACCEL_MEDIAN_RANGE
+    if not lo <= f_med <= hi:
+        hint = ""
+        if 0.6 <= f_med <= 1.4:
+            hint = " It looks like g: multiply by 9.80665."
+        elif 600.0 <= f_med <= 1400.0:
+            hint = " It looks like mg: multiply by 9.80665e-3."
+        raise ValueError(
+            f"imu: median specific force |f| = {f_med:.4g} is not ~9.8 m/s^2 (expected "
+            f"{lo}-{hi} m/s^2 near the Earth's surface).{hint}"
+        )
+    return ImuArrays(t=t.copy(), gyro_b=gyro.copy(), accel_b=accel.copy(), dt=dt)
+
+
+def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
+    """Check a measurements table (CONVENTIONS.md) and return it (an empty table for None).
+
+    Columns: ``t`` [s] and at least one complete group: ``yaw, yaw_std`` [rad]; or
+    ``sun_bx, sun_by, sun_bz`` (measured, body), ``sun_nx, sun_ny, sun_nz`` (reference,
+    ENU) and ``sun_std`` [rad]; or ``zupt_std`` [m/s] (zero-velocity at that time).
+    NaN values mean "no measurement" (e.g. an image that ``polins.measure`` rejected) and
+    are logged and skipped; a NaN time is an error.
+
+    Raises
+    ------
+    ValueError
+        Missing ``t`` or incomplete column groups, duplicated or non-monotonic times,
+        yaw outside [-2 pi, 2 pi] (degrees?), non-positive sigmas, sigmas > pi, sun vectors
+        that are not unit vectors.
+    """
+    if measurements is None:
+        return pd.DataFrame({"t": np.zeros(0)})
+    df = _require_frame(measurements, "measurements")
+    if "t" not in df.columns:
+        raise ValueError("measurements table lacks column 't'")
+    groups = {"yaw": YAW_COLUMNS, "sun": SUN_COLUMNS, "zupt": ZUPT_COLUMNS}
+    present = {g: [c for c in cols if c in df.columns] for g, cols in groups.items()}
+    for g, cols in groups.items():
+        if present[g] and len(present[g]) != len(cols):
+            missing = [c for c in cols if c not in df.columns]
+            raise ValueError(f"measurements: incomplete {g} columns, missing {missing}")
+    if len(df) and not any(present.values()):
+        raise ValueError(
+            "measurements table has no measurement columns; expected yaw, yaw_std and/or "
+            f"{list(SUN_COLUMNS)} and/or zupt_std"
+        )
+    t = _numeric(df, ("t",), "measurements")[:, 0]
+    _check_times(t, "measurements")
+    if present["yaw"]:
+        yaw, std = _numeric(df, YAW_COLUMNS, "measurements").T
+        big = np.flatnonzero(np.abs(yaw) > 2.0 * np.pi)
+        if big.size:
+            raise ValueError(
+                f"measurements: yaw={yaw[big[0]]:.4g} at row {big[0]} is outside "
+                "[-2 pi, 2 pi]; yaw must be in radians (ENU, counter-clockwise from East)"
+            )
+        _check_std(std, "yaw_std", np.pi)
+    if present["sun"]:
+        sun = _numeric(df, SUN_COLUMNS, "measurements")
+        for name, vec in (("sun_b", sun[:, 0:3]), ("sun_n", sun[:, 3:6])):
+            norm = np.linalg.norm(vec, axis=1)
+            bad = np.flatnonzero(np.isfinite(norm) & (np.abs(norm - 1.0) > 0.01))
+            if bad.size:
+                raise ValueError(
+                    f"measurements: {name} at row {bad[0]} has norm {norm[bad[0]]:.4g}; "
+                    "sun vectors must be unit vectors"
+                )
+        _check_std(sun[:, 6], "sun_std", np.pi)
+    if present["zupt"]:
+        _check_std(_numeric(df, ZUPT_COLUMNS, "measurements")[:, 0], "zupt_std", np.inf)
+    return df
+
+
+def _check_std(std: FloatArray, name: str, upper: float) -> None:
+    bad = np.flatnonzero(np.isfinite(std) & ((std <= 0) | (std > upper)))
+    if bad.size:
+        raise ValueError(
+            f"measurements: {name}={std[bad[0]]:.4g} at row {bad[0]} must be > 0"
+            + (f" and <= {upper:.4g} (radians expected)" if np.isfinite(upper) else "")
+        )
+
+
+def measurement_items_from_frame(
+    measurements: pd.DataFrame, *, use_sun: bool = True
+) -> list[MeasurementItem]:
+    """The filter's measurement items of a validated measurements table, in row order.
+
+    Vectorised form of :func:`polins.fusion.eskf.measurement_items` applied to every row
+    (the same rules: sun vector if complete and ``use_sun``, else yaw, NaN -> invalid item,
+    ``zupt_std`` -> zero-velocity item).
+    """
+    df = measurements
+    n = len(df)
+
+    def col(name: str) -> FloatArray:
+        return df[name].to_numpy(dtype=float) if name in df.columns else np.full(n, np.nan)
+
+    t = col("t")
+    has_yaw = "yaw" in df.columns
+    has_sun = "sun_std" in df.columns
+    has_zupt = "zupt_std" in df.columns
+    yaw, yaw_std = col("yaw"), col("yaw_std")
+    sun_b = np.column_stack([col(f"sun_b{c}") for c in "xyz"])
+    sun_n = np.column_stack([col(f"sun_n{c}") for c in "xyz"])
+    sun_std, zupt_std = col("sun_std"), col("zupt_std")
+    with np.errstate(invalid="ignore"):
+        n_ok = np.all(np.isfinite(sun_n), axis=1)
+        sun_ok = has_sun & np.all(np.isfinite(sun_b), axis=1) & n_ok & (sun_std > 0)
+        yaw_ok = np.isfinite(yaw) & (yaw_std > 0)
+        zupt_ok = zupt_std > 0
+    items: list[MeasurementItem] = []
+    for i in range(n):
+        ti = float(t[i])
+        if use_sun and sun_ok[i]:
+            items.append(
+                MeasurementItem(
+                    ti, "sun", float(sun_std[i]), sun_b=sun_b[i].copy(), sun_n=sun_n[i].copy()
+                )
+            )
+        elif has_yaw:
+            ok = bool(yaw_ok[i])
+            items.append(
+                MeasurementItem(
+                    ti,
+                    "yaw",
+                    float(yaw_std[i]) if ok else np.nan,
+                    yaw=float(yaw[i]) if ok else np.nan,
+                    sun_n=sun_n[i].copy() if n_ok[i] else None,
+                    valid=ok,
+                )
+            )
+        elif has_sun:
+            items.append(MeasurementItem(ti, "sun", np.nan, valid=False))
+        if has_zupt and np.isfinite(zupt_std[i]):
+            ok = bool(zupt_ok[i])
+            items.append(
+                MeasurementItem(ti, "zupt", float(zupt_std[i]) if ok else np.nan, valid=ok)
+            )
+    return items

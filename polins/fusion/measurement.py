@@ -1,0 +1,298 @@
+"""Measurement models shared by the ESKF and the GTSAM graph: residual, Jacobian, covariance.
+
+Every model returns a :class:`Linearized` evaluated at a nominal state. The error state is
+the 15-vector of INTERFACES.md::
+
+    dx = [dtheta (0:3), dv_n (3:6), dp (6:9), dbg (9:12), dba (12:15)]
+
+with the attitude error in the navigation frame, ``rot_nb_true = Rotation.from_rotvec(dtheta)
+* rot_nb_nominal``, ``vel_n_true = vel_n + dv_n``, ``dp`` the position error in local ENU
+metres and ``bias_true = bias + dbias``.
+
+Conventions of :class:`Linearized`:
+
+* ``residual = z - h(x_nominal)`` (angles wrapped), the innovation when the error state is 0;
+* ``H = d h(x_nominal (+) dx) / d dx`` at ``dx = 0``, so ``z ~ h(x_nominal) + H dx + noise``
+  and the residual as a function of the error state is ``residual - H dx`` to first order;
+* ``R`` the measurement noise covariance.
+
+A Kalman update with ``filterpy.kalman.update(dx, P, z=residual, R=R, H=H)`` is then the
+standard error-state update. A factor graph uses ``residual`` and ``H`` directly (GTSAM's
+error is ``h(x) - z = -residual``; its Jacobian is ``H`` mapped to its own tangent space).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from polins.attitude import rot_lb_from_rot_nb, wrap_angle
+from polins.ins import skew
+
+FloatArray = NDArray[np.float64]
+
+N_ERROR = 15
+ATT = slice(0, 3)
+VEL = slice(3, 6)
+POS = slice(6, 9)
+BG = slice(9, 12)
+BA = slice(12, 15)
+
+
+@dataclass(frozen=True, eq=False)
+class Linearized:
+    """One linearized measurement ``(z - h(x), H, R)`` at the nominal state.
+
+    Attributes
+    ----------
+    residual : (m,) ndarray
+        ``z - h(x_nominal)``, angles wrapped to (-pi, pi] [measurement units].
+    H : (m, 15) ndarray
+        Jacobian of ``h`` with respect to the error state (module docstring).
+    R : (m, m) ndarray
+        Measurement noise covariance [measurement units squared].
+    name : str
+        Model name: ``"yaw"``, ``"sun"``, ``"zupt"`` or ``"nhc"``.
+    """
+
+    residual: FloatArray
+    H: FloatArray
+    R: FloatArray
+    name: str
+
+    @property
+    def dim(self) -> int:
+        """Number of measurement components ``m``."""
+        return int(self.residual.shape[0])
+
+
+def _mat_nb(rot_nb: Rotation | ArrayLike) -> FloatArray:
+    """``mat_nb`` of a single scipy Rotation, or a (3, 3) rotation matrix given directly."""
+    if isinstance(rot_nb, Rotation):
+        if not rot_nb.single:
+            raise ValueError("rot_nb must be a single scipy Rotation (body FLU -> ENU)")
+        return rot_nb.as_matrix()
+    mat = np.asarray(rot_nb, dtype=float)
+    if mat.shape != (3, 3) or not np.all(np.isfinite(mat)):
+        raise ValueError("rot_nb must be a single scipy Rotation or a finite (3, 3) matrix mat_nb")
+    return mat
+
+
+def _vector3(v: ArrayLike, name: str, *, unit: bool = False) -> FloatArray:
+    arr = np.asarray(v, dtype=float)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be a finite 3-vector, got shape {arr.shape}")
+    if unit:
+        norm = np.linalg.norm(arr)
+        if not 0.5 < norm < 1.5:
+            raise ValueError(f"{name} must be a unit direction vector, got |{name}| = {norm:.3g}")
+        arr = arr / norm
+    return arr
+
+
+def _variance(std: ArrayLike, m: int, name: str) -> FloatArray:
+    s = np.broadcast_to(np.asarray(std, dtype=float), (m,))
+    if not np.all(np.isfinite(s)) or not np.all(s > 0):
+        raise ValueError(f"{name} must be finite and > 0, got {std!r}")
+    return s * s
+
+
+def _wrap(a: float) -> float:
+    """Scalar :func:`polins.attitude.wrap_angle`, to (-pi, pi]."""
+    return math.pi - (math.pi - a) % (2.0 * math.pi)
+
+
+# ----------------------------------------------------------------------------- kernels
+# The kernels take validated inputs (mat_nb a rotation matrix, unit vectors, variances);
+# the public functions below validate and call them. The ESKF calls the kernels directly.
+def yaw_kernel(mat_nb: FloatArray, yaw: float, var: float, sun_n: FloatArray | None) -> Linearized:
+    """:func:`yaw_measurement` on validated inputs (``var`` = yaw_std^2, unit ``sun_n``)."""
+    a = mat_nb[:, 0] if sun_n is None else sun_n
+    ax, ay, az = float(a[0]), float(a[1]), float(a[2])
+    horiz2 = ax * ax + ay * ay
+    if horiz2 < 1e-12:
+        raise ValueError("yaw is undefined: the reference direction is vertical")
+    H = np.zeros((1, N_ERROR))
+    H[0, 0] = -ax * az / horiz2
+    H[0, 1] = -ay * az / horiz2
+    H[0, 2] = 1.0
+    predicted = math.atan2(float(mat_nb[1, 0]), float(mat_nb[0, 0]))
+    return Linearized(np.array([_wrap(yaw - predicted)]), H, np.array([[var]]), "yaw")
+
+
+def sun_kernel(
+    mat_nb: FloatArray, sun_b: FloatArray, sun_n: FloatArray, var: float, basis_b: FloatArray | None
+) -> Linearized:
+    """:func:`sun_measurement` on validated inputs (unit vectors, ``var`` = sun_std^2)."""
+    s_pred_b = mat_nb.T @ sun_n
+    basis = _basis(s_pred_b) if basis_b is None else basis_b
+    H = np.zeros((2, N_ERROR))
+    # h(dtheta) = mat_bn exp(-dtheta) sun_n ~ h + mat_bn [sun_n x] dtheta
+    H[:, ATT] = (mat_nb @ basis).T @ skew(sun_n)
+    return Linearized(basis.T @ (sun_b - s_pred_b), H, np.eye(2) * var, "sun")
+
+
+def zero_velocity_kernel(vel_n: FloatArray, var: FloatArray) -> Linearized:
+    """:func:`zero_velocity` on validated inputs (``var`` (3,) variances)."""
+    H = np.zeros((3, N_ERROR))
+    H[:, VEL] = np.eye(3)
+    return Linearized(-vel_n, H, np.diag(var), "zupt")
+
+
+def non_holonomic_kernel(mat_nb: FloatArray, vel_n: FloatArray, var: FloatArray) -> Linearized:
+    """:func:`non_holonomic` on validated inputs (``var`` (2,) variances)."""
+    mat_bn = mat_nb.T
+    H = np.zeros((2, N_ERROR))
+    H[:, ATT] = (mat_bn @ skew(vel_n))[1:3]
+    H[:, VEL] = mat_bn[1:3]
+    return Linearized(-(mat_bn @ vel_n)[1:3], H, np.diag(var), "nhc")
+
+
+def _basis(s_b: FloatArray) -> FloatArray:
+    s = s_b / np.linalg.norm(s_b)
+    helper = np.zeros(3)
+    helper[int(np.argmin(np.abs(s)))] = 1.0
+    e1 = np.cross(s, helper)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(s, e1)], axis=-1)
+
+
+# ----------------------------------------------------------------------------- public
+def yaw_measurement(
+    rot_nb: Rotation | ArrayLike, yaw: float, yaw_std: float, *, sun_n: ArrayLike | None = None
+) -> Linearized:
+    """Polarization (or any absolute) yaw measurement, SPEC.md 10.2 "Filter update".
+
+    Parameters
+    ----------
+    rot_nb : Rotation or (3, 3) array_like
+        Nominal attitude, body FLU -> ENU (a Rotation, or the matrix ``mat_nb``).
+    yaw : float
+        Measured ENU yaw of body x [rad] (CONVENTIONS.md).
+    yaw_std : float
+        Its 1-sigma [rad], e.g. ``Measurement.yaw_std`` (already inflated per SPEC 10.2).
+    sun_n : (3,) array_like, optional
+        ENU sun vector. Give it when the yaw was computed by ``polins.measure`` with this
+        nominal attitude as ``rot_nb_prior``: the measured yaw then depends on the nominal
+        tilt (the cot(Z) coupling of SPEC 10.2), and ``H`` carries that coupling instead of
+        inflating ``R``. Without it ``h(x)`` is the yaw of body x of the true attitude.
+
+    Returns
+    -------
+    Linearized
+        ``residual = wrap(yaw - yaw(rot_nb))``, ``H`` on the attitude error only
+        (``[-a_x a_z, -a_y a_z, a_x^2 + a_y^2] / (a_x^2 + a_y^2)`` with ``a`` the body x
+        axis in ENU, or the sun vector), ``R = yaw_std^2``.
+    """
+    mat = _mat_nb(rot_nb)
+    if not np.isfinite(yaw):
+        raise ValueError(f"yaw must be finite [rad], got {yaw!r}")
+    s_n = None if sun_n is None else _vector3(sun_n, "sun_n", unit=True)
+    return yaw_kernel(mat, float(yaw), float(_variance(yaw_std, 1, "yaw_std")[0]), s_n)
+
+
+def sun_basis_b(sun_b: ArrayLike) -> FloatArray:
+    """Orthonormal basis ``(3, 2)`` of the plane perpendicular to a unit vector ``sun_b``."""
+    return _basis(_vector3(sun_b, "sun_b", unit=True))
+
+
+def sun_measurement(
+    rot_nb: Rotation | ArrayLike,
+    sun_b: ArrayLike,
+    sun_n: ArrayLike,
+    sun_std: float,
+    *,
+    basis_b: ArrayLike | None = None,
+) -> Linearized:
+    """Sun-vector direction measurement (2 degrees of freedom).
+
+    The camera measures the sun direction in the body frame, ``sun_b`` (``Measurement.sun_b``);
+    the ephemeris gives ``sun_n``. Prediction ``h(x) = mat_bn(x) sun_n``. The residual is the
+    measured direction minus the prediction projected on a basis ``E`` of the plane
+    perpendicular to the predicted direction: ``residual = E^T (sun_b - h)`` (small-angle
+    components [rad]). It observes the attitude error except the rotation about ``sun_n``,
+    hence yaw and tilt.
+
+    Parameters
+    ----------
+    rot_nb : Rotation or (3, 3) array_like
+        Nominal attitude, body FLU -> ENU.
+    sun_b : (3,) array_like
+        Measured unit sun vector, body frame (normalised here).
+    sun_n : (3,) array_like
+        Reference unit sun vector, ENU (``polins.sun_vector_n``).
+    sun_std : float
+        Direction 1-sigma per tangent axis [rad] (``Measurement.sun_std``).
+    basis_b : (3, 2) array_like, optional
+        Tangent basis to use instead of :func:`sun_basis_b` of the prediction (for
+        evaluating the same residual function at perturbed states).
+
+    Returns
+    -------
+    Linearized
+        ``H[:, 0:3] = (mat_nb E)^T [sun_n x]`` and ``R = sun_std^2 I_2``.
+    """
+    mat = _mat_nb(rot_nb)
+    basis = None
+    if basis_b is not None:
+        basis = np.asarray(basis_b, dtype=float)
+        if basis.shape != (3, 2):
+            raise ValueError(f"basis_b must have shape (3, 2), got {basis.shape}")
+    return sun_kernel(
+        mat,
+        _vector3(sun_b, "sun_b", unit=True),
+        _vector3(sun_n, "sun_n", unit=True),
+        float(_variance(sun_std, 1, "sun_std")[0]),
+        basis,
+    )
+
+
+def zero_velocity(vel_n: ArrayLike, std: ArrayLike) -> Linearized:
+    """Zero-velocity update (vehicle at rest): ``z = 0``, ``h(x) = vel_n`` [m/s].
+
+    Parameters
+    ----------
+    vel_n : (3,) array_like
+        Nominal ENU velocity [m/s].
+    std : float or (3,) array_like
+        1-sigma of the zero-velocity pseudo-measurement [m/s].
+    """
+    return zero_velocity_kernel(_vector3(vel_n, "vel_n"), _variance(std, 3, "zero-velocity std"))
+
+
+def non_holonomic(rot_nb: Rotation | ArrayLike, vel_n: ArrayLike, std: ArrayLike) -> Linearized:
+    """Non-holonomic constraint of a ground vehicle: no lateral, no vertical body velocity.
+
+    ``z = 0``, ``h(x) = (mat_bn vel_n)[1:3]`` (body y and z velocity) [m/s].
+    With ``v_b = mat_bn exp(-dtheta)(vel_n + dv_n)``: ``dh/ddtheta = mat_bn [vel_n x]``,
+    ``dh/ddv_n = mat_bn`` (rows y and z).
+
+    Parameters
+    ----------
+    rot_nb : Rotation or (3, 3) array_like
+        Nominal attitude, body FLU -> ENU.
+    vel_n : (3,) array_like
+        Nominal ENU velocity [m/s].
+    std : float or (2,) array_like
+        1-sigma of the lateral and vertical pseudo-measurements [m/s].
+    """
+    return non_holonomic_kernel(
+        _mat_nb(rot_nb), _vector3(vel_n, "vel_n"), _variance(std, 2, "non-holonomic std")
+    )
+
+
+def yaw_from_sun(rot_nb: Rotation | ArrayLike, sun_b: ArrayLike, sun_n: ArrayLike) -> float:
+    """Yaw [rad] from a measured body sun vector using the tilt of ``rot_nb`` (SPEC 10.1).
+
+    ``yaw = wrap(alpha_s^n - atan2(s^l_y, s^l_x))`` with ``s^l = mat_lb s^b`` and
+    ``alpha_s^n = atan2(sun_n_y, sun_n_x)``. Used for self-alignment from a sun vector.
+    """
+    if not isinstance(rot_nb, Rotation):
+        rot_nb = Rotation.from_matrix(_mat_nb(rot_nb))
+    s_l = rot_lb_from_rot_nb(rot_nb).apply(_vector3(sun_b, "sun_b", unit=True))
+    s_n = _vector3(sun_n, "sun_n", unit=True)
+    return float(wrap_angle(np.arctan2(s_n[1], s_n[0]) - np.arctan2(s_l[1], s_l[0])))

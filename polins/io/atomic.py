@@ -1,0 +1,63 @@
+"""Atomic file output: write to a temporary file in the target folder, then ``os.replace``.
+
+An interrupted run (exception, Ctrl-C, killed process) therefore never leaves a truncated
+file under the final name: either the previous file or the complete new one is there. The
+temporary file is hidden (``.<name>.<random>.tmp<suffix>``) and removed on errors; it keeps
+the final suffix because some writers (OpenCV) choose the format from it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Context manager yielding a temporary path that replaces ``path`` on success.
+
+    Parameters
+    ----------
+    path : str or Path
+        Final file name; its folder is created if needed.
+
+    Yields
+    ------
+    Path
+        A fresh temporary file in the same folder (same file system, so the final
+        ``os.replace`` is atomic). Write the complete content to it inside the block.
+    """
+    final = Path(path)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(
+        prefix=f".{final.name}.", suffix=f".tmp{final.suffix}", dir=final.parent
+    )
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, final)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write a text file atomically (UTF-8); returns the final path."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+__all__ = ["atomic_path", "write_text_atomic"]

@@ -1,0 +1,610 @@
+"""A recorded (or simulated) log on disk: ``manifest.toml`` plus IMU table, images and truth.
+
+Folder layout (INTERFACES.md), as written by :func:`write_log`::
+
+    manifest.toml       what is where, site, epoch, sensor models, units
+    imu.csv             t, gx, gy, gz, ax, ay, az        (or imu.parquet)
+    images.csv          t, file                           (index of the raw mosaics)
+    images/000000.png   16-bit raw DoFP mosaics           (or .tiff)
+    truth.csv           Trajectory.truth_frame() columns  (optional reference trajectory)
+    camera.toml         camera model, when given as an object (self-contained log)
+    imu_model.toml      IMU model, when given as an object
+
+``manifest.toml``::
+
+    [log]
+    epoch_utc = "2023-09-05T07:00:00+00:00"  # timezone-aware; t = 0 of every stream
+    camera = "paper-table1"                  # shipped model name, or a .toml path
+    imu = "mems-typical"                     # (paths are relative to the manifest)
+    lat_deg = 45.6234
+    lon_deg = 126.7264
+    alt_m = 148.74                           # optional, default 0
+    description = "..."                      # optional
+
+    [files]
+    imu = "imu.csv"          # .csv or .parquet
+    images = "images.csv"    # index CSV (t, file), or a folder of time-named images
+    truth = "truth.csv"      # optional
+    # bag = "run.bag"        # instead of imu + images: ROS 1 bag or ROS 2 bag folder/.mcap
+
+    [units]                  # optional; units of the IMU file if it does not declare them
+    gyro = "rad/s"           # or "deg/s"
+    accel = "m/s^2"          # or "g"
+
+    [ros]                    # optional, with files.bag only
+    imu_topic = "/imu/data"
+    image_topic = "/camera/image_raw"
+
+Every file is written atomically and the manifest last, so a folder with a manifest is a
+complete log; an interrupted :func:`write_log` leaves no manifest.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import difflib
+import json
+import math
+import re
+import shutil
+import tomllib
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from polins.calibration import CameraModel, ImuModel, load_camera, load_imu
+from polins.ephemeris import sun_position, sun_vector_n
+from polins.io.atomic import atomic_path, write_text_atomic
+from polins.io.images import IMAGE_SUFFIXES, read_image_index, write_image
+from polins.io.images import write_image_index as _write_index
+from polins.io.tables import ACCEL_UNITS, GYRO_UNITS, read_imu, read_table, write_imu, write_table
+
+MANIFEST_NAME = "manifest.toml"
+
+
+class ManifestError(ValueError):
+    """A manifest is missing a key, has an unknown key, or a bad value (named in the message)."""
+
+
+class ImageSource(Protocol):
+    """Times and lazily loaded raw images of a log (folder index or ROS bag)."""
+
+    @property
+    def t(self) -> NDArray[np.float64]: ...
+
+    def __len__(self) -> int: ...
+
+    def __iter__(self) -> Iterator[tuple[float, Any]]: ...
+
+
+# ----------------------------------------------------------------------------- TOML out
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | np.integer):
+        return str(int(v))
+    if isinstance(v, float | np.floating):
+        x = float(v)
+        if math.isnan(x):
+            return "nan"
+        if math.isinf(x):
+            return "inf" if x > 0 else "-inf"
+        return repr(x)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a valid TOML basic string
+    if isinstance(v, np.ndarray):
+        return _toml_value(v.tolist())
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_dumps(data: Mapping[str, Any], header: str = "") -> str:
+    """Minimal TOML writer for flat keys and one level of tables (all polins files need)."""
+    lines = [f"# {line}" for line in header.splitlines()]
+    tables = {k: v for k, v in data.items() if isinstance(v, Mapping)}
+    for key, value in data.items():
+        if key not in tables:
+            lines.append(f"{key} = {_toml_value(value)}")
+    for name, table in tables.items():
+        lines.extend(["", f"[{name}]"])
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in table.items())
+    return "\n".join(lines) + "\n"
+
+
+def camera_model_toml(cam: CameraModel) -> str:
+    """A camera model as TOML text that :func:`polins.load_camera` reads back to ``cam``."""
+    k = cam.camera_matrix
+    data = {
+        "name": cam.name,
+        "description": cam.description,
+        "sensor": {
+            "width_px": cam.width_px,
+            "height_px": cam.height_px,
+            "pixel_pitch_um": cam.pixel_pitch_um,
+            "bit_depth": cam.bit_depth,
+            "saturation_dn": cam.saturation_dn,
+            "mosaic_layout_deg": cam.nominal_angle_deg[cam.channel_at],
+        },
+        "polarizer": {
+            "nominal_angle_deg": cam.nominal_angle_deg,
+            "transmission_angle_deg": np.degrees(cam.transmission_angle),
+            "gain": cam.gain,
+            "efficiency": cam.efficiency,
+            "dark_offset_dn": cam.dark_offset_dn,
+        },
+        "noise": {
+            "read_noise_dn": cam.read_noise_dn,
+            "conversion_gain_e_per_dn": cam.conversion_gain_e_per_dn,
+        },
+        "lens": {
+            "projection": cam.projection,
+            "polarization_model": cam.polarization_model,
+            "fx_superpixel": k[0, 0],
+            "fy_superpixel": k[1, 1],
+            "cx_superpixel": k[0, 2],
+            "cy_superpixel": k[1, 2],
+            "distortion": cam.distortion,
+            "fov_max_deg": math.degrees(cam.fov_max),
+        },
+        "mount": {"mat_bc": cam.mat_bc},
+        "occlusion": {"polygons_superpixel": [p.tolist() for p in cam.occlusion_polygons]},
+    }
+    return toml_dumps(data, header=f"camera model written by polins from {cam.path}")
+
+
+def imu_model_toml(model: ImuModel) -> str:
+    """An IMU model as TOML text that :func:`polins.load_imu` reads back to ``model``."""
+    deg_per_h = math.pi / 180.0 / 3600.0  # [rad/s] per [deg/h]
+    mg = 9.80665e-3  # [m/s^2] per [mg]
+    sqrt_h = 60.0  # sqrt(3600 s)
+    data = {
+        "name": model.name,
+        "description": model.description,
+        "grade": model.grade,
+        "earth_rate": model.earth_rate,
+        "sample_rate_hz": model.sample_rate_hz,
+        "gyro": {
+            "arw_deg_per_sqrt_h": math.degrees(model.gyro_arw) * sqrt_h,
+            "bias_deg_per_h": model.gyro_bias / deg_per_h,
+            "bias_rw_deg_per_h_per_sqrt_h": model.gyro_bias_rw / deg_per_h * sqrt_h,
+            "scale_factor_ppm": model.gyro_scale_factor * 1e6,
+        },
+        "accel": {
+            "vrw_m_per_s_per_sqrt_h": model.accel_vrw * sqrt_h,
+            "bias_mg": model.accel_bias / mg,
+            "bias_rw_mg_per_sqrt_h": model.accel_bias_rw / mg * sqrt_h,
+            "scale_factor_ppm": model.accel_scale_factor * 1e6,
+        },
+    }
+    return toml_dumps(data, header=f"IMU model written by polins from {model.path}")
+
+
+# ----------------------------------------------------------------------------- manifest
+def utc_timestamp(value: Any, what: str | None = "epoch_utc") -> pd.Timestamp:
+    """A timezone-aware time as a UTC ``Timestamp``; a naive time is a ``ValueError``.
+
+    ``what`` names the value in messages (None: the caller names it).
+    """
+    prefix = f"{what} = {value!r}: " if what else ""
+    try:
+        ts = pd.Timestamp(value)
+    except (ValueError, TypeError):
+        raise ValueError(f"{prefix}not an ISO time") from None
+    if ts is pd.NaT:
+        raise ValueError(f"{prefix}not an ISO time")
+    if ts.tzinfo is None:
+        raise ValueError(
+            f"{prefix}naive datetime: give a timezone, e.g. '2023-09-05T07:00:00+00:00'; "
+            "polins never assumes UTC"
+        )
+    return ts.tz_convert("UTC")
+
+
+def _str(v: Any) -> str:
+    if not isinstance(v, str) or not v:
+        raise TypeError("expected a non-empty string")
+    return v
+
+
+def _num(lo: float, hi: float) -> Callable[[Any], float]:
+    def check(v: Any) -> float:
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise TypeError("expected a number")
+        if not lo <= float(v) <= hi:
+            raise ValueError(f"expected a number in [{lo}, {hi}] (degrees)")
+        return float(v)
+
+    return check
+
+
+def _height(v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise TypeError("expected a number [m]")
+    return float(v)
+
+
+def _epoch(v: Any) -> pd.Timestamp:
+    if not isinstance(v, str | dt.datetime):
+        raise TypeError("expected an ISO time string with a timezone")
+    return utc_timestamp(v, None)
+
+
+def _unit(table: Mapping[str, float]) -> Callable[[Any], str]:
+    def check(v: Any) -> str:
+        if v not in table:
+            raise ValueError(f"expected one of {', '.join(repr(u) for u in table)}")
+        return str(v)
+
+    return check
+
+
+# section -> key -> (required, validator)
+_MANIFEST_SCHEMA: dict[str, dict[str, tuple[bool, Callable[[Any], Any]]]] = {
+    "log": {
+        "epoch_utc": (True, _epoch),
+        "camera": (True, _str),
+        "imu": (True, _str),
+        "lat_deg": (True, _num(-90.0, 90.0)),
+        "lon_deg": (True, _num(-180.0, 360.0)),
+        "alt_m": (False, _height),
+        "description": (False, lambda v: v if isinstance(v, str) else _str(v)),
+    },
+    "files": {
+        "imu": (False, _str),
+        "images": (False, _str),
+        "truth": (False, _str),
+        "bag": (False, _str),
+    },
+    "units": {"gyro": (False, _unit(GYRO_UNITS)), "accel": (False, _unit(ACCEL_UNITS))},
+    "ros": {"imu_topic": (False, _str), "image_topic": (False, _str)},
+}
+_REQUIRED_SECTIONS = ("log", "files")
+
+
+def _unknown(path: Path, key: str, allowed: Iterable[str]) -> ManifestError:
+    allowed = list(allowed)
+    name = key.rsplit(".", 1)[-1]
+    guess = difflib.get_close_matches(name, allowed, n=1, cutoff=0.5)
+    prefix = key[: -len(name)]
+    hint = f"; did you mean '{prefix}{guess[0]}'?" if guess else ""
+    return ManifestError(
+        f"{path}: unknown key '{key}'{hint} (allowed: {', '.join(prefix + a for a in allowed)})"
+    )
+
+
+def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Read and validate a manifest; returns ``{section: {key: value}}`` (defaults filled).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    ManifestError
+        Not TOML, unknown/missing key, wrong type or unit; the message names the key.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / MANIFEST_NAME
+    if not path.is_file():
+        raise FileNotFoundError(f"manifest not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ManifestError(f"{path}: not valid TOML: {exc}") from None
+    out: dict[str, dict[str, Any]] = {}
+    for section, content in data.items():
+        if section not in _MANIFEST_SCHEMA:
+            raise _unknown(path, section, _MANIFEST_SCHEMA)
+        if not isinstance(content, dict):
+            raise ManifestError(f"{path}: '{section}' must be a table [{section}]")
+    for section, schema in _MANIFEST_SCHEMA.items():
+        content = data.get(section)
+        if content is None:
+            if section in _REQUIRED_SECTIONS:
+                raise ManifestError(f"{path}: missing table [{section}]")
+            content = {}
+        for key in content:
+            if key not in schema:
+                raise _unknown(path, f"{section}.{key}", schema)
+        values: dict[str, Any] = {}
+        for key, (required, check) in schema.items():
+            if key not in content:
+                if required:
+                    raise ManifestError(f"{path}: missing key '{section}.{key}'")
+                continue
+            try:
+                values[key] = check(content[key])
+            except (TypeError, ValueError) as exc:
+                raise ManifestError(
+                    f"{path}: key '{section}.{key}' = {content[key]!r}: {exc}"
+                ) from None
+        out[section] = values
+    out["log"].setdefault("alt_m", 0.0)
+    out["log"].setdefault("description", "")
+    files = out["files"]
+    if "bag" in files:
+        clash = [k for k in ("imu", "images") if k in files]
+        if clash:
+            raise ManifestError(
+                f"{path}: key 'files.bag' excludes 'files.{clash[0]}': give either a bag or "
+                "imu + images"
+            )
+    else:
+        for key in ("imu", "images"):
+            if key not in files:
+                raise ManifestError(
+                    f"{path}: missing key 'files.{key}' (or give 'files.bag' for a ROS bag)"
+                )
+    if out["ros"] and "bag" not in files:
+        raise ManifestError(f"{path}: table [ros] is only used with 'files.bag'")
+    return out
+
+
+# ----------------------------------------------------------------------------- Log
+@dataclass(frozen=True, eq=False)
+class Log:
+    """A log loaded from its manifest; images are read lazily.
+
+    Attributes
+    ----------
+    manifest_path : Path
+    epoch_utc : Timestamp
+        UTC time of ``t = 0``.
+    camera : CameraModel
+    imu_model : ImuModel
+    lat_deg, lon_deg, alt_m : float
+        Site (geodetic, WGS-84) [deg, deg, m].
+    imu : DataFrame
+        ``t, gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2], as recorded (not yet cleaned).
+    images : ImageSource
+        ``.t`` image times [s] and iteration over ``(t, item)``; load an item with
+        :func:`polins.io.load_raw`.
+    truth : DataFrame or None
+        Reference trajectory (``Trajectory.truth_frame()`` columns), if the log has one.
+    """
+
+    manifest_path: Path
+    epoch_utc: pd.Timestamp
+    camera: CameraModel
+    imu_model: ImuModel
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    imu: pd.DataFrame
+    images: ImageSource
+    truth: pd.DataFrame | None = None
+    description: str = ""
+    manifest: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    @property
+    def folder(self) -> Path:
+        """Folder holding the manifest."""
+        return self.manifest_path.parent
+
+    def times_utc(self, t: NDArray[np.float64]) -> pd.DatetimeIndex:
+        """Absolute UTC times of log times ``t`` [s]."""
+        return pd.DatetimeIndex(self.epoch_utc + pd.to_timedelta(np.asarray(t, float), unit="s"))
+
+    def sun_n(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``(N, 3)`` ENU sun vectors (NREL SPA, apparent) at log times ``t`` [s]."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        if t.size == 0:
+            return np.zeros((0, 3))
+        sun = sun_position(self.times_utc(t), self.lat_deg, self.lon_deg, self.alt_m)
+        return sun_vector_n(sun.azimuth, sun.zenith)
+
+
+def _model_ref(folder: Path, ref: str) -> str | Path:
+    """Manifest model reference -> shipped name or path (relative to the manifest)."""
+    if ref.endswith(".toml") or "/" in ref or "\\" in ref:
+        p = Path(ref)
+        return p if p.is_absolute() else folder / p
+    return ref
+
+
+def read_log(
+    manifest_path: str | Path, *, gyro_unit: str | None = None, accel_unit: str | None = None
+) -> Log:
+    """Load a log from its manifest (a folder is taken to mean its ``manifest.toml``).
+
+    ``gyro_unit`` / ``accel_unit`` override the manifest's ``[units]`` (not the IMU file's
+    own declaration, which must agree).
+
+    Raises
+    ------
+    FileNotFoundError, ManifestError, ValueError
+        Missing files, bad manifest keys (named), bad tables.
+    """
+    path = Path(manifest_path)
+    if path.is_dir():
+        path = path / MANIFEST_NAME
+    m = parse_manifest(path)
+    folder = path.parent
+    log, files, units = m["log"], m["files"], m["units"]
+
+    def load(key: str, loader: Callable[[Any], Any]) -> Any:
+        try:
+            return loader(_model_ref(folder, log[key]))
+        except (FileNotFoundError, ValueError) as exc:
+            raise type(exc)(f"{path}: key 'log.{key}': {exc}") from None
+
+    camera = load("camera", load_camera)
+    imu_model = load("imu", load_imu)
+
+    def file(key: str) -> Path:
+        p = Path(files[key])
+        p = p if p.is_absolute() else folder / p
+        if not p.exists():
+            raise FileNotFoundError(f"{path}: key 'files.{key}': {p} does not exist")
+        return p
+
+    images: ImageSource
+    if "bag" in files:
+        from polins.io.rosbag import read_bag
+
+        imu, images = read_bag(file("bag"), epoch_utc=log["epoch_utc"], **m["ros"])
+    else:
+        imu = read_imu(
+            file("imu"),
+            gyro_unit=gyro_unit or units.get("gyro"),
+            accel_unit=accel_unit or units.get("accel"),
+        )
+        images = read_image_index(file("images"))
+    truth = read_table(file("truth")) if "truth" in files else None
+    return Log(
+        manifest_path=path,
+        epoch_utc=log["epoch_utc"],
+        camera=camera,
+        imu_model=imu_model,
+        lat_deg=log["lat_deg"],
+        lon_deg=log["lon_deg"],
+        alt_m=log["alt_m"],
+        imu=imu,
+        images=images,
+        truth=truth,
+        description=log["description"],
+        manifest=m,
+    )
+
+
+def _model_entry(
+    folder: Path, model: Any, file_name: str, kind: str, to_toml: Callable[[Any], str]
+) -> str:
+    if isinstance(model, CameraModel | ImuModel):
+        write_text_atomic(folder / file_name, to_toml(model))
+        return file_name
+    if not isinstance(model, str | Path):
+        raise TypeError(f"{kind} must be a model object, a shipped model name or a .toml path")
+    p = Path(model)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise FileNotFoundError(f"{kind} model file not found: {p}")
+        with atomic_path(folder / file_name) as tmp:
+            shutil.copyfile(p, tmp)
+        return file_name
+    (load_camera if kind == "camera" else load_imu)(str(model))  # unknown name -> clear error
+    return str(model)
+
+
+_NUMBERED = re.compile(r"^(?P<i>[0-9]{6,})\.(png|tif|tiff)$")
+
+
+def write_log(
+    folder: str | Path,
+    *,
+    epoch_utc: Any,
+    camera: CameraModel | str | Path,
+    imu_model: ImuModel | str | Path,
+    lat_deg: float,
+    lon_deg: float,
+    alt_m: float,
+    imu: pd.DataFrame,
+    images: Iterable[tuple[float, NDArray[np.unsignedinteger]]],
+    truth: pd.DataFrame | None = None,
+    image_format: str = "png",
+    imu_format: str = "csv",
+    gyro_unit: str = "rad/s",
+    accel_unit: str = "m/s^2",
+    description: str = "",
+) -> Path:
+    """Write a log folder (layout in the module docstring); returns the manifest path.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Output folder (created). An existing log there is replaced: its manifest is
+        removed first, so an interrupted rewrite is never mistaken for a complete log.
+    epoch_utc : str, datetime or Timestamp
+        Timezone-aware UTC epoch of ``t = 0``; a naive time raises ``ValueError``.
+    camera, imu_model : model object, shipped name, or .toml path
+        Objects (e.g. ``cam.downscaled(4)``) and paths are written into the folder
+        (``camera.toml``, ``imu_model.toml``), so the log is self-contained.
+    lat_deg, lon_deg, alt_m : float
+        Site [deg, deg, m].
+    imu : DataFrame
+        SI IMU samples ``t, gx, gy, gz, ax, ay, az``.
+    images : iterable of (t, raw)
+        Image times [s] and ``(H, W)`` uint16 mosaics; consumed once, one at a time.
+    truth : DataFrame, optional
+        Reference trajectory (``Trajectory.truth_frame()``), written as ``truth.csv``.
+    image_format : {"png", "tiff"}
+    imu_format : {"csv", "parquet"}
+    gyro_unit, accel_unit : str
+        Units to store the IMU in (declared in the file; read back as SI).
+    description : str
+        Free text stored in the manifest.
+    """
+    folder = Path(folder)
+    epoch = utc_timestamp(epoch_utc)
+    if image_format not in ("png", "tiff", "tif"):
+        raise ValueError(f"image_format {image_format!r}: expected 'png' or 'tiff'")
+    if imu_format not in ("csv", "parquet"):
+        raise ValueError(f"imu_format {imu_format!r}: expected 'csv' or 'parquet'")
+    _num(-90.0, 90.0)(lat_deg)
+    _num(-180.0, 360.0)(lon_deg)
+    folder.mkdir(parents=True, exist_ok=True)
+    manifest = folder / MANIFEST_NAME
+    manifest.unlink(missing_ok=True)
+
+    camera_ref = _model_entry(folder, camera, "camera.toml", "camera", camera_model_toml)
+    imu_ref = _model_entry(folder, imu_model, "imu_model.toml", "imu", imu_model_toml)
+    imu_name = f"imu.{imu_format}"
+    write_imu(folder / imu_name, imu, gyro_unit=gyro_unit, accel_unit=accel_unit)
+
+    image_dir = folder / "images"
+    image_dir.mkdir(exist_ok=True)
+    times: list[float] = []
+    names: list[str] = []
+    for i, (t, raw) in enumerate(images):
+        name = f"images/{i:06d}.{image_format}"
+        write_image(folder / name, raw)
+        times.append(float(t))
+        names.append(name)
+    for stale in image_dir.iterdir():  # numbered images of an earlier, longer log
+        match = _NUMBERED.match(stale.name)
+        if match and int(match.group("i")) >= len(names) and stale.suffix in IMAGE_SUFFIXES:
+            stale.unlink()
+    _write_index(folder / "images.csv", np.asarray(times), names)
+
+    files = {"imu": imu_name, "images": "images.csv"}
+    if truth is not None:
+        write_table(folder / "truth.csv", truth)
+        files["truth"] = "truth.csv"
+    text = toml_dumps(
+        {
+            "log": {
+                "epoch_utc": epoch.isoformat(),
+                "camera": camera_ref,
+                "imu": imu_ref,
+                "lat_deg": float(lat_deg),
+                "lon_deg": float(lon_deg),
+                "alt_m": float(alt_m),
+                "description": description,
+            },
+            "files": files,
+            "units": {"gyro": gyro_unit, "accel": accel_unit},
+        },
+        header="polins log manifest (see polins.io.log); t [s] counts from log.epoch_utc",
+    )
+    return write_text_atomic(manifest, text)
+
+
+__all__ = [
+    "MANIFEST_NAME",
+    "ImageSource",
+    "Log",
+    "ManifestError",
+    "camera_model_toml",
+    "imu_model_toml",
+    "parse_manifest",
+    "read_log",
+    "toml_dumps",
+    "utc_timestamp",
+    "write_log",
+]
