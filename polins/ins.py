@@ -279,18 +279,32 @@ def strapdown_step(
     return strapdown_step_detail(state, omega0_b, omega1_b, f0_b, f1_b, t1, mech)[0]
 
 
-def prefix_products(mats: FloatArray) -> FloatArray:
+def prefix_products(mats: FloatArray, block: int = 16) -> FloatArray:
     """Inclusive prefix products ``out[i] = mats[0] @ mats[1] @ ... @ mats[i]``, ``(n, a, a)``.
 
-    Hillis-Steele scan: ``ceil(log2 n)`` batched matrix products.
+    Two-level scan: Hillis-Steele inside blocks of ``block`` matrices (``log2(block)``
+    batched products), a sequential product of the block totals, and one batched product
+    applying them.
     """
-    out = np.array(mats, dtype=float, copy=True)
+    m = np.asarray(mats, dtype=float)
+    n = m.shape[0]
+    nb = -(-n // block)
+    pad = nb * block - n
+    out = (
+        m
+        if pad == 0
+        else np.concatenate([m, np.broadcast_to(np.eye(m.shape[-1]), (pad, *m.shape[1:]))])
+    )
+    out = out.reshape(nb, block, *m.shape[1:]).copy()
     d = 1
-    n = out.shape[0]
-    while d < n:
-        out[d:] = out[:-d] @ out[d:]
+    while d < block:
+        out[:, d:] = out[:, :-d] @ out[:, d:]
         d *= 2
-    return out
+    carry = out[:, -1].copy()
+    for i in range(1, nb):
+        carry[i] = carry[i - 1] @ carry[i]
+    out[1:] = carry[:-1, None] @ out[1:]
+    return out.reshape(nb * block, *m.shape[1:])[:n]
 
 
 def _left_prefix_products(mats: FloatArray) -> FloatArray:
@@ -381,6 +395,11 @@ def strapdown(
     dv_force = _force_increments(mat, mat_h, f, f_half, dt_col)
     coriolis = np.zeros((n, 3))
     v0 = state0.vel_n
+    if earth_terms:
+        # predictor: velocity without the Earth terms, a good first guess for them
+        dv = dv_force.copy()
+        dv[:, 2] -= normal_gravity(state0.lat, state0.height) * dt
+        vel[1:] = v0 + np.cumsum(dv, axis=0)[:-1]
     for _ in range(max_iter):
         if earth_terms:
             w_ie, w_en = nav_rates_n(lat, height, vel, mech)
@@ -410,10 +429,14 @@ def strapdown(
         lat_all[0] = 0.0
         np.cumsum(dpos[:, 1] / (r_m + height), out=lat_all[1:])
         lat_all += state0.lat
+        # A pass contracts the error of the guesses by ~|2 omega_ie + omega_en| * duration
+        # (< 3e-3 for 20 s): once a pass changes the guesses by less than these limits, the
+        # result is within ~3e-9 m/s of the exact fixed point and the attitude (which sees
+        # the velocity only through the transport rate v / R) within ~1e-15 rad.
         change = max(
-            float(np.max(np.abs(vel_all[:-1] - vel))) / 1e-12,  # [m/s]
-            float(np.max(np.abs(h_all[:-1] - height))) / 1e-9,  # [m]
-            float(np.max(np.abs(lat_all[:-1] - lat))) / 1e-15,  # [rad]
+            float(np.max(np.abs(vel_all[:-1] - vel))) / 1e-6,  # [m/s]
+            float(np.max(np.abs(h_all[:-1] - height))) / 1e-4,  # [m]
+            float(np.max(np.abs(lat_all[:-1] - lat))) / 1e-12,  # [rad]
         )
         vel, height, lat = vel_all[:-1], h_all[:-1], lat_all[:-1]
         if change <= 1.0:

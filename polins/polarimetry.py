@@ -555,9 +555,10 @@ def _paper_rows(
     p_k = 0.5 * np.cos(sun_azimuth_c - np.pi / 2 - cam.transmission_angle) ** 2  # Eq. 10-11
     p_hat = 0.5 * (1.0 - cam.efficiency[:, None].astype(dt) * d) * (p_k[:, None] - 0.5).astype(dt)
     m = 4.0 if eq22 == "printed" else 2.0
+    # Dark pixels (I_in = 0) give non-finite d and k_m; they stay NaN and the masks drop them.
     with np.errstate(invalid="ignore", divide="ignore"):
         k_m = kc * (i_hat.sum(axis=0) - m * i_in) / (i_in * p_hat.sum(axis=0))  # Eq. 22
-    corrected = dark - p_hat * (i_in * k_m)  # Eq. 23 (subtracted from the raw intensities)
+        corrected = dark - p_hat * (i_in * k_m)  # Eq. 23 (subtracted from the raw intensities)
     if gain_final:
         corrected = corrected / beta
     s1_hat = sign * (corrected[0] - corrected[2])  # Eq. 24

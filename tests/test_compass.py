@@ -452,3 +452,68 @@ def test_pinhole_camera_both_lens_models(tmp_path):
             assert m.ok and m.n_pixels > 50_000
             if method == "compensated":
                 assert abs(_err_deg(m, rot)) < 1e-6 and m.epsilon == pytest.approx(0.0125, rel=1e-3)
+
+
+# ----------------------------------------------------------------------------- sunvector API
+@pytest.mark.parametrize("model", ["projection", "meridian"])
+def test_public_sun_vector_functions(model):
+    from polins.camera import doubled_aop_from_evector, evector_from_aop
+    from polins.polarimetry import sunlight_direction, sunlight_stokes
+    from polins.sunvector import (
+        eigen_gap,
+        eigen_sun_covariance,
+        lens_forward,
+        ml_residuals,
+        sun_joint_ml,
+        sun_level_from_angles,
+        yaw_variance_from_sun_covariance,
+    )
+
+    rng = np.random.default_rng(18)
+    theta = np.arccos(rng.uniform(np.cos(np.radians(80)), 1.0, 20_000))
+    phi = rng.uniform(-np.pi, np.pi, 20_000)
+    rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
+    # Lens constants agree with polins.camera's lens models.
+    zeta = rng.uniform(-np.pi / 2, np.pi / 2, 20_000)
+    e_cam = evector_from_aop(zeta, rays, model)
+    e_lib = evectors_from_stokes(
+        np.stack([np.ones_like(zeta), np.cos(2 * zeta), np.sin(2 * zeta)], -1),
+        lens_basis(rays, model),
+    )
+    np.testing.assert_allclose(np.abs(np.sum(e_cam * e_lib, -1)), 1.0, atol=1e-12)
+    mat_cl = Rotation.from_euler("xy", [0.05, -0.08]).as_matrix()  # level -> camera
+    sun_l = sun_level_from_angles(0.7, np.radians(55.0))
+    sun_c = mat_cl @ sun_l
+    forward = lens_forward(rays, model)
+    xy = forward @ sun_c
+    c2s2 = doubled_aop_from_evector(np.cross(sun_c, rays), rays, model)
+    np.testing.assert_allclose(
+        np.stack([xy[:, 0] ** 2 - xy[:, 1] ** 2, 2 * xy[:, 0] * xy[:, 1]], -1)
+        / np.sum(xy**2, -1, keepdims=True),
+        c2s2,
+        atol=1e-12,
+    )
+    # A noisy Rayleigh field with sunlight: the joint ML recovers sun and eps, the residuals
+    # at the truth are the noise, and the covariances are consistent.
+    keep = rays @ sun_c < np.cos(np.radians(10))
+    rays, forward, c2s2 = rays[keep], forward[keep], c2s2[keep]
+    p = 200 * 0.6 * (1 - (rays @ sun_c) ** 2) / (1 + (rays @ sun_c) ** 2)
+    sky = np.concatenate([np.full((len(p), 1), 200.0), p[:, None] * c2s2], -1)
+    stokes = sunlight_stokes(sky, 0.0125, sunlight_direction(sun_c))
+    stokes[:, 1:] += rng.normal(0, 2.0, (len(p), 2))
+    r = ml_residuals(stokes, forward, mat_cl, sun_l, 0.0125, sigma_l=2.0)
+    assert r.std() == pytest.approx(1.0, rel=0.03) and abs(r.mean()) < 0.05
+    start = sun_level_from_angles(0.75, np.radians(50.0))
+    sol = sun_joint_ml(stokes, forward, mat_cl, start, sigma_l=2.0)
+    assert sol.converged and sol.residual_rms == pytest.approx(1.0, rel=0.03)
+    assert abs(sol.theta[0] - 0.7) < 5 * np.sqrt(sol.covariance[0, 0])
+    assert abs(sol.theta[2] - 0.0125) < 5 * np.sqrt(sol.covariance[2, 2])
+    fixed = sun_joint_ml(stokes, forward, mat_cl, start, sigma_l=2.0, zenith=np.radians(55.0))
+    assert fixed.covariance.shape == (2, 2) and fixed.covariance[0, 0] <= sol.covariance[0, 0]
+    # Weighted eigen solution and its sandwich covariance in the level frame.
+    e_l = evectors_from_stokes(stokes, lens_basis(rays, model)) @ mat_cl
+    weights = np.sum(stokes[:, 1:] ** 2, -1)
+    eig = sun_eigen(e_l, weights)
+    assert eigen_gap(eig) > 0.9 and eig.sun[2] > 0
+    var = yaw_variance_from_sun_covariance(eig.sun, eigen_sun_covariance(e_l, weights, eig))
+    assert 0.5 < np.sqrt(var) / np.sqrt(sol.covariance[0, 0]) < 3.0

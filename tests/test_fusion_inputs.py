@@ -39,11 +39,11 @@ def test_missing_columns():
 def test_duplicated_and_non_monotonic_timestamps():
     df = _imu()
     df.loc[10, "t"] = df.loc[9, "t"]
-    with pytest.raises(ValueError, match="duplicated timestamp.*rows 9 and 10"):
+    with pytest.raises(ValueError, match=r"duplicated timestamp.*rows 9 and 10"):
         validate_imu(df)
     df = _imu()
     df.loc[[20, 21], "t"] = df.loc[[21, 20], "t"].to_numpy()
-    with pytest.raises(ValueError, match="not monotonic.*row 21"):
+    with pytest.raises(ValueError, match=r"not monotonic.*row 21"):
         validate_imu(df)
 
 
@@ -151,7 +151,7 @@ def test_fuse_reports_input_errors():
     imu.loc[3, "gx"] = np.nan
     with pytest.raises(ValueError, match="NaN/inf sample"):
         polins.fuse(imu, None, rot_nb0=polins.rot_nb_from_euler(0, 0, 0), lat_deg=45.0)
-    with pytest.raises(TypeError, match="unknown fuse option.*nhc_sdt"):
+    with pytest.raises(TypeError, match=r"unknown fuse option.*nhc_sdt"):
         polins.fuse(_imu(), None, lat_deg=45.0, nhc_sdt=0.1)
     with pytest.raises(ValueError, match="backend='kalman'"):
         polins.fuse(_imu(), None, backend="kalman")

@@ -62,6 +62,7 @@ _FUSE_OPTIONS = {
     "max_gap_s": "longest allowed IMU gap [s] (default 5 median intervals)",
     "fast": "vectorised batch path (default True) or the per-sample streaming path",
     "time_tol": "measurement times this close to an IMU sample use it [s] (default 1e-6)",
+    "cov_step_s": "longest covariance-propagation step [s] (default 0.1)",
 }
 
 
@@ -80,10 +81,78 @@ def output_mask(t: np.ndarray, rate_hz: float | None) -> np.ndarray:
         return np.ones(len(t), dtype=bool)
     if not rate_hz > 0:
         raise ValueError(f"output_rate_hz must be > 0 or None, got {rate_hz}")
-    cell = np.ceil((t - t[0]) * rate_hz - 1e-9)
+    cell = np.floor((t - t[0]) * rate_hz + 1e-9)
     mask = np.concatenate([[True], np.diff(cell) > 0])
     mask[-1] = True
     return mask
+
+
+_OUTPUT_OPTIONS = {"output_rate_hz", "smooth", "max_gap_s", "fast", "zupt_std", "stationary"}
+
+
+def build_filter(t0: float, dt: float, rot_nb0: Rotation | None = None, **options: Any) -> ESKF:
+    """The :class:`~polins.fusion.eskf.ESKF` that :func:`fuse` runs, for streaming use.
+
+    Feeding this filter the IMU samples one by one (``propagate``) with the measurement
+    rows queued (``add_measurement``) reproduces ``fuse`` with the same options (to 1e-9
+    rad; ``state().row()`` is a row of the solution table).
+
+    Parameters
+    ----------
+    t0 : float
+        Time of the first IMU sample [s].
+    dt : float
+        IMU sample interval [s] (sets the non-holonomic and covariance-step cadence).
+    rot_nb0 : Rotation, optional
+        Initial attitude; None for self-alignment.
+    **options
+        The filter options of :func:`fuse` (``imu_model``, ``lat_deg``, ``lon_deg``,
+        ``alt_m``, ``vel_n0``, ``earth_rate``, ``scale_factors``, ``gate_prob``,
+        ``reset_interval_s``, ``reset_angle_rad``, ``align_s``, ``att_std0``, ``vel_std0``,
+        ``pos_std0``, ``use_sun``, ``tilt_coupling``, ``nhc_std``, ``nhc_rate_hz``,
+        ``cov_step_s``, ``time_tol``).
+    """
+    unknown = sorted(set(options) - (set(_FUSE_OPTIONS) - _OUTPUT_OPTIONS))
+    if unknown:
+        raise TypeError(f"unknown filter option(s) {unknown}")
+    if not dt > 0:
+        raise ValueError(f"dt must be a positive IMU sample interval [s], got {dt}")
+    model = _resolve_model(options.get("imu_model", "mems-typical"))
+    default_site = "lat_deg" not in options
+    lat_deg = float(options.get("lat_deg", DEFAULT_SITE[0]))
+    lon_deg = float(options.get("lon_deg", DEFAULT_SITE[1] if default_site else 0.0))
+    alt_m = float(options.get("alt_m", DEFAULT_SITE[2] if default_site else 0.0))
+    if not -90.0 <= lat_deg <= 90.0:
+        raise ValueError(f"lat_deg={lat_deg} outside [-90, 90] (degrees expected)")
+    earth = options.get("earth_rate")
+    earth = model.earth_rate if earth is None else bool(earth)
+    nhc_rate = float(options.get("nhc_rate_hz", 10.0))
+    if not nhc_rate > 0:
+        raise ValueError(f"nhc_rate_hz must be > 0, got {nhc_rate}")
+    cov_step = float(options.get("cov_step_s", 0.1))
+    if not cov_step > 0:
+        raise ValueError(f"cov_step_s must be > 0 [s], got {cov_step}")
+    eskf_fields = {f.name for f in dataclasses.fields(EskfOptions)}
+    kwargs = {k: v for k, v in options.items() if k in eskf_fields}
+    if "att_std0" in kwargs:
+        att = np.broadcast_to(np.asarray(kwargs["att_std0"], dtype=float), (3,))
+        kwargs["att_std0"] = tuple(float(a) for a in att)
+    eskf_options = EskfOptions(
+        mech=Mechanization(earth_rotation=earth, transport_rate=earth),
+        nhc_every=max(1, round(1.0 / (nhc_rate * dt))),
+        cov_every=max(1, int(cov_step / dt + 1e-9)),
+        **kwargs,
+    )
+    return ESKF(
+        model,
+        float(t0),
+        np.radians(lat_deg),
+        np.radians(lon_deg),
+        alt_m,
+        rot_nb0=rot_nb0,
+        vel_n0=options.get("vel_n0", (0.0, 0.0, 0.0)),
+        options=eskf_options,
+    )
 
 
 def fuse(
@@ -143,14 +212,13 @@ def fuse(
             )
             graph_opts["lat_deg"], graph_opts["lon_deg"], graph_opts["alt_m"] = DEFAULT_SITE
         meas = validate_measurements(measurements)
-        return graph.fuse_graph(imu, meas, rot_nb0, **graph_opts)  # type: ignore[no-any-return]
+        return graph.fuse_graph(imu, meas, rot_nb0, **graph_opts)
     if backend != "eskf":
         raise ValueError(f"backend={backend!r}: expected 'eskf' or 'graph'")
     unknown = sorted(set(options) - set(_FUSE_OPTIONS))
     if unknown:
         valid = "\n".join(f"  {k}: {v}" for k, v in _FUSE_OPTIONS.items())
         raise TypeError(f"unknown fuse option(s) {unknown}; valid options:\n{valid}")
-    model = _resolve_model(options.get("imu_model", "mems-typical"))
     arrays = validate_imu(imu, max_gap_s=options.get("max_gap_s"))
     meas = validate_measurements(measurements)
     if "lat_deg" not in options:
@@ -160,27 +228,10 @@ def fuse(
             UserWarning,
             stacklevel=2,
         )
-    lat_deg = float(options.get("lat_deg", DEFAULT_SITE[0]))
-    lon_deg = float(options.get("lon_deg", DEFAULT_SITE[1] if "lat_deg" not in options else 0.0))
-    alt_m = float(options.get("alt_m", DEFAULT_SITE[2] if "lat_deg" not in options else 0.0))
-    if not -90.0 <= lat_deg <= 90.0:
-        raise ValueError(f"lat_deg={lat_deg} outside [-90, 90] (degrees expected)")
-    earth = options.get("earth_rate")
-    earth = model.earth_rate if earth is None else bool(earth)
-    nhc_rate = float(options.get("nhc_rate_hz", 10.0))
-    if not nhc_rate > 0:
-        raise ValueError(f"nhc_rate_hz must be > 0, got {nhc_rate}")
-    eskf_fields = {f.name for f in dataclasses.fields(EskfOptions)}
-    kwargs = {k: v for k, v in options.items() if k in eskf_fields}
-    if "att_std0" in kwargs:
-        att = np.broadcast_to(np.asarray(kwargs["att_std0"], dtype=float), (3,))
-        kwargs["att_std0"] = tuple(float(a) for a in att)
-    eskf_options = EskfOptions(
-        mech=Mechanization(earth_rotation=earth, transport_rate=earth),
-        nhc_every=max(1, round(1.0 / (nhc_rate * arrays.dt))),
-        **kwargs,
-    )
-    items = measurement_items_from_frame(meas, use_sun=eskf_options.use_sun)
+    filt_opts = {k: v for k, v in options.items() if k not in _OUTPUT_OPTIONS}
+    filt = build_filter(float(arrays.t[0]), arrays.dt, rot_nb0, **filt_opts)
+    model = filt.model
+    items = measurement_items_from_frame(meas, use_sun=filt.options.use_sun)
     zupt_std = options.get("zupt_std")
     stationary = options.get("stationary")
     if stationary is not None:
@@ -189,16 +240,6 @@ def fuse(
         items += [
             MeasurementItem(float(ts), "zupt", float(zupt_std)) for ts in np.ravel(stationary)
         ]
-    filt = ESKF(
-        model,
-        float(arrays.t[0]),
-        np.radians(lat_deg),
-        np.radians(lon_deg),
-        alt_m,
-        rot_nb0=rot_nb0,
-        vel_n0=options.get("vel_n0", (0.0, 0.0, 0.0)),
-        options=eskf_options,
-    )
     mask = output_mask(arrays.t, options.get("output_rate_hz"))
     smooth = bool(options.get("smooth", False))
     if options.get("fast", True):
@@ -259,4 +300,4 @@ def records_frame(records: list[UpdateRecord]) -> pd.DataFrame:
     )
 
 
-__all__ = ["ESKF", "EskfOptions", "fuse", "records_frame"]
+__all__ = ["ESKF", "EskfOptions", "build_filter", "fuse", "output_mask", "records_frame"]

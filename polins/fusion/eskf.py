@@ -19,11 +19,11 @@ Continuous error dynamics (``phi``-angle form; Titterton & Weston 2004 Sec. 12.2
 
 with ``C = mat_nb``, ``D = diag(1 / (1 + s))`` and white noises of densities ARW, VRW and
 the bias random walks (``ImuModel``). The covariance is propagated in steps of ``cov_every`` IMU
-intervals (default 4, i.e. 50 Hz at 200 Hz; a step also ends at every measurement time);
+intervals (default 20, i.e. 10 Hz at 200 Hz; a step also ends at every measurement time);
 the error dynamics of a step use the step means of the attitude, of the specific force in
 ENU and of the scale-factor terms (the first Magnus term of the time-varying ``F``), and
 are discretised as ``Phi = exp(F T)`` (power series to third order: the neglected terms are
-below 1e-15 at these step lengths) and the Van Loan integral
+below 1e-8 relative for steps up to 0.1 s) and the Van Loan integral
 ``Q = int_0^T Phi(s) Qc Phi(s)^T ds`` by Simpson's rule (exact for the polynomial
 entries of ``Phi``; tests/test_eskf.py checks both against ``scipy.linalg.expm`` of the
 Van Loan matrix).
@@ -41,6 +41,18 @@ the reported estimate is always ``nominal (+) dx``. This lets the batch path pro
 nominal state and the transition matrices between resets with vectorised numpy; the
 streaming path (one IMU sample at a time) follows the same rule and gives the same
 results to rounding error (tests/test_eskf.py, 1e-9 rad).
+
+Ground-vehicle constraints: ``nhc_std`` applies the non-holonomic constraint (no lateral,
+no vertical body velocity) every ``nhc_every`` IMU samples, and measurement rows with
+``zupt_std`` a zero-velocity update. The non-holonomic Jacobian depends on the nominal
+velocity, so its sigma must also cover the linearisation error: with a poorly known forward
+velocity (no zero-velocity updates or odometry) a sigma below ~0.01 m/s makes the filter
+overconfident; 0.05 m/s is a sound default for a car-like vehicle.
+
+Smoothing: :func:`run_batch` with ``smooth=True`` runs the Rauch-Tung-Striebel smoother
+(:func:`rts_smooth`) over the epochs where the covariance was propagated; rows between
+epochs use the gain through the partial products (inside a covariance step, a first-order
+inverse of the partial step). The alignment starts a new smoothing chain.
 
 Alignment: ``rot_nb0`` given, or self-alignment. Self-alignment assumes that the vehicle
 is static during the first ``align_s`` seconds: roll and pitch come from the averaged
@@ -168,7 +180,7 @@ class EskfOptions:
     use_sun: bool = True
     tilt_coupling: bool = False
     time_tol: float = 1e-6
-    cov_every: int = 4
+    cov_every: int = 20
     chunk: int = 32
 
     def __post_init__(self) -> None:
@@ -1047,7 +1059,8 @@ class ESKF:
 
     def _apply(self, item: MeasurementItem) -> None:
         """Gate and apply one measurement at the current time; then maybe reset."""
-        self._flush()
+        if self._sums.n:
+            self._flush()
         if not item.valid:
             self._record(item, 0, math.nan, False, "invalid measurement (NaN or non-positive std)")
             return
@@ -1268,27 +1281,72 @@ def block_transitions(
     return Pi, Qa, Pi_at, Qa_at
 
 
+def _split_gaps(marks: NDArray[np.int_], every: int) -> NDArray[np.int_]:
+    """Split ``0 < marks[0] < marks[1] < ...`` into pieces of at most ``every``.
+
+    Returns the piece ends: for each gap ``(previous mark, mark]`` the points
+    ``previous + every, previous + 2 every, ...`` before the mark, then the mark.
+    """
+    prev = np.concatenate([[0], marks[:-1]])
+    count = (marks - prev + every - 1) // every  # pieces per gap
+    first = np.repeat(prev, count)
+    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count) + 1
+    return np.minimum(first + k * every, np.repeat(marks, count))
+
+
 def _step_boundaries(n: int, epochs: NDArray[np.int_], every: int) -> NDArray[np.int_]:
     """Ends of the covariance steps over intervals ``0 .. n - 1`` (relative sample indices).
 
     A step ends after ``every`` intervals or at an epoch (a sample with measurements),
     whichever comes first (the streaming rule), and at ``n``.
     """
-    ends: list[int] = []
-    prev = 0
-    for e in [*epochs.tolist(), n]:
-        while e - prev > every:
-            prev += every
-            ends.append(prev)
-        if e > prev:
-            ends.append(e)
-            prev = e
-    return np.array(ends, dtype=int)
+    marks = np.unique(np.concatenate([epochs[(epochs > 0) & (epochs < n)], [n]]))
+    return _split_gaps(marks.astype(int), every)
 
 
-def _sums_at(cum: FloatArray, a: NDArray[np.int_], b: NDArray[np.int_]) -> FloatArray:
-    """Sums over intervals ``a .. b - 1`` from a cumulative sum with a leading zero."""
-    return cum[b] - cum[a]
+@dataclass(frozen=True, eq=False)
+class _SegmentSteps:
+    """The covariance steps of a batch segment: per-interval terms and their step sums."""
+
+    track: NavTrack
+    step_start: NDArray[np.int_]
+    per_interval: list[FloatArray]  # dt, C dt, dv_force [, C diag(w) dt, C diag(f) dt]
+    full: list[FloatArray]  # the same summed over each step
+    mech: Mechanization
+    scales: tuple[FloatArray | None, FloatArray | None]
+    qc: FloatArray
+
+    def matrices(
+        self, q: NDArray[np.int_], j: NDArray[np.int_] | None
+    ) -> tuple[FloatArray, FloatArray]:
+        """Transition and noise over the first ``j`` intervals of steps ``q`` (None: all)."""
+        a = self.step_start[q]
+        if j is None:
+            sums = [x[q] for x in self.full]
+        else:  # partial steps (output rows inside a step): sums of the first j terms
+            width = int(j.max())
+            idx = a[:, None] + np.arange(width)[None, :]
+            take = np.arange(width)[None, :] < j[:, None]
+            idx = np.where(take, idx, 0)
+            sums = []
+            for x in self.per_interval:
+                terms = x[idx] * take.reshape(take.shape + (1,) * (x.ndim - 1))
+                sums.append(terms.sum(axis=1))
+        inv = 1.0 / sums[0]
+        sf = self.scales[0] is not None
+        F = error_dynamics(
+            sums[1] * inv[:, None, None],
+            sums[2] * inv[:, None],
+            self.track.vel_n[a],
+            self.track.lat[a],
+            self.track.height[a],
+            self.mech,
+            gyro_scale=self.scales[0],
+            accel_scale=self.scales[1],
+            mat_omega=sums[3] * inv[:, None, None] if sf else None,
+            mat_force=sums[4] * inv[:, None, None] if sf else None,
+        )
+        return discretize(F, sums[0], self.qc)
 
 
 def run_batch(
@@ -1346,6 +1404,14 @@ def run_batch(
     if abs(t[0] - eskf._t0) > tol:
         raise ValueError(f"the first IMU sample must be at t0={eskf._t0}, got {t[0]}")
     out = np.ones(N, dtype=bool) if output_mask is None else np.asarray(output_mask, dtype=bool)
+    if out.shape != (N,):
+        raise ValueError(f"output_mask must have shape ({N},), got {out.shape}")
+    row_bytes = eskf.n * eskf.n * 8 * (3 if smooth else 1)
+    if out.sum() * row_bytes > 4e9:
+        raise ValueError(
+            f"{int(out.sum())} output rows with full covariances need "
+            f"{out.sum() * row_bytes / 1e9:.1f} GB; report fewer rows (output_rate_hz)"
+        )
     max_segment = max(int(max_segment), 2 * o.cov_every)
     sf = eskf.n > N_ERROR
 
@@ -1461,52 +1527,24 @@ def run_batch(
         Wc, Ac = eskf._corrected(Wa[sl], Aa[sl])
         track = strapdown(eskf.nav, T[sl], Wc, Ac, o.mech)
         dt = np.diff(T[sl])
-        n_int = dt.size
-        # ---- per-interval quantities, cumulated for the step sums
-        cum_dt = np.concatenate([[0.0], np.cumsum(dt)])
-        cum_mat = np.zeros((n_int + 1, 3, 3))
-        np.cumsum(track.mat_nb_mid * dt[:, None, None], axis=0, out=cum_mat[1:])
-        cum_dv = np.zeros((n_int + 1, 3))
-        np.cumsum(track.dv_force_n, axis=0, out=cum_dv[1:])
+        # ---- step sums of the per-interval quantities, summed in the streaming order
+        step_start = np.concatenate([[0], ends[:-1]])
+        per_interval = [dt, track.mat_nb_mid * dt[:, None, None], track.dv_force_n]
         if sf:
             phi, _ = rotation_vectors(Wc[:-1], Wc[1:], dt)
-            cum_mw = np.zeros((n_int + 1, 3, 3))
-            np.cumsum(track.mat_nb_mid * phi[:, None, :], axis=0, out=cum_mw[1:])
             f_mid = 0.5 * (Ac[:-1] + Ac[1:]) * dt[:, None]
-            cum_mf = np.zeros((n_int + 1, 3, 3))
-            np.cumsum(track.mat_nb_mid * f_mid[:, None, :], axis=0, out=cum_mf[1:])
+            per_interval += [
+                track.mat_nb_mid * phi[:, None, :],
+                track.mat_nb_mid * f_mid[:, None, :],
+            ]
+        full = [np.add.reduceat(x, step_start, axis=0) for x in per_interval]
+        scales = (eskf.sg, eskf.sa) if sf else (None, None)  # fixed until the next reset
 
-        def step_matrices(
-            a: NDArray[np.int_], b: NDArray[np.int_]
-        ) -> tuple[FloatArray, FloatArray]:
-            """Transition and noise of the steps over intervals a .. b-1 (arrays)."""
-            dts = _sums_at(cum_dt, a, b)
-            inv = 1.0 / dts
-            F = error_dynamics(
-                _sums_at(cum_mat, a, b) * inv[:, None, None],
-                _sums_at(cum_dv, a, b) * inv[:, None],
-                track.vel_n[a],
-                track.lat[a],
-                track.height[a],
-                o.mech,
-                gyro_scale=eskf.sg if sf else None,
-                accel_scale=eskf.sa if sf else None,
-                mat_omega=_sums_at(cum_mw, a, b) * inv[:, None, None] if sf else None,
-                mat_force=_sums_at(cum_mf, a, b) * inv[:, None, None] if sf else None,
-            )
-            return discretize(F, dts, eskf.qc)
-
-        step_start = np.concatenate([[0], ends[:-1]])
-        Phi, Q = step_matrices(step_start, ends)
+        steps = _SegmentSteps(track, step_start, per_interval, full, o.mech, scales, eskf.qc)
+        Phi, Q = steps.matrices(np.arange(ends.size), None)
         # ---- blocks of steps between epochs (at most `chunk` steps each)
         is_epoch = np.isin(ends, epochs) | (ends == stop - cur)
-        block_end_step: list[int] = []
-        first = 0
-        for q in range(ends.size):
-            if is_epoch[q] or q + 1 - first >= o.chunk:
-                block_end_step.append(q + 1)
-                first = q + 1
-        b_end = np.array(block_end_step, dtype=int)
+        b_end = _split_gaps(np.flatnonzero(is_epoch) + 1, o.chunk)
         b_start = np.concatenate([[0], b_end[:-1]])
         ep = ends[b_end - 1]  # sample (relative) where each block ends
         # candidate output rows: real samples in [cur, stop)
@@ -1549,7 +1587,7 @@ def run_batch(
             a_o = step_start[q_of]
             mid = sel > a_o  # inside a step: propagate the partial step (as state() does)
             if np.any(mid):
-                Phi_p, Q_p = step_matrices(a_o[mid], sel[mid])
+                Phi_p, Q_p = steps.matrices(q_of[mid], (sel - a_o)[mid])
                 x_o[mid] = (Phi_p @ x_o[mid][..., None])[..., 0]
                 P_o[mid] = Phi_p @ P_o[mid] @ np.swapaxes(Phi_p, -1, -2) + Q_p
             rows["t"].append(T[cur + sel])

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from polins.fusion.eskf import MeasurementItem, measurement_items
+from polins.fusion.eskf import MeasurementItem
 
 FloatArray = NDArray[np.float64]
 
