@@ -399,3 +399,16 @@ def test_missing_rosbags_names_the_extra(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "rosbags", None)
     with pytest.raises(ImportError, match=r"optional extra 'ros': pip install 'polins\[ros\]'"):
         read_bag(tmp_path / "x.bag")
+
+
+def test_parquet_without_pyarrow_names_the_extra(tmp_path, monkeypatch):
+    import sys
+
+    from polins.io.tables import read_table
+
+    path = tmp_path / "imu.parquet"
+    path.write_bytes(b"PAR1")
+    monkeypatch.setitem(sys.modules, "pyarrow", None)
+    monkeypatch.setitem(sys.modules, "pyarrow.parquet", None)
+    with pytest.raises(ImportError, match=r"polins\[parquet\]"):
+        read_table(path)

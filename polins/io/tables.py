@@ -20,6 +20,7 @@ import json
 import re
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -70,15 +71,25 @@ def write_table(
                     fh.write(f"# {header_comment}\n")
                 df.to_csv(fh, index=False, float_format="%.17g", lineterminator="\n")
         else:
-            import pyarrow as pa
-            import pyarrow.parquet as pq
-
+            pa, pq = _pyarrow()
             table = pa.Table.from_pandas(df, preserve_index=False)
             meta = dict(table.schema.metadata or {})
             for key, value in (metadata or {}).items():
                 meta[key.encode()] = value.encode()
             pq.write_table(table.replace_schema_metadata(meta), tmp)
     return path
+
+
+def _pyarrow() -> tuple[Any, Any]:
+    """The ``pyarrow`` modules for Parquet, or an ImportError naming the extra."""
+    try:
+        import pyarrow
+        import pyarrow.parquet
+    except ImportError as exc:
+        raise ImportError(
+            "Parquet tables need pyarrow: pip install 'polins[parquet]' (or use CSV)"
+        ) from exc
+    return pyarrow, pyarrow.parquet
 
 
 def _csv_units(path: Path) -> tuple[dict[str, str], int]:
@@ -113,6 +124,7 @@ def read_table(path: str | Path) -> pd.DataFrame:
     if _table_format(path) == "csv":
         _, n_comment = _csv_units(path)
         return pd.read_csv(path, skiprows=n_comment)
+    _pyarrow()
     return pd.read_parquet(path)
 
 
@@ -122,8 +134,7 @@ def imu_file_units(path: str | Path) -> dict[str, str]:
     if _table_format(path) == "csv":
         units, _ = _csv_units(path)
     else:
-        import pyarrow.parquet as pq
-
+        _, pq = _pyarrow()
         meta = pq.read_schema(path).metadata or {}
         raw = meta.get(_PARQUET_KEY)
         try:
