@@ -18,7 +18,7 @@ and ``sigmas.png`` (the reported 1-sigma of each estimator).
 
     python examples/06_graph_vs_eskf.py [--quick] [--runs 3] [--aiding yaw|sun] [--out ...]
 
---quick: one 60 s drive (seconds); default: three 300 s drives (about a minute per drive).
+--quick: one 60 s drive (~15 s); default: three 300 s drives (under a minute per drive).
 """
 
 from __future__ import annotations

@@ -958,7 +958,7 @@ def _solve_incremental(prob: _Problem, log: _Log) -> _Estimates:
     # position, whose (unobserved) values keep moving by centimetres; relinearizing on
     # them re-eliminates most of the tree at every check.
     thresholds = gtsam.ISAM2ThresholdMap()
-    thresholds.insert(("x", np.array([1e-3, 1e-3, 1e-3, 1e6, 1e6, 1e6])))
+    thresholds.insert(("x", np.array([1e-2, 1e-2, 1e-2, 1e6, 1e6, 1e6])))
     thresholds.insert(("v", np.full(3, 1e6)))
     thresholds.insert(("b", np.full(6, 1e6)))
     isam_params.setRelinearizeThreshold(thresholds)
