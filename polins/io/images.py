@@ -174,7 +174,10 @@ def read_image_index(path: str | Path) -> ImageIndex:
     if path.is_dir():
         found = []
         for f in sorted(path.iterdir()):
-            if f.suffix.lower() in IMAGE_SUFFIXES and (t_name := time_from_name(f.name)) is not None:
+            if (
+                f.suffix.lower() in IMAGE_SUFFIXES
+                and (t_name := time_from_name(f.name)) is not None
+            ):
                 found.append((t_name, f))
         if not found:
             raise ValueError(
