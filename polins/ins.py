@@ -32,6 +32,7 @@ coupling through gravity, Coriolis and transport rate); it matches repeated
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +42,6 @@ from scipy.spatial.transform import Rotation
 from polins.calibration import ImuModel
 from polins.earth import (
     earth_rate_n,
-    gravity_n,
     normal_gravity,
     radii_of_curvature,
     transport_rate_n,
@@ -198,6 +198,86 @@ def nav_rates_n(
     return w_ie, w_en
 
 
+def strapdown_increment(
+    mat_nb: FloatArray,
+    vel_n: FloatArray,
+    lat: float,
+    lon: float,
+    height: float,
+    omega0_b: FloatArray,
+    omega1_b: FloatArray,
+    f0_b: FloatArray,
+    f1_b: FloatArray,
+    dt: float,
+    mech: Mechanization,
+) -> tuple[FloatArray, FloatArray, float, float, float, FloatArray, FloatArray]:
+    """One strapdown interval (the module docstring's step) on plain arrays.
+
+    The same step as :func:`strapdown_step_detail` with the attitude as a rotation matrix
+    (no ``Rotation`` objects per sample: the streaming filter calls this once per IMU
+    sample). The rotation increments come from ``Rotation.from_rotvec``.
+
+    Parameters
+    ----------
+    mat_nb : (3, 3) ndarray
+        Attitude matrix at ``t_k``.
+    vel_n : (3,) ndarray
+        ENU velocity at ``t_k`` [m/s].
+    lat, lon, height : float
+        Position at ``t_k`` [rad, rad, m].
+    omega0_b, omega1_b, f0_b, f1_b : (3,) ndarray
+        Corrected body rates [rad/s] and specific forces [m/s^2] at ``t_k`` and ``t_k + dt``.
+    dt : float
+        Interval [s], > 0.
+    mech : Mechanization
+        Earth terms to include.
+
+    Returns
+    -------
+    mat_nb1, vel_n1, lat1, lon1, height1
+        State at ``t_k + dt``.
+    mat_nb_mid : (3, 3) ndarray
+        Attitude at mid-interval.
+    dv_force_n : (3,) ndarray
+        Velocity increment of the specific force alone [m/s].
+    """
+    # rotation vectors of rotation_vectors() on Python floats (single sample: cheaper)
+    a0, a1, a2 = omega0_b.tolist()
+    b0, b1, b2 = omega1_b.tolist()
+    dt = float(dt)
+    k = dt * dt
+    c0, c1, c2 = (a1 * b2 - a2 * b1) * k, (a2 * b0 - a0 * b2) * k, (a0 * b1 - a1 * b0) * k
+    h, q = 0.5 * dt, 0.125 * dt
+    rv = [
+        [(a0 + b0) * h + c0 / 12.0, (a1 + b1) * h + c1 / 12.0, (a2 + b2) * h + c2 / 12.0],
+        [(3.0 * a0 + b0) * q + c0 / 96.0, (3.0 * a1 + b1) * q + c1 / 96.0,
+         (3.0 * a2 + b2) * q + c2 / 96.0],
+    ]  # fmt: skip
+    if mech.earth_rotation or mech.transport_rate:
+        w_ie, w_en = nav_rates_n(lat, height, vel_n, mech)
+        z0, z1, z2 = (w_ie + w_en).tolist()
+        rv += [[-z0 * dt, -z1 * dt, -z2 * dt], [-0.5 * z0 * dt, -0.5 * z1 * dt, -0.5 * z2 * dt]]
+        incr = Rotation.from_rotvec(rv).as_matrix()
+        mat1 = incr[2] @ mat_nb @ incr[0]
+        mat_h = incr[3] @ mat_nb @ incr[1]
+        e0, e1, e2 = (2.0 * w_ie + w_en).tolist()
+        u0, u1, u2 = vel_n.tolist()
+        dv_other = np.array([e1 * u2 - e2 * u1, e2 * u0 - e0 * u2, e0 * u1 - e1 * u0]) * -dt
+    else:
+        incr = Rotation.from_rotvec(rv).as_matrix()
+        mat1 = mat_nb @ incr[0]
+        mat_h = mat_nb @ incr[1]
+        dv_other = np.zeros(3)
+    dv_f = (dt / 6.0) * (mat_nb @ f0_b + mat_h @ (2.0 * (f0_b + f1_b)) + mat1 @ f1_b)
+    dv_other[2] -= float(normal_gravity(lat, height)) * dt
+    v1 = vel_n + (dv_f + dv_other)
+    r_m, r_n = radii_of_curvature(lat)
+    v_mid = ((0.5 * dt) * (vel_n + v1)).tolist()
+    lat1 = lat + v_mid[1] / float(r_m + height)
+    lon1 = lon + v_mid[0] / (float(r_n + height) * math.cos(lat))
+    return mat1, v1, lat1, lon1, height + v_mid[2], mat_h, dv_f
+
+
 def strapdown_step_detail(
     state: NavState,
     omega0_b: ArrayLike,
@@ -222,29 +302,21 @@ def strapdown_step_detail(
     dt = float(t1) - state.t
     if not dt > 0:
         raise ValueError(f"t1={t1} must be after the state time {state.t}")
-    f0 = np.array(f0_b, dtype=float)  # copies: Rotation.apply rejects read-only buffers
-    f1 = np.array(f1_b, dtype=float)
-    phi, phi_h = rotation_vectors(omega0_b, omega1_b, dt)
-    w_ie, w_en = nav_rates_n(state.lat, state.height, state.vel_n, mech)
-    zeta = (w_ie + w_en) * dt
-    rot0 = state.rot_nb
-    rot1 = Rotation.from_rotvec(-zeta) * rot0 * Rotation.from_rotvec(phi)
-    rot_h = Rotation.from_rotvec(-0.5 * zeta) * rot0 * Rotation.from_rotvec(phi_h)
-    dv_f = (dt / 6.0) * (rot0.apply(f0) + 4.0 * rot_h.apply(0.5 * (f0 + f1)) + rot1.apply(f1))
-    v0 = state.vel_n
-    grav = gravity_n(state.lat, state.height)
-    v1 = v0 + dv_f + (grav - cross(2.0 * w_ie + w_en, v0)) * dt
-    r_m, r_n = radii_of_curvature(state.lat)
-    v_mid = 0.5 * (v0 + v1) * dt
-    state1 = NavState(
-        t=float(t1),
-        rot_nb=rot1,
-        vel_n=v1,
-        lat=state.lat + float(v_mid[1] / (r_m + state.height)),
-        lon=state.lon + float(v_mid[0] / ((r_n + state.height) * np.cos(state.lat))),
-        height=state.height + float(v_mid[2]),
+    mat1, v1, lat1, lon1, h1, mat_h, dv_f = strapdown_increment(
+        state.rot_nb.as_matrix(),
+        np.asarray(state.vel_n, dtype=float),
+        state.lat,
+        state.lon,
+        state.height,
+        np.asarray(omega0_b, dtype=float),
+        np.asarray(omega1_b, dtype=float),
+        np.asarray(f0_b, dtype=float),
+        np.asarray(f1_b, dtype=float),
+        dt,
+        mech,
     )
-    return state1, rot_h, dv_f
+    state1 = NavState(float(t1), Rotation.from_matrix(mat1), v1, lat1, lon1, h1)
+    return state1, Rotation.from_matrix(mat_h), dv_f
 
 
 def strapdown_step(
@@ -279,52 +351,71 @@ def strapdown_step(
     return strapdown_step_detail(state, omega0_b, omega1_b, f0_b, f1_b, t1, mech)[0]
 
 
-def prefix_products(mats: FloatArray, block: int = 16) -> FloatArray:
-    """Inclusive prefix products ``out[i] = mats[0] @ mats[1] @ ... @ mats[i]``, ``(n, a, a)``.
+def _mul_soa(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``a @ b`` for stacks of 3x3 matrices stored component-first, ``(3, 3, ...)``."""
+    return np.einsum("ik...,kj...->ij...", a, b)
 
-    Two-level scan: Hillis-Steele inside blocks of ``block`` matrices (``log2(block)``
-    batched products), a sequential product of the block totals, and one batched product
-    applying them.
+
+def _scan_soa(m: FloatArray, left: bool) -> FloatArray:
+    """Inclusive prefix products along the last axis of ``(3, 3, n)`` matrices.
+
+    ``out[..., i] = m_0 m_1 ... m_i`` (``left=False``) or ``m_i ... m_1 m_0`` (``left=True``).
+    Two-level Hillis-Steele scan: inside blocks of ``~sqrt(n)`` matrices, over the block
+    totals, and one product applying them (about ``log2(n) / 2 + 1`` batched products).
     """
-    m = np.asarray(mats, dtype=float)
-    n = m.shape[0]
+    n = m.shape[-1]
+    block = 1 << max(0, (math.ceil(math.log2(max(n, 1))) + 1) // 2)
     nb = -(-n // block)
-    pad = nb * block - n
-    out = (
-        m
-        if pad == 0
-        else np.concatenate([m, np.broadcast_to(np.eye(m.shape[-1]), (pad, *m.shape[1:]))])
-    )
-    out = out.reshape(nb, block, *m.shape[1:]).copy()
+    out = np.empty((3, 3, nb * block))
+    out[..., :n] = m
+    out[..., n:] = np.eye(3)[:, :, None]
+    out = out.reshape(3, 3, nb, block)
+
+    def mul(earlier: FloatArray, later: FloatArray) -> FloatArray:
+        return _mul_soa(later, earlier) if left else _mul_soa(earlier, later)
+
     d = 1
     while d < block:
-        out[:, d:] = out[:, :-d] @ out[:, d:]
+        out[..., d:] = mul(out[..., :-d], out[..., d:])
         d *= 2
-    carry = out[:, -1].copy()
-    for i in range(1, nb):
-        carry[i] = carry[i - 1] @ carry[i]
-    out[1:] = carry[:-1, None] @ out[1:]
-    return out.reshape(nb * block, *m.shape[1:])[:n]
+    carry = out[..., -1].copy()
+    d = 1
+    while d < nb:
+        carry[..., d:] = mul(carry[..., :-d], carry[..., d:])
+        d *= 2
+    out[..., 1:, :] = mul(carry[..., :-1, None], out[..., 1:, :])
+    return out.reshape(3, 3, nb * block)[..., :n]
+
+
+def prefix_products(mats: FloatArray, block: int = 16) -> FloatArray:
+    """Inclusive prefix products ``out[i] = mats[0] @ mats[1] @ ... @ mats[i]``, ``(n, 3, 3)``.
+
+    Two-level Hillis-Steele scan on the components (:func:`_scan_soa`); ``block`` is
+    kept for compatibility (the block length is chosen from ``n``).
+    """
+    m = np.asarray(mats, dtype=float)
+    if m.shape[0] == 0:
+        return m.copy()
+    return np.moveaxis(_scan_soa(np.moveaxis(m, 0, -1), left=False), -1, 0)
 
 
 def _left_prefix_products(mats: FloatArray) -> FloatArray:
     """``out[i] = mats[i] @ ... @ mats[1] @ mats[0]`` (new factors on the left)."""
-    out = np.array(mats, dtype=float, copy=True)
-    d = 1
-    n = out.shape[0]
-    while d < n:
-        out[d:] = out[d:] @ out[:-d]
-        d *= 2
-    return out
+    m = np.asarray(mats, dtype=float)
+    return np.moveaxis(_scan_soa(np.moveaxis(m, 0, -1), left=True), -1, 0)
 
 
 def _force_increments(
-    mat: FloatArray, mat_h: FloatArray, f: FloatArray, f_half: FloatArray, dt_col: FloatArray
+    mat: FloatArray, mat_h: FloatArray, f: FloatArray, f_half: FloatArray, dt: FloatArray
 ) -> FloatArray:
-    """Simpson's rule on ``mat_nb f_b`` over each interval (the sculling-exact increment)."""
-    force_n = (mat @ f[..., None])[..., 0]
-    force_h = (mat_h @ f_half[..., None])[..., 0]
-    return (dt_col / 6.0) * (force_n[:-1] + 4.0 * force_h + force_n[1:])
+    """Simpson's rule on ``mat_nb f_b`` over each interval (the sculling-exact increment).
+
+    Component-first arrays: ``mat`` ``(3, 3, n + 1)``, ``mat_h`` ``(3, 3, n)``, ``f``
+    ``(3, n + 1)``, ``f_half`` ``(3, n)``; returns ``(3, n)``.
+    """
+    force_n = mat[:, 0] * f[0] + mat[:, 1] * f[1] + mat[:, 2] * f[2]
+    force_h = mat_h[:, 0] * f_half[0] + mat_h[:, 1] * f_half[1] + mat_h[:, 2] * f_half[2]
+    return (dt / 6.0) * (force_n[:, :-1] + 4.0 * force_h + force_n[:, 1:])
 
 
 def strapdown(
@@ -377,12 +468,15 @@ def strapdown(
     if not np.all(dt > 0):
         raise ValueError("sample times must be strictly increasing")
     phi, phi_h = rotation_vectors(w[:-1], w[1:], dt)
+    # Component-first (3, 3, k) matrices below: batched 3x3 products are elementwise.
     incr = Rotation.from_rotvec(np.concatenate([phi, phi_h])).as_matrix()
-    body = np.empty((n + 1, 3, 3))
-    body[0] = np.eye(3)
-    body[1:] = prefix_products(incr[:n])
-    mat0 = state0.rot_nb.as_matrix()
-    f_half = 0.5 * (f[:-1] + f[1:])
+    incr = np.ascontiguousarray(np.moveaxis(incr, 0, -1))
+    seq = np.empty((3, 3, n + 1))
+    seq[..., 0] = state0.rot_nb.as_matrix()
+    seq[..., 1:] = incr[..., :n]
+    mat0_body = _scan_soa(seq, left=False)  # mat_nb(t_0) B_k
+    f_c = np.ascontiguousarray(f.T)
+    f_half = 0.5 * (f_c[:, :-1] + f_c[:, 1:])
     dt_col = dt[:, None]
     earth_terms = mech.earth_rotation or mech.transport_rate
 
@@ -390,9 +484,9 @@ def strapdown(
     lat = np.full(n, state0.lat)
     height = np.full(n, state0.height)
     vel = np.broadcast_to(state0.vel_n, (n, 3)).copy()
-    mat = mat0 @ body  # (n + 1, 3, 3) without navigation-frame rotation
-    mat_h = mat[:-1] @ incr[n:]
-    dv_force = _force_increments(mat, mat_h, f, f_half, dt_col)
+    mat = mat0_body  # without navigation-frame rotation
+    mat_h = _mul_soa(mat[..., :-1], incr[..., n:])
+    dv_force = _force_increments(mat, mat_h, f_c, f_half, dt).T
     coriolis = np.zeros((n, 3))
     v0 = state0.vel_n
     if earth_terms:
@@ -405,12 +499,13 @@ def strapdown(
             w_ie, w_en = nav_rates_n(lat, height, vel, mech)
             zeta = (w_ie + w_en) * dt_col
             nav = Rotation.from_rotvec(np.concatenate([-zeta, -0.5 * zeta])).as_matrix()
-            left = np.empty((n + 1, 3, 3))
-            left[0] = np.eye(3)
-            left[1:] = _left_prefix_products(nav[:n])
-            mat = left @ mat0 @ body
-            mat_h = nav[n:] @ mat[:-1] @ incr[n:]
-            dv_force = _force_increments(mat, mat_h, f, f_half, dt_col)
+            nav = np.ascontiguousarray(np.moveaxis(nav, 0, -1))
+            left = np.empty((3, 3, n + 1))
+            left[..., 0] = np.eye(3)
+            left[..., 1:] = _scan_soa(nav[..., :n], left=True)
+            mat = _mul_soa(left, mat0_body)
+            mat_h = _mul_soa(_mul_soa(nav[..., n:], mat[..., :-1]), incr[..., n:])
+            dv_force = _force_increments(mat, mat_h, f_c, f_half, dt).T
             coriolis = cross(2.0 * w_ie + w_en, vel)
         grav_u = -normal_gravity(lat, height)
         dv = dv_force - coriolis * dt_col
@@ -450,11 +545,11 @@ def strapdown(
     lon_all += state0.lon
     return NavTrack(
         t=t,
-        mat_nb=mat,
+        mat_nb=np.ascontiguousarray(np.moveaxis(mat, -1, 0)),
         vel_n=vel_all,
         lat=lat_all,
         lon=lon_all,
         height=h_all,
-        mat_nb_mid=mat_h,
+        mat_nb_mid=np.ascontiguousarray(np.moveaxis(mat_h, -1, 0)),
         dv_force_n=dv_force,
     )

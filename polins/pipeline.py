@@ -74,9 +74,11 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.attitude import euler_from_rot_nb, heading_deg_from_yaw, wrap_angle
+from polins.attitude import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
 from polins.calibration import CameraModel, ImuModel
-from polins.fusion.eskf import ESKF, EskfOptions, FilterState, UpdateRecord
+from polins.fusion import FILTER_OPTIONS, eskf_options
+from polins.fusion.eskf import ESKF, FilterState, UpdateRecord
+from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.ins import Mechanization, NavState, strapdown
 from polins.io.images import ImageReadError, load_raw
 from polins.io.log import Log, utc_timestamp
@@ -115,7 +117,10 @@ class LoopOptions:
         Keyword options of ``polins.measure`` (``polins.compass.MeasureOptions`` fields).
     update : {"yaw", "sun"}
         Filter update per image: the yaw with the tilt coupling in ``H`` (default), or the
-        2-DOF sun vector (then the sun zenith is measured: ``fixed_zenith=False``).
+        2-DOF sun vector. Either way the sun zenith is measured from the image
+        (``fixed_zenith=False`` unless ``measure_options`` says otherwise): the filter's
+        yaw model is then exact in the prior's tilt (docs/measurement.md, "The yaw in a
+        filter"), and the free zenith costs no precision.
     prior_lag_s : float
         Age of the filter snapshot the image priors are propagated from [s] (module doc).
     snapshot_every_s : float
@@ -164,8 +169,7 @@ class LoopOptions:
     def measure_kwargs(self) -> dict[str, Any]:
         """The ``polins.measure`` options actually used."""
         opts = dict(self.measure_options)
-        if self.update == "sun":
-            opts.setdefault("fixed_zenith", False)
+        opts.setdefault("fixed_zenith", False)
         return opts
 
     def fuse_options(self, overrides: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -175,40 +179,12 @@ class LoopOptions:
             "tilt_coupling": self.update == "yaw",
         }
         opts.update(overrides or {})
-        unknown = sorted(set(opts) - set(_STREAM_FUSE_OPTIONS))
+        unknown = sorted(set(opts) - set(FILTER_OPTIONS))
         if unknown:
             raise TypeError(
-                f"unknown filter option(s) {unknown}; valid: {', '.join(_STREAM_FUSE_OPTIONS)}"
+                f"unknown filter option(s) {unknown}; valid: {', '.join(FILTER_OPTIONS)}"
             )
         return opts
-
-
-# polins.fuse options that configure the filter itself (the rest are inputs or outputs)
-_STREAM_FUSE_OPTIONS = (
-    "earth_rate", "scale_factors", "gate_prob", "reset_interval_s", "reset_angle_rad",
-    "align_s", "att_std0", "vel_std0", "pos_std0", "use_sun", "tilt_coupling", "nhc_std",
-    "nhc_rate_hz", "time_tol",
-)  # fmt: skip
-
-
-def eskf_options(imu_model: ImuModel, fuse_options: Mapping[str, Any], dt: float) -> EskfOptions:
-    """``EskfOptions`` exactly as ``polins.fuse`` builds them from its options.
-
-    ``dt`` is the IMU sample interval [s] (``polins.fuse`` uses the median interval of the
-    log; it sets the non-holonomic constraint's sample stride).
-    """
-    opts = dict(fuse_options)
-    earth = opts.pop("earth_rate", None)
-    earth = imu_model.earth_rate if earth is None else bool(earth)
-    nhc_rate = float(opts.pop("nhc_rate_hz", 10.0))
-    if "att_std0" in opts:
-        att = np.broadcast_to(np.asarray(opts["att_std0"], dtype=float), (3,))
-        opts["att_std0"] = tuple(float(a) for a in att)
-    return EskfOptions(
-        mech=Mechanization(earth_rotation=earth, transport_rate=earth),
-        nhc_every=max(1, round(1.0 / (nhc_rate * dt))),
-        **opts,
-    )
 
 
 # ----------------------------------------------------------------------------- image stage
@@ -496,7 +472,7 @@ class NavigationStream:
         self.vel_n0 = np.array(vel_n0, dtype=float)
         self.options = options if options is not None else LoopOptions()
         dt = float(imu_dt) if imu_dt else 1.0 / imu_model.sample_rate_hz
-        self.eskf_opts = eskf_options(imu_model, self.options.fuse_options(fuse_options), dt)
+        self.eskf_opts = eskf_options(imu_model, dt, **self.options.fuse_options(fuse_options))
         if workers < 1:
             raise ValueError(f"workers={workers} must be >= 1")
         self.workers = int(workers)
@@ -821,6 +797,10 @@ class NavigationStream:
         if "sun_bx" in row:
             cols.update(sun_b=[row["sun_bx"], row["sun_by"], row["sun_bz"]],
                         sun_std=row["sun_std"])  # fmt: skip
+        if all(np.isfinite(row.get(c, np.nan)) for c in PRIOR_COLUMNS):
+            cols["rot_nb_prior"] = rot_nb_from_euler(
+                row["prior_yaw"], row["prior_pitch"], row["prior_roll"]
+            )
         self._by_t[img.t] = row
         self._collect(f.add_measurement(img.t, sun_n=img.sun_n, **cols))
         f.records.clear()  # bounded memory: verdicts are kept in the measurement rows
@@ -988,15 +968,15 @@ def fuse_measurements(
 
     ok = measurements["ok"].to_numpy(dtype=bool)
     cols = ["t", "yaw", "yaw_std", "sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny", "sun_nz",
-            "sun_std"]  # fmt: skip
+            "sun_std", "prior_roll", "prior_pitch", "prior_yaw"]  # fmt: skip
     table = measurements.loc[ok, cols].reset_index(drop=True).astype(float)
     t = imu["t"].to_numpy(dtype=float)
     longest = float(np.max(np.diff(t))) if len(t) > 1 else 0.0
     opts = options.fuse_options(fuse_options)
-    if backend == "graph":  # the graph takes its own options; it gets the yaw columns
-        shared = ("earth_rate", "att_std0", "vel_std0", "nhc_std", "align_s")
+    if backend == "graph":  # the graph takes its own options
+        shared = ("earth_rate", "att_std0", "vel_std0", "nhc_std", "align_s", "use_sun",
+                  "tilt_coupling")  # fmt: skip
         opts = {k: v for k, v in opts.items() if k in shared}
-        table = table.drop(columns=cols[3:])
     else:
         opts.update(smooth=smooth, max_gap_s=max(longest * 1.001, 1e-3))
     return fuse(
@@ -1077,20 +1057,23 @@ def run_log(
         workers=n_workers,
     )
     k = 0
+
+    def feed(stop: int) -> None:
+        nonlocal k
+        for j in range(k, stop):
+            used[j] = stream.add_imu(t_imu[j], gyro[j], accel[j])
+        k = max(k, stop)
+
     with stream:
         bar = tqdm(total=len(t_img), desc="images", unit="img", disable=not progress)
         for t, item in log.images:
-            while k < len(t_imu) and not t_imu[k] > t:  # samples up to the image ...
-                used[k] = stream.add_imu(t_imu[k], gyro[k], accel[k])
-                k += 1
-            if k < len(t_imu):  # ... and the one after it
-                used[k] = stream.add_imu(t_imu[k], gyro[k], accel[k])
-                k += 1
+            stop = k
+            while stop < len(t_imu) and not t_imu[stop] > t:  # samples up to the image
+                stop += 1  # (a NaN time is fed and reported by the stream)
+            feed(min(stop + 1, len(t_imu)))  # ... and the one after it
             stream.add_image(t, item)
             bar.update(1)
-        while k < len(t_imu):
-            used[k] = stream.add_imu(t_imu[k], gyro[k], accel[k])
-            k += 1
+        feed(len(t_imu))
         stream.flush()
         bar.close()
     loop_s = time.perf_counter() - start
@@ -1150,7 +1133,6 @@ __all__ = [
     "NavigationEstimate",
     "NavigationStream",
     "RunResult",
-    "eskf_options",
     "fuse_measurements",
     "make_executor",
     "measurement_frame",

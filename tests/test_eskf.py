@@ -277,18 +277,31 @@ def _streaming(model, imu, items, options, lat, lon, h, rot_nb0=None):
     return filt, states
 
 
-@pytest.mark.parametrize(
-    ("model_name", "scale_factors", "max_segment"),
-    [("mems-typical", True, 4096), ("mems-typical", False, 37), ("fins-paper", True, 4096)],
-)
-def test_streaming_equals_batch(model_name, scale_factors, max_segment):
-    model, traj, imu, _, _, meas = scenario(model_name, 7, 14.0)
+def _rich_case(model_name, scale_factors, seed=7, gap=True):
+    """A 14 s drive whose measurement items exercise every path of the filter: yaw between
+    IMU samples (virtual samples), an invalid row, an outlier, sun vectors, zero-velocity
+    items at rest, the non-holonomic constraint, and a 0.1 s IMU gap."""
+    model, traj, imu, _, _, meas = scenario(model_name, seed, 14.0)
     rng = np.random.default_rng(1)
     meas = meas.copy()
     meas["t"] += rng.uniform(-0.05, 0.05, len(meas))  # between IMU samples: interpolation
     meas.loc[3, "yaw"] = np.nan  # logged as invalid
     meas.loc[12, "yaw"] += 0.3  # an outlier, gated out
+    # sun vectors on some rows (2-DOF updates; the other rows stay yaw)
+    sun_n = polins.sun_vector_n(np.radians(200.0), np.radians(50.0))
+    k = np.searchsorted(traj.t, meas["t"].to_numpy())
+    noise = Rotation.from_rotvec(rng.normal(0.0, 1e-3, (len(k), 3)))
+    sun_b = (noise * traj.rot_nb[k].inv()).apply(sun_n)
+    use = np.arange(len(meas)) % 4 == 2
+    for i, c in enumerate("xyz"):
+        meas[f"sun_b{c}"] = np.where(use, sun_b[:, i], np.nan)
+        meas[f"sun_n{c}"] = sun_n[i]
+    meas["sun_std"] = np.where(use, 1e-3, np.nan)
     items = measurement_items_from_frame(meas)
+    items += [E.MeasurementItem(tz, "zupt", 0.02) for tz in (1.3, 2.1, 2.6, 9.0)]
+    if gap:  # drop 0.1 s of IMU samples
+        t = imu["t"].to_numpy()
+        imu = imu[(t < 6.0) | (t >= 6.1)].reset_index(drop=True)
     options = E.EskfOptions(
         mech=Mechanization.from_imu_model(model),
         scale_factors=scale_factors,
@@ -297,16 +310,39 @@ def test_streaming_equals_batch(model_name, scale_factors, max_segment):
         reset_interval_s=2.0,
     )
     start = (float(traj.lat[0]), float(traj.lon[0]), float(traj.height[0]))
-    t = imu["t"].to_numpy()
-    fast = E.ESKF(model, t[0], *start, options=options)
-    out = E.run_batch(
-        fast,
-        t,
+    return model, imu, items, options, start
+
+
+def _arrays(imu):
+    return (
+        imu["t"].to_numpy(),
         imu[["gx", "gy", "gz"]].to_numpy(),
         imu[["ax", "ay", "az"]].to_numpy(),
-        items,
-        max_segment=max_segment,
     )
+
+
+@pytest.mark.parametrize(
+    ("model_name", "scale_factors", "max_segment", "full_cov", "row_chunk"),
+    [
+        ("mems-typical", True, 4096, True, None),
+        ("mems-typical", False, 37, False, None),
+        ("mems-typical", True, 4096, False, 50),
+        ("fins-paper", True, 4096, False, None),
+        ("fins-paper", False, 100, True, 30),
+    ],
+)
+def test_streaming_equals_batch(
+    model_name, scale_factors, max_segment, full_cov, row_chunk, monkeypatch
+):
+    # The batch path (vectorised between resets, block transitions, only the table's
+    # covariance parts per row unless full_cov; rows in chunks of row_chunk) against one
+    # propagate() per sample.
+    if row_chunk is not None:
+        monkeypatch.setattr("polins.fusion.batch._ROW_CHUNK", row_chunk)
+    model, imu, items, options, start = _rich_case(model_name, scale_factors)
+    t, W, A = _arrays(imu)
+    fast = E.ESKF(model, t[0], *start, options=options)
+    out = E.run_batch(fast, t, W, A, items, max_segment=max_segment, full_cov=full_cov)
     slow, states = _streaming(model, imu, items, options, *start)
     assert len(states) == len(out.t) == len(imu)
     rot_slow = Rotation.concatenate([s.rot_nb for s in states])
@@ -316,14 +352,74 @@ def test_streaming_equals_batch(model_name, scale_factors, max_segment):
     assert np.abs(out.bg - np.array([s.bg for s in states])).max() < 1e-12
     P_slow = np.array([s.P for s in states])
     sd = np.sqrt(np.diagonal(P_slow, axis1=1, axis2=2))
-    assert (np.abs(out.P - P_slow) / (sd[:, :, None] * sd[:, None, :])).max() < 1e-9
+    assert np.abs(out.sigma / sd - 1.0).max() < 1e-9
+    att = sd[:, :3, None] * sd[:, None, :3]
+    assert (np.abs(out.P_att - P_slow[:, :3, :3]) / att).max() < 1e-9
+    if full_cov:
+        assert (np.abs(out.P - P_slow) / (sd[:, :, None] * sd[:, None, :])).max() < 1e-9
+    else:
+        assert out.P is None
     assert [(r.name, r.accepted, r.reason[:8]) for r in fast.records] == [
         (r.name, r.accepted, r.reason[:8]) for r in slow.records
     ]
     assert fast.n_resets == slow.n_resets > 3
+    assert fast._sums.n == slow._sums.n and fast._count == slow._count == len(imu)
+    names = {(r.name, r.accepted) for r in fast.records}
+    assert {("yaw", True), ("sun", True), ("zupt", True), ("nhc", True)} <= names
     reasons = [r.reason for r in fast.records if not r.accepted]
     assert any(r.startswith("invalid measurement") for r in reasons)
     assert any(r.startswith("NIS") and "gate" in r for r in reasons)
+
+
+@pytest.mark.parametrize(
+    ("model_name", "scale_factors", "given_attitude", "seed"),
+    [
+        ("mems-typical", False, False, 0),
+        ("mems-typical", True, True, 1),
+        ("fins-paper", True, False, 2),
+        ("fins-paper", False, True, 3),
+    ],
+)
+def test_propagate_many_equals_propagate(model_name, scale_factors, given_attitude, seed):
+    # Runs of random length (1 .. 400 samples, so runs start and end inside covariance
+    # steps, inside the levelling window and around virtual samples) leave the filter
+    # exactly where one propagate() per sample does.
+    model, imu, items, options, start = _rich_case(model_name, scale_factors)
+    t, W, A = _arrays(imu)
+    rot0 = rot_nb_from_euler(0.3, 0.01, -0.02) if given_attitude else None
+    one = E.ESKF(model, t[0], *start, rot_nb0=rot0, options=options)
+    many = E.ESKF(model, t[0], *start, rot_nb0=rot0, options=options)
+    one.add_items(items)
+    many.add_items(items)
+    rng = np.random.default_rng(seed)
+    k = worst_att = worst_p = 0.0
+    k = 0
+    while k < len(t):
+        m = int(rng.choice([1, 2, 7, 19, 20, 21, 60, 150, 400]))
+        rec_one = [r for i in range(k, min(k + m, len(t))) for r in one.propagate(t[i], W[i], A[i])]
+        rec_many = many.propagate_many(t[k : k + m], W[k : k + m], A[k : k + m])
+        assert [(r.t, r.name, r.accepted) for r in rec_one] == [
+            (r.t, r.name, r.accepted) for r in rec_many
+        ]
+        k += m
+        assert one.ready == many.ready
+        if one.ready:
+            a, b = one.state(), many.state()
+            assert a.t == b.t and a.yaw_aligned == b.yaw_aligned
+            worst_att = max(worst_att, (a.rot_nb * b.rot_nb.inv()).magnitude())
+            sd = np.sqrt(np.diag(a.P))
+            worst_p = max(worst_p, (np.abs(a.P - b.P) / np.outer(sd, sd)).max())
+            assert (one._sums.n, one._count, one.n_resets) == (
+                many._sums.n,
+                many._count,
+                many.n_resets,
+            )
+    assert worst_att < 1e-9 and worst_p < 1e-9
+    assert len(one.records) == len(many.records) > 100
+    with pytest.raises(ValueError, match="not after"):
+        many.propagate_many(t[-3:], W[-3:], A[-3:])
+    with pytest.raises(ValueError, match="finite"):
+        many.propagate_many([t[-1] + 1.0] * 2, [[np.nan, 0, 0]] * 2, A[-2:])
 
 
 def test_fuse_fast_equals_per_sample_filter():

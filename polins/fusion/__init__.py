@@ -8,7 +8,6 @@ input tables), ``polins.fusion.graph`` (GTSAM factor graph, imported lazily).
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from pathlib import Path
 from typing import Any
@@ -18,16 +17,17 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from polins.calibration import ImuModel, load_imu
+from polins.fusion.batch import run_batch
 from polins.fusion.eskf import (
     ESKF,
     EskfOptions,
     FilterState,
     MeasurementItem,
     UpdateRecord,
-    run_batch,
     solution_columns,
 )
 from polins.fusion.inputs import (
+    PRIOR_COLUMNS,
     measurement_items_from_frame,
     validate_imu,
     validate_measurements,
@@ -52,7 +52,7 @@ _FUSE_OPTIONS = {
     "vel_std0": "initial velocity 1-sigma [m/s] (default 0.1)",
     "pos_std0": "initial position 1-sigma [m] (default 1.0)",
     "use_sun": "use a row's sun vector instead of its yaw (default True)",
-    "tilt_coupling": "yaw rows were measured with the filter attitude as prior (default False)",
+    "tilt_coupling": "tilt-coupled yaw model (default: True if the table has prior_* columns)",
     "nhc_std": "non-holonomic constraint 1-sigma [m/s], None = off (default)",
     "nhc_rate_hz": "rate of the non-holonomic constraint [Hz] (default 10)",
     "zupt_std": "zero-velocity 1-sigma [m/s] at the `stationary` times",
@@ -90,6 +90,51 @@ def output_mask(t: np.ndarray, rate_hz: float | None) -> np.ndarray:
 _OUTPUT_OPTIONS = {"output_rate_hz", "smooth", "max_gap_s", "fast", "zupt_std", "stationary"}
 
 
+# options of fuse that configure the filter itself (the others are the site and outputs)
+FILTER_OPTIONS = (
+    "earth_rate", "scale_factors", "gate_prob", "reset_interval_s", "reset_angle_rad",
+    "align_s", "att_std0", "vel_std0", "pos_std0", "use_sun", "tilt_coupling", "nhc_std",
+    "nhc_rate_hz", "cov_step_s", "time_tol",
+)  # fmt: skip
+
+
+def eskf_options(imu_model: ImuModel, dt: float, **options: Any) -> EskfOptions:
+    """The :class:`~polins.fusion.eskf.EskfOptions` that :func:`fuse` builds.
+
+    Parameters
+    ----------
+    imu_model : ImuModel
+        Its ``earth_rate`` is the default of ``earth_rate``.
+    dt : float
+        IMU sample interval [s]: turns ``nhc_rate_hz`` and ``cov_step_s`` into sample strides.
+    **options
+        :data:`FILTER_OPTIONS` by their :func:`fuse` names (an unknown name is a TypeError).
+    """
+    unknown = sorted(set(options) - set(FILTER_OPTIONS))
+    if unknown:
+        raise TypeError(f"unknown filter option(s) {unknown}; valid: {', '.join(FILTER_OPTIONS)}")
+    if not dt > 0:
+        raise ValueError(f"dt must be a positive IMU sample interval [s], got {dt}")
+    opts = dict(options)
+    earth = opts.pop("earth_rate", None)
+    earth = imu_model.earth_rate if earth is None else bool(earth)
+    nhc_rate = float(opts.pop("nhc_rate_hz", 10.0))
+    if not nhc_rate > 0:
+        raise ValueError(f"nhc_rate_hz must be > 0, got {nhc_rate}")
+    cov_step = float(opts.pop("cov_step_s", 0.1))
+    if not cov_step > 0:
+        raise ValueError(f"cov_step_s must be > 0 [s], got {cov_step}")
+    if "att_std0" in opts:
+        att = np.broadcast_to(np.asarray(opts["att_std0"], dtype=float), (3,))
+        opts["att_std0"] = tuple(float(a) for a in att)
+    return EskfOptions(
+        mech=Mechanization(earth_rotation=earth, transport_rate=earth),
+        nhc_every=max(1, round(1.0 / (nhc_rate * dt))),
+        cov_every=max(1, int(cov_step / dt + 1e-9)),
+        **opts,
+    )
+
+
 def build_filter(t0: float, dt: float, rot_nb0: Rotation | None = None, **options: Any) -> ESKF:
     """The :class:`~polins.fusion.eskf.ESKF` that :func:`fuse` runs, for streaming use.
 
@@ -106,17 +151,13 @@ def build_filter(t0: float, dt: float, rot_nb0: Rotation | None = None, **option
     rot_nb0 : Rotation, optional
         Initial attitude; None for self-alignment.
     **options
-        The filter options of :func:`fuse` (``imu_model``, ``lat_deg``, ``lon_deg``,
-        ``alt_m``, ``vel_n0``, ``earth_rate``, ``scale_factors``, ``gate_prob``,
-        ``reset_interval_s``, ``reset_angle_rad``, ``align_s``, ``att_std0``, ``vel_std0``,
-        ``pos_std0``, ``use_sun``, ``tilt_coupling``, ``nhc_std``, ``nhc_rate_hz``,
-        ``cov_step_s``, ``time_tol``).
+        ``imu_model``, ``lat_deg``, ``lon_deg``, ``alt_m``, ``vel_n0`` and the filter options
+        (:data:`FILTER_OPTIONS`) of :func:`fuse`.
     """
-    unknown = sorted(set(options) - (set(_FUSE_OPTIONS) - _OUTPUT_OPTIONS))
+    site = {"imu_model", "lat_deg", "lon_deg", "alt_m", "vel_n0"}
+    unknown = sorted(set(options) - site - set(FILTER_OPTIONS))
     if unknown:
         raise TypeError(f"unknown filter option(s) {unknown}")
-    if not dt > 0:
-        raise ValueError(f"dt must be a positive IMU sample interval [s], got {dt}")
     model = _resolve_model(options.get("imu_model", "mems-typical"))
     default_site = "lat_deg" not in options
     lat_deg = float(options.get("lat_deg", DEFAULT_SITE[0]))
@@ -124,25 +165,7 @@ def build_filter(t0: float, dt: float, rot_nb0: Rotation | None = None, **option
     alt_m = float(options.get("alt_m", DEFAULT_SITE[2] if default_site else 0.0))
     if not -90.0 <= lat_deg <= 90.0:
         raise ValueError(f"lat_deg={lat_deg} outside [-90, 90] (degrees expected)")
-    earth = options.get("earth_rate")
-    earth = model.earth_rate if earth is None else bool(earth)
-    nhc_rate = float(options.get("nhc_rate_hz", 10.0))
-    if not nhc_rate > 0:
-        raise ValueError(f"nhc_rate_hz must be > 0, got {nhc_rate}")
-    cov_step = float(options.get("cov_step_s", 0.1))
-    if not cov_step > 0:
-        raise ValueError(f"cov_step_s must be > 0 [s], got {cov_step}")
-    eskf_fields = {f.name for f in dataclasses.fields(EskfOptions)}
-    kwargs = {k: v for k, v in options.items() if k in eskf_fields}
-    if "att_std0" in kwargs:
-        att = np.broadcast_to(np.asarray(kwargs["att_std0"], dtype=float), (3,))
-        kwargs["att_std0"] = tuple(float(a) for a in att)
-    eskf_options = EskfOptions(
-        mech=Mechanization(earth_rotation=earth, transport_rate=earth),
-        nhc_every=max(1, round(1.0 / (nhc_rate * dt))),
-        cov_every=max(1, int(cov_step / dt + 1e-9)),
-        **kwargs,
-    )
+    filter_opts = {k: v for k, v in options.items() if k in FILTER_OPTIONS}
     return ESKF(
         model,
         float(t0),
@@ -151,7 +174,7 @@ def build_filter(t0: float, dt: float, rot_nb0: Rotation | None = None, **option
         alt_m,
         rot_nb0=rot_nb0,
         vel_n0=options.get("vel_n0", (0.0, 0.0, 0.0)),
-        options=eskf_options,
+        options=eskf_options(model, dt, **filter_opts),
     )
 
 
@@ -212,6 +235,7 @@ def fuse(
             )
             graph_opts["lat_deg"], graph_opts["lon_deg"], graph_opts["alt_m"] = DEFAULT_SITE
         meas = validate_measurements(measurements)
+        graph_opts.setdefault("tilt_coupling", _has_priors(meas))
         return graph.fuse_graph(imu, meas, rot_nb0, **graph_opts)
     if backend != "eskf":
         raise ValueError(f"backend={backend!r}: expected 'eskf' or 'graph'")
@@ -229,6 +253,7 @@ def fuse(
             stacklevel=2,
         )
     filt_opts = {k: v for k, v in options.items() if k not in _OUTPUT_OPTIONS}
+    filt_opts.setdefault("tilt_coupling", _has_priors(meas))
     filt = build_filter(float(arrays.t[0]), arrays.dt, rot_nb0, **filt_opts)
     model = filt.model
     items = measurement_items_from_frame(meas, use_sun=filt.options.use_sun)
@@ -286,6 +311,11 @@ def _fuse_streaming(
     return pd.DataFrame(solution_columns(**_state_arrays(states)))
 
 
+def _has_priors(measurements: pd.DataFrame) -> bool:
+    """The table carries the priors ``polins.measure`` used (``polins fuse`` writes them)."""
+    return all(c in measurements.columns for c in PRIOR_COLUMNS)
+
+
 def records_frame(records: list[UpdateRecord]) -> pd.DataFrame:
     """The measurement log as a table: ``t, name, dim, nis, accepted, reason``."""
     return pd.DataFrame(
@@ -300,4 +330,13 @@ def records_frame(records: list[UpdateRecord]) -> pd.DataFrame:
     )
 
 
-__all__ = ["ESKF", "EskfOptions", "build_filter", "fuse", "output_mask", "records_frame"]
+__all__ = [
+    "ESKF",
+    "FILTER_OPTIONS",
+    "EskfOptions",
+    "build_filter",
+    "eskf_options",
+    "fuse",
+    "output_mask",
+    "records_frame",
+]

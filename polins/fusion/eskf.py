@@ -26,7 +26,9 @@ are discretised as ``Phi = exp(F T)`` (power series to third order: the neglecte
 below 1e-8 relative for steps up to 0.1 s) and the Van Loan integral
 ``Q = int_0^T Phi(s) Qc Phi(s)^T ds`` by Simpson's rule (exact for the polynomial
 entries of ``Phi``; tests/test_eskf.py checks both against ``scipy.linalg.expm`` of the
-Van Loan matrix).
+Van Loan matrix). The step is computed from sums over its IMU intervals
+(:func:`step_exponent`, :func:`van_loan`); the same functions serve the streaming filter,
+the batch steps and partial steps (output rows inside a step).
 
 Filtering uses ``filterpy.kalman.predict`` and ``filterpy.kalman.update`` (Joseph form).
 Innovations are gated with a chi-square test (each rejection is logged with its reason) and
@@ -37,10 +39,13 @@ nominal state and zeroed after the first processed measurement at least
 ``reset_interval_s`` after the previous reset, or as soon as the attitude error estimate
 exceeds ``reset_angle_rad``. Between resets the updates act on the error state (filterpy's
 innovation ``z - H dx`` is then the exact first-order innovation about the nominal), and
-the reported estimate is always ``nominal (+) dx``. This lets the batch path propagate the
-nominal state and the transition matrices between resets with vectorised numpy; the
-streaming path (one IMU sample at a time) follows the same rule and gives the same
-results to rounding error (tests/test_eskf.py, 1e-9 rad).
+the reported estimate is always ``nominal (+) dx``. This lets the batch path
+(:mod:`polins.fusion.batch`: ``run_batch`` for ``polins.fuse``, ``ESKF.propagate_many``
+for runs of samples in streaming use) propagate the nominal state and the transition
+matrices between resets with vectorised numpy; the streaming path (``ESKF.propagate``, one
+IMU sample at a time, the attitude as a matrix: no Rotation objects per sample) follows
+the same rule and gives the same results to rounding error (tests/test_eskf.py: 1e-9 rad,
+sigmas to 1e-9 relative).
 
 Ground-vehicle constraints: ``nhc_std`` applies the non-holonomic constraint (no lateral,
 no vertical body velocity) every ``nhc_every`` IMU samples, and measurement rows with
@@ -49,8 +54,8 @@ velocity, so its sigma must also cover the linearisation error: with a poorly kn
 velocity (no zero-velocity updates or odometry) a sigma below ~0.01 m/s makes the filter
 overconfident; 0.05 m/s is a sound default for a car-like vehicle.
 
-Smoothing: :func:`run_batch` with ``smooth=True`` runs the Rauch-Tung-Striebel smoother
-(:func:`rts_smooth`) over the epochs where the covariance was propagated; rows between
+Smoothing: ``batch.run_batch`` with ``smooth=True`` runs the Rauch-Tung-Striebel smoother
+(``batch.rts_smooth``) over the epochs where the covariance was propagated; rows between
 epochs use the gain through the partial products (inside a covariance step, a first-order
 inverse of the partial step). The alignment starts a new smoothing chain.
 
@@ -62,7 +67,13 @@ correlation with the accelerometer bias (a horizontal bias ``b`` tilts the estim
 measurement, which sets it (its variance becomes the measurement's, its correlations
 zero). The vehicle may move before that measurement only if the yaw does not matter for
 the velocity then (e.g. it stands still or drives straight from rest, which only rotates
-the velocity with the frame, and is corrected by the alignment rotation).
+the velocity with the frame, and is corrected by the alignment rotation). When the
+mechanization includes the Earth rate, the levelling also gyrocompasses
+(:func:`polins.fusion.alignment.gyrocompass`, with the yaw error's correlation with the
+gyro bias), if that yaw is better than ``GYROCOMPASS_MAX_STD``: the Earth rate is then
+compensated about the right axes until the first yaw measurement (with a yaw off by
+``d`` the tilt would drift by ``2 sin(d/2) Omega cos L``, up to 1e-4 rad/s). That coarse
+yaw is not reported; the first measurement still sets it.
 """
 
 from __future__ import annotations
@@ -72,7 +83,7 @@ import logging
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from filterpy.kalman import predict as kf_predict
@@ -84,6 +95,7 @@ from scipy.stats import chi2
 from polins.attitude import euler_from_rot_nb, heading_deg_from_yaw, wrap_angle, yaw_from_rot_nb
 from polins.calibration import ImuModel
 from polins.earth import OMEGA_IE, normal_gravity, radii_of_curvature
+from polins.fusion.alignment import gyrocompass, level_from_accel
 from polins.fusion.measurement import (
     ATT,
     BA,
@@ -105,8 +117,7 @@ from polins.ins import (
     nav_rates_n,
     rotation_vectors,
     skew,
-    strapdown,
-    strapdown_step_detail,
+    strapdown_increment,
 )
 
 FloatArray = NDArray[np.float64]
@@ -125,6 +136,9 @@ def _chi2_limit(prob: float | None, dof: int) -> float:
 
 
 # ============================================================================ options
+GYROCOMPASS_MAX_STD = math.radians(5.0)  # self-alignment gyrocompasses below this sigma
+
+
 @dataclass(frozen=True)
 class EskfOptions:
     """Configuration of the :class:`ESKF` (all SI units, radians).
@@ -155,8 +169,9 @@ class EskfOptions:
     use_sun : bool
         Use a row's sun vector (2-DOF) instead of its yaw when both are present.
     tilt_coupling : bool
-        Yaw rows with ``sun_n`` were measured with this filter's attitude as the prior:
-        put the SPEC 10.2 tilt coupling in ``H`` (see ``yaw_measurement``).
+        Yaw rows with ``sun_n`` were measured by ``polins.measure`` with a prior (the
+        row's ``mat_nb_prior``, default this filter's attitude): use the tilt-coupled model
+        of ``yaw_measurement`` (SPEC 10.2, the coupling in ``H``).
     time_tol : float
         Measurement times within this of an IMU sample use that sample [s].
     cov_every : int
@@ -226,6 +241,48 @@ def _gravity_gradient(lat: FloatArray, height: FloatArray) -> FloatArray:
     return 0.5 * (normal_gravity(lat, height + 1.0) - normal_gravity(lat, height - 1.0))
 
 
+def nav_error_dynamics(
+    vel_n: ArrayLike, lat: ArrayLike, height: ArrayLike, mech: Mechanization
+) -> FloatArray:
+    """The blocks of ``F`` among attitude, velocity and position that depend on the
+    navigation state only, ``(..., 9, 9)`` (the velocity-attitude block ``-[f_n x]`` is
+    left zero; :func:`error_dynamics` adds it)."""
+    v = np.asarray(vel_n, dtype=float)
+    lat_a = np.asarray(lat, dtype=float)
+    h = np.asarray(height, dtype=float)
+    batch = v.shape[:-1]
+    F = np.zeros((*batch, N_DYNAMIC, N_DYNAMIC))
+    if mech.earth_rotation or mech.transport_rate:
+        w_ie, w_en = nav_rates_n(lat_a, h, v, mech)
+        F[..., ATT, ATT] = -skew(w_ie + w_en)
+        r_m, r_n = radii_of_curvature(lat_a)
+        rmh, rnh = r_m + h, r_n + h
+        dwen_dv = np.zeros((*batch, 3, 3))
+        dw_dp = np.zeros((*batch, 3, 3))  # d(w_in)/dp
+        dwie_dp = np.zeros((*batch, 3, 3))
+        if mech.transport_rate:
+            tan_l = np.tan(lat_a)
+            dwen_dv[..., 0, 1] = -1.0 / rmh
+            dwen_dv[..., 1, 0] = 1.0 / rnh
+            dwen_dv[..., 2, 0] = tan_l / rnh
+            ve, vn = v[..., 0], v[..., 1]
+            dw_dp[..., 2, 1] = ve / (np.cos(lat_a) ** 2 * rnh * rmh)
+            dw_dp[..., 0, 2] = vn / rmh**2
+            dw_dp[..., 1, 2] = -ve / rnh**2
+            dw_dp[..., 2, 2] = -ve * tan_l / rnh**2
+        if mech.earth_rotation:
+            dwie_dp[..., 1, 1] = -OMEGA_IE * np.sin(lat_a) / rmh
+            dwie_dp[..., 2, 1] = OMEGA_IE * np.cos(lat_a) / rmh
+        F[..., ATT, VEL] = -dwen_dv
+        F[..., ATT, POS] = -(dw_dp + dwie_dp)
+        sv = skew(v)
+        F[..., VEL, VEL] = -skew(2.0 * w_ie + w_en) + sv @ dwen_dv
+        F[..., VEL, POS] = sv @ (2.0 * dwie_dp + dw_dp)
+    F[..., VEL.start + 2, POS.start + 2] -= _gravity_gradient(lat_a, h)
+    F[..., POS, VEL] = np.eye(3)
+    return F
+
+
 def error_dynamics(
     mat_nb: ArrayLike,
     force_n: ArrayLike,
@@ -270,51 +327,153 @@ def error_dynamics(
     """
     mat = np.asarray(mat_nb, dtype=float)
     fn = np.asarray(force_n, dtype=float)
-    v = np.asarray(vel_n, dtype=float)
-    lat_a = np.asarray(lat, dtype=float)
-    h = np.asarray(height, dtype=float)
     sf = gyro_scale is not None
+    if sf and (mat_omega is None or mat_force is None):
+        raise ValueError("error_dynamics with scale factors needs mat_omega and mat_force")
     n = n_states(sf)
-    batch = fn.shape[:-1]
-    F = np.zeros((*batch, n, n))
-    w_ie, w_en = nav_rates_n(lat_a, h, v, mech)
-    F[..., ATT, ATT] = -skew(w_ie + w_en)
-    r_m, r_n = radii_of_curvature(lat_a)
-    rmh, rnh = r_m + h, r_n + h
-    dwen_dv = np.zeros((*batch, 3, 3))
-    dw_dp = np.zeros((*batch, 3, 3))  # d(w_in)/dp
-    dwie_dp = np.zeros((*batch, 3, 3))
-    if mech.transport_rate:
-        tan_l = np.tan(lat_a)
-        dwen_dv[..., 0, 1] = -1.0 / rmh
-        dwen_dv[..., 1, 0] = 1.0 / rnh
-        dwen_dv[..., 2, 0] = tan_l / rnh
-        ve, vn = v[..., 0], v[..., 1]
-        dw_dp[..., 2, 1] = ve / (np.cos(lat_a) ** 2 * rnh * rmh)
-        dw_dp[..., 0, 2] = vn / rmh**2
-        dw_dp[..., 1, 2] = -ve / rnh**2
-        dw_dp[..., 2, 2] = -ve * tan_l / rnh**2
-    if mech.earth_rotation:
-        dwie_dp[..., 1, 1] = -OMEGA_IE * np.sin(lat_a) / rmh
-        dwie_dp[..., 2, 1] = OMEGA_IE * np.cos(lat_a) / rmh
-    F[..., ATT, VEL] = -dwen_dv
-    F[..., ATT, POS] = -(dw_dp + dwie_dp)
+    F = np.zeros((*fn.shape[:-1], n, n))
+    F[..., :N_DYNAMIC, :] = step_exponent(
+        nav_error_dynamics(vel_n, lat, height, mech),
+        np.ones(fn.shape[:-1]),
+        mat,
+        fn,
+        n,
+        scale_divisors(gyro_scale, accel_scale),
+        mat_omega,
+        mat_force,
+    )
+    return F
+
+
+def scale_divisors(
+    gyro_scale: ArrayLike | None, accel_scale: ArrayLike | None
+) -> tuple[FloatArray | float, FloatArray | float]:
+    """``1 / (1 + s)`` for the gyro and accelerometer scale factors (1.0 without them)."""
     dg = 1.0 if gyro_scale is None else 1.0 / (1.0 + np.asarray(gyro_scale, dtype=float))
     da = 1.0 if accel_scale is None else 1.0 / (1.0 + np.asarray(accel_scale, dtype=float))
-    F[..., ATT, BG] = -mat * dg
-    sv = skew(v)
-    F[..., VEL, ATT] = -skew(fn)
-    F[..., VEL, VEL] = -skew(2.0 * w_ie + w_en) + sv @ dwen_dv
-    F[..., VEL, POS] = sv @ (2.0 * dwie_dp + dw_dp)
-    F[..., VEL.start + 2, POS.start + 2] -= _gravity_gradient(lat_a, h)
-    F[..., VEL, BA] = -mat * da
-    F[..., POS, VEL] = np.eye(3)
-    if sf:
-        if mat_omega is None or mat_force is None:
-            raise ValueError("error_dynamics with scale factors needs mat_omega and mat_force")
-        F[..., ATT, SG] = -np.asarray(mat_omega, dtype=float) * dg
-        F[..., VEL, SA] = -np.asarray(mat_force, dtype=float) * da
-    return F
+    return dg, da
+
+
+# entries of -[v x] in the velocity-attitude block: rows, columns, components, signs
+_SKEW_ROW = np.array([3, 3, 4, 4, 5, 5])
+_SKEW_COL = np.array([1, 2, 0, 2, 0, 1])
+_SKEW_SRC = np.array([2, 1, 2, 0, 1, 0])
+_SKEW_SIGN = np.array([1.0, -1.0, -1.0, 1.0, 1.0, -1.0])
+
+
+def step_exponent(
+    F_nav: FloatArray,
+    dt: ArrayLike,
+    mat_dt: ArrayLike,
+    dv_force: ArrayLike,
+    n: int,
+    divisors: tuple[FloatArray | float, FloatArray | float],
+    mat_omega_dt: ArrayLike | None = None,
+    mat_force_dt: ArrayLike | None = None,
+) -> FloatArray:
+    """The rows with dynamics of ``A = F dt`` over a covariance step, ``(..., 9, n)``.
+
+    ``F dt`` of :func:`error_dynamics` written with the step sums: ``F_nav dt`` from
+    :func:`nav_error_dynamics`, ``-[dv_force x]`` (``dv_force = int mat_nb f_b dt``), and
+    the bias (and scale-factor) columns ``-int mat_nb dt (.) d`` with ``divisors`` ``d``
+    from :func:`scale_divisors` (``mat_omega_dt = int mat_nb diag(omega_b) dt``,
+    ``mat_force_dt = int mat_nb diag(f_b) dt``).
+    """
+    F_nav = np.asarray(F_nav, dtype=float)
+    t = np.asarray(dt, dtype=float)
+    mat = np.asarray(mat_dt, dtype=float)
+    dv = np.asarray(dv_force, dtype=float)
+    dg, da = divisors
+    A = np.zeros((*F_nav.shape[:-2], N_DYNAMIC, n))
+    np.multiply(F_nav, t[..., None, None], out=A[..., :N_DYNAMIC])
+    # -[dv x] in the velocity-attitude block
+    A[..., _SKEW_ROW, _SKEW_COL] = dv[..., _SKEW_SRC] * _SKEW_SIGN
+    np.multiply(mat, -dg, out=A[..., ATT, BG])
+    np.multiply(mat, -da, out=A[..., VEL, BA])
+    if n > N_ERROR:
+        if mat_omega_dt is None or mat_force_dt is None:
+            raise ValueError("scale-factor states need mat_omega_dt and mat_force_dt")
+        A[..., ATT, SG] = -np.asarray(mat_omega_dt, dtype=float) * dg
+        A[..., VEL, SA] = -np.asarray(mat_force_dt, dtype=float) * da
+    return A
+
+
+def powers(A: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``Phi(T) - I`` and ``Phi(T/2) - I`` (top rows) of ``Phi = I + A + A^2/2 + A^3/6``
+    from the top rows ``A`` ``(..., k, n)`` of ``F T`` (:func:`van_loan`)."""
+    A_kk = A[..., : A.shape[-2]]
+    A2 = A_kk @ A
+    A3 = A_kk @ A2
+    top = A3 * (1.0 / 6.0)
+    top += A
+    top += 0.5 * A2
+    half = A3 * (1.0 / 48.0)
+    half += 0.5 * A
+    half += 0.125 * A2
+    return top, half
+
+
+def van_loan(A: FloatArray, dt: ArrayLike, qc: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """:func:`discretize` from the non-zero top rows ``A = (F dt)[..., :k, :]``.
+
+    The rows ``k..`` of ``F`` (sensor errors without dynamics) are zero, so only the top
+    rows of the powers of ``A`` are non-zero: ``A^(p+1)[:k] = A[:k, :k] A^p[:k]``.
+    """
+    A = np.asarray(A, dtype=float)
+    return van_loan_full(*powers(A), np.asarray(dt, dtype=float), np.asarray(qc, dtype=float))
+
+
+def van_loan_full(
+    top: FloatArray, half: FloatArray, dt: FloatArray, qc: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """``Phi`` and ``Q`` (:func:`van_loan`) from :func:`powers` (``half`` is overwritten)."""
+    k, n = top.shape[-2:]
+    idx = np.arange(n)
+    Phi = np.zeros((*top.shape[:-2], n, n))
+    Phi[..., :k, :] = top
+    Phi[..., idx, idx] += 1.0
+    half[..., idx[:k], idx[:k]] += 1.0  # Phi(dt/2), top rows
+    # Simpson on int_0^dt Phi(s) Qc Phi(s)^T ds with Phi(0) = I, Phi(dt/2), Phi(dt).
+    Phi_top = Phi[..., :k, :]
+    Q = np.zeros_like(Phi)
+    Q[..., :k, :k] = (Phi_top * qc) @ np.swapaxes(Phi_top, -1, -2)
+    Q[..., :k, :k] += 4.0 * (half * qc) @ np.swapaxes(half, -1, -2)
+    Q[..., :k, k:] = (Phi_top[..., k:] + 4.0 * half[..., k:]) * qc[k:]
+    Q[..., k:, :k] = np.swapaxes(Q[..., :k, k:], -1, -2)
+    Q[..., idx, idx] += qc
+    Q[..., idx[k:], idx[k:]] += 5.0 * qc[k:]  # Phi(dt/2) and Phi(dt) are I there
+    Q *= dt[..., None, None] / 6.0
+    return Phi, Q
+
+
+def van_loan_rows(
+    top: FloatArray, half: FloatArray, dt: FloatArray, qc: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The parts of :func:`van_loan` that the solution table needs, from :func:`powers`.
+
+    Returns ``Phi[..., :k, :]`` (``top`` and ``half`` are overwritten), the diagonal of
+    ``Q`` ``(..., n)`` and its attitude block ``Q[..., :3, :3]`` (the other rows of
+    ``Phi`` are those of the identity).
+    """
+    k = top.shape[-2]
+    i = np.arange(k)
+    top[..., i, i] += 1.0
+    half[..., i, i] += 1.0
+    w = (dt / 6.0)[..., None]
+    q_diag = np.empty((*top.shape[:-2], top.shape[-1]))
+    sq = top * top
+    h2 = half * half
+    h2 *= 4.0
+    sq += h2
+    q_diag[..., :k] = sq @ qc
+    q_diag[..., :k] += qc[:k]
+    q_diag[..., :k] *= w
+    q_diag[..., k:] = dt[..., None] * qc[k:]
+    ta, ha = top[..., ATT, :], half[..., ATT, :]
+    q_att = (ta * qc) @ np.swapaxes(ta, -1, -2) + 4.0 * (ha * qc) @ np.swapaxes(ha, -1, -2)
+    q_att[..., (0, 1, 2), (0, 1, 2)] += qc[ATT]
+    q_att *= w[..., None]
+    return top, q_diag, q_att
 
 
 def discretize(F: ArrayLike, dt: ArrayLike, qc: ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -339,32 +498,9 @@ def discretize(F: ArrayLike, dt: ArrayLike, qc: ArrayLike) -> tuple[FloatArray, 
     """
     F = np.asarray(F, dtype=float)
     dt = np.asarray(dt, dtype=float)
-    qc = np.asarray(qc, dtype=float)
     n = F.shape[-1]
     k = N_DYNAMIC if n >= N_DYNAMIC and not np.any(F[..., N_DYNAMIC:, :]) else n
-    # Rows k.. of F are zero (sensor errors without dynamics): only the top rows of the
-    # powers of A are non-zero, A^(p+1)[:k] = A[:k, :k] A^p[:k].
-    A = F[..., :k, :] * dt[..., None, None]
-    A_kk = A[..., :k]
-    A2 = A_kk @ A
-    A3 = A_kk @ A2
-    idx = np.arange(n)
-    Phi = np.zeros((*F.shape[:-2], n, n))
-    Phi[..., :k, :] = A + 0.5 * A2 + A3 / 6.0
-    Phi[..., idx, idx] += 1.0
-    half = 0.5 * A + 0.125 * A2 + A3 / 48.0  # Phi(dt/2) - I, top rows
-    half[..., idx[:k], idx[:k]] += 1.0
-    # Simpson on int_0^dt Phi(s) Qc Phi(s)^T ds with Phi(0) = I, Phi(dt/2), Phi(dt).
-    Phi_top = Phi[..., :k, :]
-    Q = np.zeros_like(Phi)
-    Q[..., :k, :k] = (Phi_top * qc) @ np.swapaxes(Phi_top, -1, -2)
-    Q[..., :k, :k] += 4.0 * (half * qc) @ np.swapaxes(half, -1, -2)
-    Q[..., :k, k:] = (Phi_top[..., k:] + 4.0 * half[..., k:]) * qc[k:]
-    Q[..., k:, :k] = np.swapaxes(Q[..., :k, k:], -1, -2)
-    Q[..., idx, idx] += qc
-    Q[..., idx[k:], idx[k:]] += 5.0 * qc[k:]  # Phi(dt/2) and Phi(dt) are I there
-    Q *= dt[..., None, None] / 6.0
-    return Phi, Q
+    return van_loan(F[..., :k, :] * dt[..., None, None], dt, qc)
 
 
 def euler_jacobian(rot_nb: Rotation) -> FloatArray:
@@ -374,13 +510,20 @@ def euler_jacobian(rot_nb: Rotation) -> FloatArray:
     ``E = [z, Rz(yaw) y, Rz(yaw) Ry(pitch) x]``; the result is ``E^-1``.
     """
     yaw, pitch, _ = euler_from_rot_nb(rot_nb)
+    return _euler_jacobian(yaw, pitch)
+
+
+def _euler_jacobian(yaw: FloatArray, pitch: FloatArray) -> FloatArray:
+    """:func:`euler_jacobian` from the angles: ``E^-1`` in closed form,
+    ``[[tan(p) cos(y), tan(p) sin(y), 1], [-sin(y), cos(y), 0], [cos(y), sin(y), 0] / cos(p)]``.
+    """
     cy, sy = np.cos(yaw), np.sin(yaw)
     cp, sp = np.cos(pitch), np.sin(pitch)
-    E = np.zeros((*np.shape(yaw), 3, 3))
-    E[..., 2, 0] = 1.0
-    E[..., 0, 1], E[..., 1, 1] = -sy, cy
-    E[..., 0, 2], E[..., 1, 2], E[..., 2, 2] = cp * cy, cp * sy, -sp
-    return np.linalg.inv(E)
+    J = np.zeros((*np.shape(yaw), 3, 3))
+    J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = sp * cy / cp, sp * sy / cp, 1.0
+    J[..., 1, 0], J[..., 1, 1] = -sy, cy
+    J[..., 2, 0], J[..., 2, 1] = cy / cp, sy / cp
+    return J
 
 
 # ============================================================================ measurements
@@ -399,6 +542,7 @@ class MeasurementItem:
     sun_b: FloatArray | None = None
     sun_n: FloatArray | None = None
     valid: bool = True
+    mat_nb_prior: FloatArray | None = None  # the prior polins.measure used (yaw rows)
 
     @property
     def order(self) -> tuple[float, int]:
@@ -422,13 +566,15 @@ def measurement_items(
     sun_std: float | None = None,
     zupt_std: float | None = None,
     use_sun: bool = True,
+    rot_nb_prior: Rotation | None = None,
 ) -> list[MeasurementItem]:
     """The measurement items of one row (``measurements`` DataFrame columns).
 
     A row with a complete sun vector (``sun_b``, ``sun_n``, ``sun_std``) gives a sun item
     when ``use_sun``; otherwise a row with yaw columns gives a yaw item (carrying ``sun_n``
-    for the optional tilt coupling). NaN values give an invalid item (logged, not used).
-    ``zupt_std`` adds a zero-velocity item.
+    and ``rot_nb_prior``, the prior ``polins.measure`` used, for the optional tilt
+    coupling: :func:`polins.fusion.measurement.yaw_measurement`). NaN values give an
+    invalid item (logged, not used). ``zupt_std`` adds a zero-velocity item.
     """
     items: list[MeasurementItem] = []
     t = float(t)
@@ -455,6 +601,7 @@ def measurement_items(
                 yaw=float(yaw) if ok else math.nan,  # type: ignore[arg-type]
                 sun_n=s_n,
                 valid=ok,
+                mat_nb_prior=None if rot_nb_prior is None else rot_nb_prior.as_matrix(),
             )
         )
     elif has_sun:
@@ -559,9 +706,8 @@ def solution_columns(
     the yaw alignment.
     """
     yaw, pitch, roll = euler_from_rot_nb(rot_nb)
-    J = euler_jacobian(rot_nb)
-    cov = J @ P_diag_att @ np.swapaxes(J, -1, -2)
-    std = np.sqrt(np.clip(np.diagonal(cov, axis1=-2, axis2=-1), 0.0, None))
+    J = _euler_jacobian(yaw, pitch)
+    std = np.sqrt(np.clip(((J @ P_diag_att) * J).sum(axis=-1), 0.0, None))  # diag(J P J^T)
     nan_yaw = ~np.asarray(yaw_aligned, dtype=bool)
     yaw = np.where(nan_yaw, np.nan, yaw)
     quat = rot_nb.as_quat()
@@ -605,17 +751,6 @@ def solution_columns(
     return cols
 
 
-# ============================================================================ alignment
-def level_from_accel(accel_b: ArrayLike) -> tuple[float, float]:
-    """Roll and pitch [rad] from a mean specific force of a static body (levelling).
-
-    A static body measures ``f_b = mat_bn (0, 0, g)``: ``roll = atan2(f_y, f_z)``,
-    ``pitch = atan2(-f_x, hypot(f_y, f_z))`` (FLU, positive pitch nose down).
-    """
-    f = np.asarray(accel_b, dtype=float)
-    return float(np.arctan2(f[1], f[2])), float(np.arctan2(-f[0], np.hypot(f[1], f[2])))
-
-
 def inject(
     nav: NavState, bg: FloatArray, ba: FloatArray, sg: FloatArray, sa: FloatArray, dx: FloatArray
 ) -> tuple[NavState, FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -650,6 +785,20 @@ class _StepSums:
     height: float = 0.0
 
 
+class _Nominal(NamedTuple):
+    """Nominal navigation state as arrays (attitude as the matrix ``mat_nb``)."""
+
+    t: float
+    mat_nb: FloatArray
+    vel_n: FloatArray
+    lat: float
+    lon: float
+    height: float
+
+
+_MIN_BATCH = 16  # propagate_many: fewer samples go through propagate one by one
+
+
 class ESKF:
     """Error-state Kalman filter holding its state; incremental (streaming) interface.
 
@@ -674,7 +823,9 @@ class ESKF:
     ``t0``), ``add_measurement(t, ...)`` for each measurement (applied when the IMU
     reaches ``t``, with the IMU interpolated linearly to ``t``), ``state()`` for the
     current estimate with its covariance. ``records`` logs every measurement.
-    :func:`run_batch` runs a whole log through a fresh filter with the same results.
+    ``propagate_many(t, gyro_b, accel_b)`` consumes a run of samples at once (vectorised)
+    with the same result as one ``propagate`` per sample; ``polins.fusion.batch.run_batch``
+    runs a whole log through a fresh filter with the same results.
     """
 
     def __init__(
@@ -722,8 +873,8 @@ class ESKF:
         rot = rot_nb0 if rot_nb0 is not None else Rotation.identity()
         if not isinstance(rot, Rotation) or not rot.single:
             raise ValueError("rot_nb0 must be a single scipy Rotation (body FLU -> ENU) or None")
-        self._lazy: tuple[NavTrack, int] | None = None
-        self._nav = NavState(float(t0), rot, v0, float(lat), float(lon), float(height))
+        self._nav_cache: NavState | None = None
+        self._nom = _Nominal(float(t0), rot.as_matrix(), v0, float(lat), float(lon), float(height))
         self.P = self._initial_covariance()
         self.yaw_aligned = rot_nb0 is not None
         if rot_nb0 is None:
@@ -760,54 +911,87 @@ class ESKF:
             )
         roll, pitch = level_from_accel(f_mean)
         rot = Rotation.from_euler("ZYX", [0.0, pitch, roll])
+        duration = max(samples[-1][0] - samples[0][0], 1.0 / max(self.model.sample_rate_hz, 1.0))
+        P = self.P.copy()
+        P[ATT, :] = 0.0
+        P[:, ATT] = 0.0
+        yaw_var = 1.0  # yaw unknown until the first yaw measurement
+        if self.options.mech.earth_rotation:
+            # Gyrocompass so that the Earth rate is compensated about the right axes until
+            # then (polins.fusion.alignment); the yaw is still reported from that measurement.
+            yaw0, j_bg = gyrocompass(gyro.mean(axis=0), rot, self.nav.lat)
+            var = j_bg @ P[BG, BG] @ j_bg + (self.model.gyro_arw**2 / duration) * (j_bg @ j_bg)
+            if var < GYROCOMPASS_MAX_STD**2:
+                rot = Rotation.from_rotvec([0.0, 0.0, yaw0]) * rot
+                yaw_var = float(var)
+                P[2, BG] = j_bg @ P[BG, BG]
+                P[BG, 2] = P[2, BG]
+            else:
+                log.warning(
+                    "self-alignment: the gyro bias (%.3g deg/h) is too large to gyrocompass "
+                    "(yaw sigma %.1f deg); with the Earth rate mechanized the tilt drifts "
+                    "by up to %.2g rad/s until the first yaw measurement",
+                    np.degrees(self.model.gyro_bias) * 3600.0,
+                    np.degrees(math.sqrt(var)),
+                    2.0 * OMEGA_IE * math.cos(self.nav.lat),
+                )
         self.nav = replace(self.nav, rot_nb=rot, vel_n=np.zeros(3))
         # Tilt error = J dba exactly (a horizontal bias tilts the level by b/g), plus the
         # averaged white noise of the accelerometer.
         J = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0]]) @ rot.as_matrix() / g
-        P = self.P.copy()
-        P[ATT, :] = 0.0
-        P[:, ATT] = 0.0
         p_ba = P[BA, BA]
-        duration = max(samples[-1][0] - samples[0][0], 1.0 / max(self.model.sample_rate_hz, 1.0))
         noise = (self.model.accel_vrw / g) ** 2 / duration
         P[0:2, 0:2] = J @ p_ba @ J.T + np.eye(2) * noise
         P[0:2, BA] = J @ p_ba
         P[BA, 0:2] = (J @ p_ba).T
-        P[2, 2] = 1.0  # yaw unknown until the first yaw measurement
+        P[2, 2] = yaw_var
         P[VEL, VEL] = np.eye(3) * self.options.vel_std0**2
         self.P = P
 
     # ------------------------------------------------------------------ nominal state
+    # The nominal state is held as arrays (``_nom``, attitude as a matrix: no Rotation
+    # objects per IMU sample); ``nav`` builds the NavState on demand.
     @property
     def t(self) -> float:
         """Current filter time [s]."""
-        if self._lazy is not None:
-            return float(self._lazy[0].t[self._lazy[1]])
-        return self._nav.t
+        return float(self._nom.t)
 
     @property
     def nav(self) -> NavState:
         """Nominal navigation state (the estimate is ``nominal (+) x``)."""
-        if self._lazy is not None:
-            track, i = self._lazy
-            self._nav = track.state(i)
-            self._lazy = None
-        return self._nav
+        if self._nav_cache is None:
+            nom = self._nom
+            self._nav_cache = NavState(
+                float(nom.t),
+                Rotation.from_matrix(nom.mat_nb, assume_valid=True),
+                np.array(nom.vel_n, dtype=float),
+                float(nom.lat),
+                float(nom.lon),
+                float(nom.height),
+            )
+        return self._nav_cache
 
     @nav.setter
     def nav(self, value: NavState) -> None:
-        self._nav = value
-        self._lazy = None
+        self._nav_cache = value
+        self._nom = _Nominal(
+            value.t,
+            value.rot_nb.as_matrix(),
+            np.asarray(value.vel_n, dtype=float),
+            value.lat,
+            value.lon,
+            value.height,
+        )
 
     def _set_track(self, track: NavTrack, i: int) -> None:
-        """Batch path: the nominal state is sample ``i`` of ``track`` (built on demand)."""
-        self._lazy = (track, i)
+        """Batch path: the nominal state is sample ``i`` of ``track``."""
+        self._nav_cache = None
+        self._nom = _Nominal(
+            track.t[i], track.mat_nb[i], track.vel_n[i], track.lat[i], track.lon[i], track.height[i]
+        )
 
     def _nominal_mat_vel(self) -> tuple[FloatArray, FloatArray]:
-        if self._lazy is not None:
-            track, i = self._lazy
-            return track.mat_nb[i], track.vel_n[i]
-        return self._nav.rot_nb.as_matrix(), self._nav.vel_n
+        return self._nom.mat_nb, self._nom.vel_n
 
     @property
     def ready(self) -> bool:
@@ -828,7 +1012,11 @@ class ESKF:
         t = float(t)
         w = np.array(gyro_b, dtype=float)
         f = np.array(accel_b, dtype=float)
-        if w.shape != (3,) or f.shape != (3,) or not np.all(np.isfinite(np.r_[w, f])):
+        if (
+            w.shape != (3,)
+            or f.shape != (3,)
+            or not (np.isfinite(w).all() and np.isfinite(f).all() and math.isfinite(t))
+        ):
             raise ValueError("gyro_b and accel_b must be finite 3-vectors [rad/s], [m/s^2]")
         n_before = len(self.records)
         tol = self.options.time_tol
@@ -847,6 +1035,76 @@ class ESKF:
             self._consume(t, w, f)
         return self.records[n_before:]
 
+    def propagate_many(
+        self, t: ArrayLike, gyro_b: ArrayLike, accel_b: ArrayLike
+    ) -> list[UpdateRecord]:
+        """Consume a run of IMU samples: the same as :meth:`propagate` for each sample.
+
+        Runs the batch machinery (:func:`polins.fusion.batch.advance`: the nominal state
+        propagated with vectorised numpy between resets, the covariance in block
+        transitions between measurement epochs, filterpy ``predict``/``update`` at the
+        epochs) and leaves the filter in the state that one :meth:`propagate` call per
+        sample would (to rounding error; a covariance step in progress carries over to the
+        next call). With a ``sample_hook`` (which must see every sample) or for a few
+        samples, it calls :meth:`propagate` per sample.
+
+        Parameters
+        ----------
+        t : (N,) array_like
+            Sample times [s], strictly increasing, after the last consumed sample.
+        gyro_b, accel_b : (N, 3) array_like
+            Raw body rates [rad/s] and specific forces [m/s^2].
+
+        Returns
+        -------
+        list of UpdateRecord
+            Records of the measurements applied during this call.
+        """
+        t_a = np.asarray(t, dtype=float)
+        W = np.asarray(gyro_b, dtype=float)
+        A = np.asarray(accel_b, dtype=float)
+        N = t_a.shape[0] if t_a.ndim == 1 else -1
+        if N < 0 or W.shape != (N, 3) or A.shape != (N, 3):
+            raise ValueError(
+                f"propagate_many needs t (N,), gyro_b and accel_b (N, 3); got shapes "
+                f"{t_a.shape}, {W.shape}, {A.shape}"
+            )
+        if not (np.isfinite(t_a).all() and np.isfinite(W).all() and np.isfinite(A).all()):
+            raise ValueError("gyro_b and accel_b must be finite 3-vectors [rad/s], [m/s^2]")
+        if N > 1 and not np.all(np.diff(t_a) > 0):
+            k = int(np.flatnonzero(np.diff(t_a) <= 0)[0])
+            raise ValueError(f"IMU time {t_a[k + 1]} is not after the previous sample {t_a[k]}")
+        n_before = len(self.records)
+        k = 0
+        if self.sample_hook is not None or N < _MIN_BATCH:
+            for k in range(N):
+                self.propagate(t_a[k], W[k], A[k])
+            return self.records[n_before:]
+        buffered = self._align_buffer
+        last = self._real if buffered is None else (buffered[-1] if buffered else None)
+        if last is not None and t_a[0] <= last[0]:
+            raise ValueError(f"IMU time {t_a[0]} is not after the previous sample {last[0]}")
+        if self._align_buffer is not None:
+            # Levelling: buffer samples until the window is complete, then run the batch
+            # from the first buffered sample (as propagate replays the buffer).
+            tol = self.options.time_tol
+            if not self._align_buffer and abs(t_a[0] - self._t0) > tol:
+                raise ValueError(f"the first IMU sample must be at t0={self._t0}, got {t_a[0]}")
+            k = int(np.searchsorted(t_a - self._t0, self.options.align_s - tol, side="left"))
+            if k >= N:
+                self._align_buffer += [(float(t_a[i]), W[i].copy(), A[i].copy()) for i in range(N)]
+                return []
+            buffer, self._align_buffer = self._align_buffer, None
+            buffer = buffer + [(float(t_a[i]), W[i].copy(), A[i].copy()) for i in range(k + 1)]
+            self._level([s for s in buffer if s[0] - self._t0 <= self.options.align_s + tol])
+            t_a = np.concatenate([[s[0] for s in buffer], t_a[k + 1 :]])
+            W = np.concatenate([np.array([s[1] for s in buffer]), W[k + 1 :]])
+            A = np.concatenate([np.array([s[2] for s in buffer]), A[k + 1 :]])
+        from polins.fusion.batch import advance
+
+        advance(self, t_a, W, A)
+        return self.records[n_before:]
+
     def add_measurement(
         self,
         t: float,
@@ -857,12 +1115,14 @@ class ESKF:
         sun_n: ArrayLike | None = None,
         sun_std: float | None = None,
         zupt_std: float | None = None,
+        rot_nb_prior: Rotation | None = None,
     ) -> list[UpdateRecord]:
         """Queue (or apply now, if ``t`` is the current time) one measurement row.
 
         Parameters are the ``measurements`` DataFrame columns (CONVENTIONS.md): a yaw and its
         1-sigma [rad]; and/or a measured body sun vector, its ENU reference and direction
-        1-sigma [rad]; and/or a zero-velocity 1-sigma [m/s]. A measurement older than the
+        1-sigma [rad]; and/or a zero-velocity 1-sigma [m/s]; ``rot_nb_prior`` is the prior
+        ``polins.measure`` used for the yaw (tilt coupling; default the filter's own state). A measurement older than the
         filter time is rejected (logged) since the filter does not re-process the past.
 
         Returns
@@ -879,6 +1139,7 @@ class ESKF:
             sun_std=sun_std,
             zupt_std=zupt_std,
             use_sun=self.options.use_sun,
+            rot_nb_prior=rot_nb_prior,
         )
         return self.add_items(items)
 
@@ -887,6 +1148,7 @@ class ESKF:
         n_before = len(self.records)
         tol = self.options.time_tol
         started = self._cur is not None and self.ready
+        queued = False
         for item in items:
             if started and item.t < self.t - tol:
                 reason = f"out of sequence: t={item.t} is before the filter time {self.t}"
@@ -895,7 +1157,9 @@ class ESKF:
                 self._apply(item)
             else:
                 self._pending.append(item)
-                self._pending.sort(key=lambda it: it.order)
+                queued = True
+        if queued:
+            self._pending.sort(key=lambda it: it.order)
         return self.records[n_before:]
 
     def state(self) -> FilterState:
@@ -939,8 +1203,10 @@ class ESKF:
         mat, vel = self._nominal_mat_vel()
         var = item.std * item.std
         if item.kind == "yaw":
-            sun_n = item.sun_n if self.options.tilt_coupling else None
-            lin = yaw_kernel(mat, item.yaw, var, sun_n)
+            if self.options.tilt_coupling and item.sun_n is not None:
+                lin = yaw_kernel(mat, item.yaw, var, item.sun_n, item.mat_nb_prior)
+            else:
+                lin = yaw_kernel(mat, item.yaw, var, None)
         elif item.kind == "sun":
             lin = sun_kernel(mat, item.sun_b, item.sun_n, var, None)  # type: ignore[arg-type]
         elif item.kind == "zupt":
@@ -965,6 +1231,8 @@ class ESKF:
         """One real IMU sample: apply pending measurements up to ``t``, step to ``t``."""
         tol = self.options.time_tol
         if self._cur is None:
+            if abs(t - self._t0) > tol:
+                raise ValueError(f"the first IMU sample must be at t0={self._t0}, got {t}")
             self._cur = self._real = (t, w, f)
             self._count = 1
         else:
@@ -1002,44 +1270,40 @@ class ESKF:
         wc0, fc0 = self._corrected(w0, f0)
         wc1, fc1 = self._corrected(w1, f1)
         dt = t1 - t0
-        nav0 = self.nav
-        nav1, rot_mid, dv_force = strapdown_step_detail(
-            nav0, wc0, wc1, fc0, fc1, t1, self.options.mech
-        )
+        nom = self._nom
+        mat1, v1, lat1, lon1, h1, mat, dv_force = strapdown_increment(
+            nom.mat_nb, nom.vel_n, nom.lat, nom.lon, nom.height, wc0, wc1, fc0, fc1, dt,
+            self.options.mech,
+        )  # fmt: skip
         sums = self._sums
         if sums.n == 0:
-            sums.vel_n, sums.lat, sums.height = nav0.vel_n, nav0.lat, nav0.height
-        mat = rot_mid.as_matrix()
+            sums.vel_n, sums.lat, sums.height = nom.vel_n, nom.lat, nom.height
         sums.n += 1
         sums.dt += dt
-        sums.mat = sums.mat + mat * dt
-        sums.dv = sums.dv + dv_force
+        sums.mat += mat * dt
+        sums.dv += dv_force
         if self.n > N_ERROR:
             phi, _ = rotation_vectors(wc0, wc1, dt)
-            sums.mat_omega = sums.mat_omega + mat * phi
-            sums.mat_force = sums.mat_force + mat * (0.5 * (fc0 + fc1) * dt)
-        self.nav = nav1
+            sums.mat_omega += mat * phi
+            sums.mat_force += mat * (0.5 * (fc0 + fc1) * dt)
+        self._nom = _Nominal(t1, mat1, v1, lat1, lon1, h1)
+        self._nav_cache = None
         self._cur = (t1, w1, f1)
         if sums.n >= self.options.cov_every:
             self._flush()
 
+    def _divisors(self) -> tuple[FloatArray | float, FloatArray | float]:
+        """``1 / (1 + s)`` of the current scale-factor estimates (:func:`scale_divisors`)."""
+        return scale_divisors(self.sg, self.sa) if self.n > N_ERROR else (1.0, 1.0)
+
     def _step_matrices(self, sums: _StepSums) -> tuple[FloatArray, FloatArray]:
         """Transition and noise of a covariance step from its sums."""
-        inv = 1.0 / sums.dt
-        sf = self.n > N_ERROR
-        F = error_dynamics(
-            sums.mat * inv,
-            sums.dv * inv,
-            sums.vel_n,
-            sums.lat,
-            sums.height,
-            self.options.mech,
-            gyro_scale=self.sg if sf else None,
-            accel_scale=self.sa if sf else None,
-            mat_omega=sums.mat_omega * inv if sf else None,
-            mat_force=sums.mat_force * inv if sf else None,
-        )
-        return discretize(F, np.array(sums.dt), self.qc)
+        F_nav = nav_error_dynamics(sums.vel_n, sums.lat, sums.height, self.options.mech)
+        A = step_exponent(
+            F_nav, sums.dt, sums.mat, sums.dv, self.n, self._divisors(), sums.mat_omega,
+            sums.mat_force,
+        )  # fmt: skip
+        return van_loan(A, sums.dt, self.qc)
 
     def _flush(self) -> None:
         """Propagate the covariance over the step in progress (filterpy ``predict``)."""
@@ -1047,6 +1311,11 @@ class ESKF:
             Phi, Q = self._step_matrices(self._sums)
             self.x, self.P = kf_predict(self.x, self.P, Phi, Q)
             self._sums = _StepSums()
+            # keep the attitude matrix orthonormal (rounding of the per-sample products)
+            nom = self._nom
+            mat = Rotation.from_matrix(nom.mat_nb, assume_valid=True).as_matrix()
+            self._nom = nom._replace(mat_nb=mat)
+            self._nav_cache = None
 
     def _record(
         self, item: MeasurementItem, dim: int, nis: float, accepted: bool, reason: str
@@ -1094,13 +1363,20 @@ class ESKF:
         self.reset()
         nav = self.nav
         if item.kind == "yaw":
-            yaw_meas, std = item.yaw, item.std
+            # The yaw that makes the residual of the measurement model zero (the model
+            # depends on the tilt of the prior with the tilt coupling: three Newton steps).
+            delta, std = 0.0, item.std
+            for _ in range(3):
+                self.nav = replace(nav, rot_nb=Rotation.from_rotvec([0.0, 0.0, delta]) * nav.rot_nb)
+                lin = self.linearize(item)
+                delta += float(lin.residual[0] / lin.H[0, 2])
+            self.nav = nav
         else:
             s_n = np.asarray(item.sun_n, dtype=float)
             s_n = s_n / np.linalg.norm(s_n)
             yaw_meas = yaw_from_sun(nav.rot_nb, item.sun_b, s_n)  # type: ignore[arg-type]
             std = item.std / max(float(np.hypot(s_n[0], s_n[1])), 1e-3)
-        delta = float(wrap_angle(yaw_meas - yaw_from_rot_nb(nav.rot_nb)))
+            delta = float(wrap_angle(yaw_meas - yaw_from_rot_nb(nav.rot_nb)))
         rz = Rotation.from_rotvec([0.0, 0.0, delta])
         self.nav = replace(nav, rot_nb=rz * nav.rot_nb, vel_n=rz.apply(nav.vel_n))
         T = np.eye(self.n)
@@ -1116,613 +1392,14 @@ class ESKF:
 
 
 # ============================================================================ batch path
-@dataclass(frozen=True, eq=False)
-class BatchOutput:
-    """Estimates at the output IMU samples of :func:`run_batch` (arrays over rows).
-
-    ``P`` holds the full error covariance per row; ``smoothed`` (if requested) is another
-    :class:`BatchOutput` with the Rauch-Tung-Striebel estimates.
-    """
-
-    t: FloatArray
-    rot_nb: Rotation
-    vel_n: FloatArray
-    lat: FloatArray
-    lon: FloatArray
-    height: FloatArray
-    bg: FloatArray
-    ba: FloatArray
-    sg: FloatArray | None
-    sa: FloatArray | None
-    P: FloatArray
-    yaw_aligned: FloatArray
-    smoothed: BatchOutput | None = None
-
-    def columns(self) -> dict[str, FloatArray]:
-        """Solution-table columns (:func:`solution_columns`)."""
-        sigma = np.sqrt(np.clip(np.diagonal(self.P, axis1=-2, axis2=-1), 0.0, None))
-        return solution_columns(
-            t=self.t,
-            rot_nb=self.rot_nb,
-            vel_n=self.vel_n,
-            lat=self.lat,
-            lon=self.lon,
-            height=self.height,
-            bg=self.bg,
-            ba=self.ba,
-            sg=self.sg,
-            sa=self.sa,
-            P_diag_att=self.P[:, ATT, ATT],
-            sigma=sigma,
-            yaw_aligned=self.yaw_aligned,
-        )
+# The batch path lives in polins.fusion.batch (it imports this module); these names are
+# re-exported lazily for compatibility.
+_BATCH_NAMES = ("BatchOutput", "block_transitions", "rts_smooth", "run_batch")
 
 
-def _inject_many(
-    mat_nb: FloatArray,
-    vel_n: FloatArray,
-    lat: FloatArray,
-    lon: FloatArray,
-    height: FloatArray,
-    dx: FloatArray,
-) -> tuple[Rotation, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Vectorised ``nominal (+) dx`` for the navigation part (see :func:`inject`)."""
-    r_m, r_n = radii_of_curvature(lat)
-    rot = Rotation.from_rotvec(dx[:, ATT]) * Rotation.from_matrix(mat_nb)
-    return (
-        rot,
-        vel_n + dx[:, VEL],
-        lat + dx[:, POS.start + 1] / (r_m + height),
-        lon + dx[:, POS.start] / ((r_n + height) * np.cos(lat)),
-        height + dx[:, POS.start + 2],
-    )
+def __getattr__(name: str) -> Any:
+    if name in _BATCH_NAMES:
+        from polins.fusion import batch
 
-
-@dataclass
-class _Chain:
-    """Smoother storage: epochs (where the covariance was propagated to) and output rows."""
-
-    P_prior: list[FloatArray] = field(default_factory=list)
-    P_post: list[FloatArray] = field(default_factory=list)
-    Phi: list[FloatArray | None] = field(default_factory=list)  # from the previous epoch
-    dx: list[FloatArray] = field(default_factory=list)
-    out_next: list[NDArray[np.int_]] = field(default_factory=list)  # next epoch or -1
-    out_gain: list[FloatArray] = field(default_factory=list)  # per output row: C_o
-
-
-def _assign_samples(
-    t: FloatArray, items: Sequence[MeasurementItem], tol: float
-) -> tuple[
-    list[tuple[int, float]],
-    list[int | tuple[int, int]],
-    list[MeasurementItem],
-    list[MeasurementItem],
-]:
-    """Map measurement items to real samples or to virtual (interpolated) samples.
-
-    Mirrors the streaming rule: an item within ``tol`` of a real sample uses it; otherwise a
-    virtual sample at the item time between the two real samples, shared by later items
-    within ``tol`` of it.
-
-    Returns
-    -------
-    virtual : list of (interval k, time)
-        Virtual samples between real samples ``k - 1`` and ``k``.
-    where : list
-        Per used item: real index (int) or ``(k, j)`` = j-th virtual sample of the list.
-    used, early : lists of MeasurementItem
-        Items inside the log; items before its first sample (rejected). Items after the
-        last sample are in neither (they stay pending).
-    """
-    virtual: list[tuple[int, float]] = []
-    where: list[int | tuple[int, int]] = []
-    used: list[MeasurementItem] = []
-    early: list[MeasurementItem] = []
-    n = len(t)
-    for item in items:
-        k = int(np.searchsorted(t, item.t - tol, side="left"))
-        if k >= n:
-            continue
-        if t[k] <= item.t + tol:
-            where.append(k)
-        elif k == 0:
-            early.append(item)
-            continue
-        elif virtual and virtual[-1][0] == k and item.t <= virtual[-1][1] + tol:
-            where.append((k, len(virtual) - 1))
-        else:
-            virtual.append((k, item.t))
-            where.append((k, len(virtual) - 1))
-        used.append(item)
-    return virtual, where, used, early
-
-
-def block_transitions(
-    Phi: FloatArray,
-    Q: FloatArray,
-    starts: NDArray[np.int_],
-    ends: NDArray[np.int_],
-    at_block: NDArray[np.int_],
-    at_pos: NDArray[np.int_],
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Products of per-step transitions over consecutive blocks of steps.
-
-    Block ``s`` covers steps ``starts[s] .. ends[s] - 1``. Returns the block transition
-    ``Pi[s] = Phi[e-1] ... Phi[b]`` and noise ``Qa[s]`` (the recursion
-    ``Qa <- Phi Qa Phi^T + Q``, i.e. what filterpy's ``predict`` does step by step), and
-    the partial products after ``at_pos[i]`` steps of block ``at_block[i]`` (position 0 is
-    the identity / zero). The loop runs over the positions inside the blocks and is
-    vectorised across the blocks.
-    """
-    n = Phi.shape[-1]
-    lengths = ends - starts
-    S, L = len(ends), int(lengths.max())
-    Pi = np.broadcast_to(np.eye(n), (S, n, n)).copy()
-    Qa = np.zeros((S, n, n))
-    Pi_at = np.empty((at_block.size, n, n))
-    Qa_at = np.empty((at_block.size, n, n))
-    order = np.argsort(at_pos, kind="stable")
-    bounds = np.searchsorted(at_pos[order], np.arange(L + 1))
-    short = int(lengths.min())
-    for j in range(L):
-        want = order[bounds[j] : bounds[j + 1]]
-        if want.size:
-            Pi_at[want] = Pi[at_block[want]]
-            Qa_at[want] = Qa[at_block[want]]
-        if j < short:
-            Pj = Phi[starts + j]
-            Pi = Pj @ Pi
-            Qa = Pj @ Qa @ np.swapaxes(Pj, -1, -2) + Q[starts + j]
-        else:
-            act = np.flatnonzero(lengths > j)
-            Pj = Phi[starts[act] + j]
-            Pi[act] = Pj @ Pi[act]
-            Qa[act] = Pj @ Qa[act] @ np.swapaxes(Pj, -1, -2) + Q[starts[act] + j]
-    return Pi, Qa, Pi_at, Qa_at
-
-
-def _split_gaps(marks: NDArray[np.int_], every: int) -> NDArray[np.int_]:
-    """Split ``0 < marks[0] < marks[1] < ...`` into pieces of at most ``every``.
-
-    Returns the piece ends: for each gap ``(previous mark, mark]`` the points
-    ``previous + every, previous + 2 every, ...`` before the mark, then the mark.
-    """
-    prev = np.concatenate([[0], marks[:-1]])
-    count = (marks - prev + every - 1) // every  # pieces per gap
-    first = np.repeat(prev, count)
-    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count) + 1
-    return np.minimum(first + k * every, np.repeat(marks, count))
-
-
-def _step_boundaries(n: int, epochs: NDArray[np.int_], every: int) -> NDArray[np.int_]:
-    """Ends of the covariance steps over intervals ``0 .. n - 1`` (relative sample indices).
-
-    A step ends after ``every`` intervals or at an epoch (a sample with measurements),
-    whichever comes first (the streaming rule), and at ``n``.
-    """
-    marks = np.unique(np.concatenate([epochs[(epochs > 0) & (epochs < n)], [n]]))
-    return _split_gaps(marks.astype(int), every)
-
-
-@dataclass(frozen=True, eq=False)
-class _SegmentSteps:
-    """The covariance steps of a batch segment: per-interval terms and their step sums."""
-
-    track: NavTrack
-    step_start: NDArray[np.int_]
-    per_interval: list[FloatArray]  # dt, C dt, dv_force [, C diag(w) dt, C diag(f) dt]
-    full: list[FloatArray]  # the same summed over each step
-    mech: Mechanization
-    scales: tuple[FloatArray | None, FloatArray | None]
-    qc: FloatArray
-
-    def matrices(
-        self, q: NDArray[np.int_], j: NDArray[np.int_] | None
-    ) -> tuple[FloatArray, FloatArray]:
-        """Transition and noise over the first ``j`` intervals of steps ``q`` (None: all)."""
-        a = self.step_start[q]
-        if j is None:
-            sums = [x[q] for x in self.full]
-        else:  # partial steps (output rows inside a step): sums of the first j terms
-            width = int(j.max())
-            idx = a[:, None] + np.arange(width)[None, :]
-            take = np.arange(width)[None, :] < j[:, None]
-            idx = np.where(take, idx, 0)
-            sums = []
-            for x in self.per_interval:
-                terms = x[idx] * take.reshape(take.shape + (1,) * (x.ndim - 1))
-                sums.append(terms.sum(axis=1))
-        inv = 1.0 / sums[0]
-        sf = self.scales[0] is not None
-        F = error_dynamics(
-            sums[1] * inv[:, None, None],
-            sums[2] * inv[:, None],
-            self.track.vel_n[a],
-            self.track.lat[a],
-            self.track.height[a],
-            self.mech,
-            gyro_scale=self.scales[0],
-            accel_scale=self.scales[1],
-            mat_omega=sums[3] * inv[:, None, None] if sf else None,
-            mat_force=sums[4] * inv[:, None, None] if sf else None,
-        )
-        return discretize(F, sums[0], self.qc)
-
-
-def run_batch(
-    eskf: ESKF,
-    t: ArrayLike,
-    gyro_b: ArrayLike,
-    accel_b: ArrayLike,
-    items: Sequence[MeasurementItem],
-    *,
-    output_mask: ArrayLike | None = None,
-    smooth: bool = False,
-    max_segment: int = 4096,
-) -> BatchOutput:
-    """Run a fresh :class:`ESKF` over a whole IMU log (vectorised between resets).
-
-    Gives the same estimates as feeding the samples one by one to :meth:`ESKF.propagate`
-    (with the items queued by :meth:`ESKF.add_items`), to rounding error: between resets
-    the nominal state does not depend on the updates, so it is propagated for a whole
-    segment at once (:func:`polins.ins.strapdown`); the covariance-step transitions are
-    computed for the whole segment and multiplied into block transitions between
-    measurement epochs (:func:`block_transitions`), and filterpy's ``predict`` and
-    ``update`` run once per epoch. Outputs between epochs use the partial products.
-
-    Parameters
-    ----------
-    eskf : ESKF
-        A filter that has not consumed any sample yet; it is left at the end of the log.
-    t : (N,) array_like
-        IMU sample times [s], strictly increasing, ``t[0] = eskf.t``.
-    gyro_b, accel_b : (N, 3) array_like
-        Raw IMU samples [rad/s], [m/s^2].
-    items : sequence of MeasurementItem
-        Measurements (any order).
-    output_mask : (N,) bool array_like, optional
-        IMU samples to report (default all).
-    smooth : bool
-        Also run the Rauch-Tung-Striebel smoother.
-    max_segment : int
-        Longest run of samples propagated at once (memory bound).
-
-    Returns
-    -------
-    BatchOutput
-    """
-    o = eskf.options
-    tol = o.time_tol
-    t = np.asarray(t, dtype=float)
-    W = np.asarray(gyro_b, dtype=float)
-    A = np.asarray(accel_b, dtype=float)
-    N = t.shape[0]
-    if eskf._cur is not None or (eskf._align_buffer is not None and eskf._align_buffer):
-        raise ValueError("run_batch needs a filter that has not consumed any IMU sample")
-    if N < 2 or W.shape != (N, 3) or A.shape != (N, 3):
-        raise ValueError("run_batch needs at least 2 samples: t (N,), gyro_b and accel_b (N, 3)")
-    if abs(t[0] - eskf._t0) > tol:
-        raise ValueError(f"the first IMU sample must be at t0={eskf._t0}, got {t[0]}")
-    out = np.ones(N, dtype=bool) if output_mask is None else np.asarray(output_mask, dtype=bool)
-    if out.shape != (N,):
-        raise ValueError(f"output_mask must have shape ({N},), got {out.shape}")
-    row_bytes = eskf.n * eskf.n * 8 * (3 if smooth else 1)
-    if out.sum() * row_bytes > 4e9:
-        raise ValueError(
-            f"{int(out.sum())} output rows with full covariances need "
-            f"{out.sum() * row_bytes / 1e9:.1f} GB; report fewer rows (output_rate_hz)"
-        )
-    max_segment = max(int(max_segment), 2 * o.cov_every)
-    sf = eskf.n > N_ERROR
-
-    # ---- self-alignment (levelling), as the streaming path does it
-    if not eskf.ready:
-        k_end = int(np.searchsorted(t - eskf._t0, o.align_s - tol, side="left"))
-        if k_end >= N:
-            raise ValueError(
-                f"the IMU log ({t[-1] - t[0]:.3f} s) is shorter than the alignment window "
-                f"align_s={o.align_s} s; give rot_nb0 or a longer log"
-            )
-        window = [
-            (float(t[k]), W[k].copy(), A[k].copy())
-            for k in range(k_end + 1)
-            if t[k] - eskf._t0 <= o.align_s + tol
-        ]
-        eskf._align_buffer = None
-        eskf._level(window)
-
-    # ---- measurement items -> (virtual) samples
-    user = sorted(items, key=lambda it: it.order)
-    virtual, where, used, early = _assign_samples(t, user, tol)
-    for item in early:
-        reason = f"out of sequence: t={item.t} is before the first IMU sample"
-        eskf._record(item, 0, math.nan, False, reason)
-    used_ids = {id(it) for it in used} | {id(it) for it in early}
-    eskf._pending = [it for it in user if id(it) not in used_ids]
-    n_virt = len(virtual)
-    v_k = np.array([v[0] for v in virtual], dtype=int)
-    v_t = np.array([v[1] for v in virtual], dtype=float)
-    aug_real = np.arange(N) + np.searchsorted(v_k, np.arange(N), side="right")
-    aug_virt = v_k + np.arange(n_virt)  # virtual j sits just before real sample v_k[j]
-    M = N + n_virt
-    T = np.empty(M)
-    Wa = np.empty((M, 3))
-    Aa = np.empty((M, 3))
-    real_of_aug = np.full(M, -1)
-    T[aug_real], Wa[aug_real], Aa[aug_real] = t, W, A
-    real_of_aug[aug_real] = np.arange(N)
-    if n_virt:
-        frac = (v_t - t[v_k - 1]) / (t[v_k] - t[v_k - 1])
-        T[aug_virt] = v_t
-        Wa[aug_virt] = W[v_k - 1] + (W[v_k] - W[v_k - 1]) * frac[:, None]
-        Aa[aug_virt] = A[v_k - 1] + (A[v_k] - A[v_k - 1]) * frac[:, None]
-    out_aug = np.zeros(M, dtype=bool)
-    out_aug[aug_real] = out
-    items_at: dict[int, list[MeasurementItem]] = {}
-    for item, w_ in zip(used, where, strict=True):
-        idx = int(aug_real[w_]) if isinstance(w_, int) else int(aug_virt[w_[1]])
-        items_at.setdefault(idx, []).append(item)
-    if o.nhc_std is not None:
-        for k in range(o.nhc_every, N, o.nhc_every):
-            nhc = MeasurementItem(float(t[k]), "nhc", o.nhc_std)
-            items_at.setdefault(int(aug_real[k]), []).append(nhc)
-    item_idx = np.array(sorted(items_at), dtype=int)
-    valid_idx = np.array(sorted(i for i, its in items_at.items() if any(x.valid for x in its)))
-    valid_idx = valid_idx.astype(int)
-    align_idx = np.array(
-        sorted(
-            i
-            for i, its in items_at.items()
-            if any(x.valid and x.kind in ("yaw", "sun") for x in its)
-        ),
-        dtype=int,
-    )
-
-    # ---- output storage
-    keys = ("t", "mat", "vel", "lat", "lon", "h", "x", "P", "bg", "ba", "sg", "sa", "al")
-    rows: dict[str, list[Any]] = {k: [] for k in keys}
-    chain = _Chain()
-
-    def chain_epoch(P_prior: FloatArray, Phi: FloatArray | None, aligned_before: bool) -> None:
-        if smooth:
-            chain.P_prior.append(P_prior)
-            chain.P_post.append(eskf.P)
-            chain.Phi.append(Phi if aligned_before == eskf.yaw_aligned else None)
-            chain.dx.append(eskf._dx_epoch)
-
-    # ---- first sample
-    eskf._track_dx = smooth
-    eskf._cur = eskf._real = (float(T[0]), Wa[0].copy(), Aa[0].copy())
-    eskf._count = 1
-    eskf._dx_epoch = np.zeros(eskf.n)
-    P_prior0, al0 = eskf.P, eskf.yaw_aligned
-    for item in items_at.get(0, []):
-        eskf._apply(item)
-    chain_epoch(P_prior0, None, al0)
-
-    cur = 0
-    n_ep = 1  # chain epochs so far
-    while cur < M - 1:
-        # ---- plan the segment: up to the next reset (time rule) or yaw alignment
-        stop = min(M - 1, cur + max_segment)
-        capped = stop < M - 1
-        later = valid_idx[valid_idx > cur]
-        due = later[T[later] - eskf.t_reset >= o.reset_interval_s]
-        if due.size and due[0] <= stop:
-            stop, capped = int(due[0]), False
-        if not eskf.yaw_aligned:
-            nxt = align_idx[align_idx > cur]
-            if nxt.size and nxt[0] <= stop:
-                stop, capped = int(nxt[0]), False
-        epochs = item_idx[(item_idx > cur) & (item_idx <= stop)] - cur
-        ends = _step_boundaries(stop - cur, epochs, o.cov_every)
-        if capped and ends.size > 1:
-            # a capped segment must end where the streaming filter ends a step too
-            last, prev = int(ends[-1]), int(ends[-2])
-            if last - prev != o.cov_every and last not in epochs:
-                ends = ends[:-1]
-                stop = cur + prev
-        # ---- nominal track
-        sl = slice(cur, stop + 1)
-        Wc, Ac = eskf._corrected(Wa[sl], Aa[sl])
-        track = strapdown(eskf.nav, T[sl], Wc, Ac, o.mech)
-        dt = np.diff(T[sl])
-        # ---- step sums of the per-interval quantities, summed in the streaming order
-        step_start = np.concatenate([[0], ends[:-1]])
-        per_interval = [dt, track.mat_nb_mid * dt[:, None, None], track.dv_force_n]
-        if sf:
-            phi, _ = rotation_vectors(Wc[:-1], Wc[1:], dt)
-            f_mid = 0.5 * (Ac[:-1] + Ac[1:]) * dt[:, None]
-            per_interval += [
-                track.mat_nb_mid * phi[:, None, :],
-                track.mat_nb_mid * f_mid[:, None, :],
-            ]
-        full = [np.add.reduceat(x, step_start, axis=0) for x in per_interval]
-        scales = (eskf.sg, eskf.sa) if sf else (None, None)  # fixed until the next reset
-
-        steps = _SegmentSteps(track, step_start, per_interval, full, o.mech, scales, eskf.qc)
-        Phi, Q = steps.matrices(np.arange(ends.size), None)
-        # ---- blocks of steps between epochs (at most `chunk` steps each)
-        is_epoch = np.isin(ends, epochs) | (ends == stop - cur)
-        b_end = _split_gaps(np.flatnonzero(is_epoch) + 1, o.chunk)
-        b_start = np.concatenate([[0], b_end[:-1]])
-        ep = ends[b_end - 1]  # sample (relative) where each block ends
-        # candidate output rows: real samples in [cur, stop)
-        rel = np.arange(stop - cur)
-        sel = rel[out_aug[cur + rel]]
-        q_of = np.searchsorted(ends, sel, side="right")  # step containing the sample
-        s_of = np.searchsorted(b_end, q_of, side="right")  # block containing the step
-        Pi, Qa, Pi_sel, Qa_sel = block_transitions(
-            Phi, Q, b_start, b_end, s_of, q_of - b_start[s_of]
-        )
-        # ---- sequential pass over the block ends: filterpy predict, updates, resets
-        x_post, P_post, P_prior = [eskf.x], [eskf.P], []
-        bg_seg, ba_seg, sg_seg, sa_seg = eskf.bg, eskf.ba, eskf.sg, eskf.sa
-        aligned_seg = eskf.yaw_aligned
-        n_done = len(ep)
-        for s in range(len(ep)):
-            e_abs = cur + int(ep[s])
-            eskf.x, eskf.P = kf_predict(eskf.x, eskf.P, Pi[s], Qa[s])
-            P_prior.append(eskf.P)
-            eskf._set_track(track, int(ep[s]))
-            resets, aligned_before = eskf.n_resets, eskf.yaw_aligned
-            if smooth:
-                eskf._dx_epoch = np.zeros(eskf.n)
-            for item in items_at.get(e_abs, ()):
-                eskf._apply(item)
-            chain_epoch(P_prior[-1], Pi[s], aligned_before)
-            x_post.append(eskf.x)
-            P_post.append(eskf.P)
-            if eskf.n_resets != resets:
-                n_done = s + 1
-                break
-        # ---- outputs inside the processed blocks (block start .. before its end)
-        rel_end = int(ep[n_done - 1])
-        keep = sel < rel_end
-        if np.any(keep):
-            sel, q_of, s_of = sel[keep], q_of[keep], s_of[keep]
-            Pi_o, Qa_o = Pi_sel[keep], Qa_sel[keep]
-            x_o = (Pi_o @ np.array(x_post)[s_of][..., None])[..., 0]
-            P_o = Pi_o @ np.array(P_post)[s_of] @ np.swapaxes(Pi_o, -1, -2) + Qa_o
-            a_o = step_start[q_of]
-            mid = sel > a_o  # inside a step: propagate the partial step (as state() does)
-            if np.any(mid):
-                Phi_p, Q_p = steps.matrices(q_of[mid], (sel - a_o)[mid])
-                x_o[mid] = (Phi_p @ x_o[mid][..., None])[..., 0]
-                P_o[mid] = Phi_p @ P_o[mid] @ np.swapaxes(Phi_p, -1, -2) + Q_p
-            rows["t"].append(T[cur + sel])
-            rows["mat"].append(track.mat_nb[sel])
-            rows["vel"].append(track.vel_n[sel])
-            rows["lat"].append(track.lat[sel])
-            rows["lon"].append(track.lon[sel])
-            rows["h"].append(track.height[sel])
-            rows["x"].append(x_o)
-            rows["P"].append(P_o)
-            for key, val in (("bg", bg_seg), ("ba", ba_seg), ("sg", sg_seg), ("sa", sa_seg)):
-                rows[key].append(np.broadcast_to(val, (sel.size, 3)))
-            rows["al"].append(np.full(sel.size, aligned_seg))
-            if smooth:
-                # C_o = P_o Pi(end <- o)^T P_prior(end)^-1 with Pi(end <- o) from the block
-                # transition and the partial products (mid-step: first-order inverse).
-                trans = np.swapaxes(
-                    np.linalg.solve(np.swapaxes(Pi_o, -1, -2), np.swapaxes(Pi[s_of], -1, -2)),
-                    -1,
-                    -2,
-                )
-                if np.any(mid):
-                    trans[mid] = np.swapaxes(
-                        np.linalg.solve(
-                            np.swapaxes(Phi_p, -1, -2), np.swapaxes(trans[mid], -1, -2)
-                        ),
-                        -1,
-                        -2,
-                    )
-                Pp = np.array(P_prior)[s_of]
-                gain = np.swapaxes(np.linalg.solve(Pp, trans @ P_o), -1, -2)
-                chain.out_next.append(n_ep + s_of)
-                chain.out_gain.append(gain)
-        n_ep += n_done
-        cur += rel_end
-    eskf._cur = eskf._real = (float(t[-1]), W[-1].copy(), A[-1].copy())
-    eskf._count = N
-    eskf._track_dx = False
-    if out[-1]:
-        st = eskf.state()
-        rows["t"].append(np.array([st.t]))
-        rows["mat"].append(eskf.nav.rot_nb.as_matrix()[None])
-        rows["vel"].append(eskf.nav.vel_n[None])
-        rows["lat"].append(np.array([eskf.nav.lat]))
-        rows["lon"].append(np.array([eskf.nav.lon]))
-        rows["h"].append(np.array([eskf.nav.height]))
-        rows["x"].append(eskf.x[None])
-        rows["P"].append(eskf.P[None])
-        for key, val in (("bg", eskf.bg), ("ba", eskf.ba), ("sg", eskf.sg), ("sa", eskf.sa)):
-            rows[key].append(val[None])
-        rows["al"].append(np.array([eskf.yaw_aligned]))
-        if smooth:
-            chain.out_next.append(np.array([-1]))
-            chain.out_gain.append(np.zeros((1, eskf.n, eskf.n)))
-    return _assemble(eskf, rows, chain if smooth else None)
-
-
-def _assemble(eskf: ESKF, rows: dict[str, list[Any]], chain: _Chain | None) -> BatchOutput:
-    """Stack the output rows, apply the error state, and run the smoother if asked."""
-    cat = {k: np.concatenate(v) for k, v in rows.items()}
-    x = cat["x"]
-    sf = eskf.n > N_ERROR
-
-    def build(dx: FloatArray, P: FloatArray) -> BatchOutput:
-        rot, vel, lat, lon, h = _inject_many(
-            cat["mat"], cat["vel"], cat["lat"], cat["lon"], cat["h"], dx
-        )
-        return BatchOutput(
-            t=cat["t"],
-            rot_nb=rot,
-            vel_n=vel,
-            lat=lat,
-            lon=lon,
-            height=h,
-            bg=cat["bg"] + dx[:, BG],
-            ba=cat["ba"] + dx[:, BA],
-            sg=cat["sg"] + dx[:, SG] if sf else None,
-            sa=cat["sa"] + dx[:, SA] if sf else None,
-            P=P,
-            yaw_aligned=cat["al"].astype(bool),
-        )
-
-    result = build(x, cat["P"])
-    if chain is None:
-        return result
-    nxt = np.concatenate(chain.out_next)
-    gain = np.concatenate(chain.out_gain)
-    delta, P_s = rts_smooth(chain.P_prior, chain.P_post, chain.Phi, chain.dx)
-    d_out = np.zeros_like(x)
-    P_out = cat["P"].copy()
-    idx = np.flatnonzero(nxt >= 0)
-    if idx.size:
-        i = nxt[idx]
-        linked = np.array([chain.Phi[k] is not None for k in i])
-        idx, i = idx[linked], i[linked]
-        innov = np.array(chain.dx)[i] + delta[i]
-        d_out[idx] = (gain[idx] @ innov[..., None])[..., 0]
-        dP = P_s[i] - np.array(chain.P_prior)[i]
-        P_out[idx] = cat["P"][idx] + gain[idx] @ dP @ np.swapaxes(gain[idx], -1, -2)
-    return replace(result, smoothed=build(x + d_out, P_out))
-
-
-def rts_smooth(
-    P_prior: Sequence[FloatArray],
-    P_post: Sequence[FloatArray],
-    Phi: Sequence[FloatArray | None],
-    dx: Sequence[FloatArray],
-) -> tuple[FloatArray, FloatArray]:
-    """Rauch-Tung-Striebel smoother in error-state (correction) form.
-
-    With the filtered estimates ``x_i`` at epochs ``i``, the transitions ``Phi_i`` from
-    epoch ``i - 1`` to ``i`` (None starts a new chain, e.g. at the yaw alignment), the
-    prior and posterior covariances and the filter's update corrections ``dx_i`` at each
-    epoch, the smoothed estimate is ``x_i (+) delta_i`` with::
-
-        C_i     = P_i^+ Phi_{i+1}^T (P_{i+1}^-)^-1
-        delta_i = C_i (dx_{i+1} + delta_{i+1}),            delta_last = 0
-        P_i^s   = P_i^+ + C_i (P_{i+1}^s - P_{i+1}^-) C_i^T
-
-    Returns
-    -------
-    delta : (E, n) ndarray
-        Smoothed corrections at the epochs.
-    P_s : (E, n, n) ndarray
-        Smoothed covariances.
-    """
-    E = len(P_post)
-    n = P_post[0].shape[0]
-    delta = np.zeros((E, n))
-    P_s = np.array(P_post, dtype=float)
-    for i in range(E - 2, -1, -1):
-        phi = Phi[i + 1]
-        if phi is None:
-            continue
-        C = np.linalg.solve(P_prior[i + 1], phi @ P_post[i]).T
-        delta[i] = C @ (dx[i + 1] + delta[i + 1])
-        P_s[i] = P_post[i] + C @ (P_s[i + 1] - P_prior[i + 1]) @ C.T
-    return delta, P_s
+        return getattr(batch, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -93,7 +93,8 @@ from scipy.stats import chi2
 from polins.attitude import wrap_angle, yaw_from_rot_nb
 from polins.calibration import ImuModel
 from polins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
-from polins.fusion.eskf import MeasurementItem, level_from_accel, solution_columns
+from polins.fusion.alignment import level_from_accel
+from polins.fusion.eskf import MeasurementItem, solution_columns
 from polins.fusion.inputs import (
     measurement_items_from_frame,
     validate_imu,
@@ -204,14 +205,21 @@ def sun_factor(
 
 
 def yaw_factor(
-    key: int, yaw: float, yaw_std: float, *, sun_n: ArrayLike | None = None
+    key: int,
+    yaw: float,
+    yaw_std: float,
+    *,
+    sun_n: ArrayLike | None = None,
+    rot_nb_prior: Rotation | ArrayLike | None = None,
 ) -> gtsam.CustomFactor:
     """Yaw factor on ``X(k)`` with the ESKF's model (:func:`~.measurement.yaw_measurement`).
 
     GTSAM error ``h(x) - z = -residual`` [rad] (wrapped); Jacobian with respect to the
-    ``Pose3`` tangent ``[w_b, v_b]``: ``[H_theta R_nb, 0]``. With ``sun_n`` (the SPEC 10.2
-    tilt coupling, ESKF option ``tilt_coupling``) the Jacobian carries the coupling of the
-    measurement to the tilt of the prior used by ``polins.measure``, as in the ESKF.
+    ``Pose3`` tangent ``[w_b, v_b]``: ``[H_theta R_nb, 0]``. With ``sun_n`` and
+    ``rot_nb_prior`` (the SPEC 10.2 tilt coupling, option ``tilt_coupling``) ``h(x)`` is the
+    yaw ``polins.measure`` computes with that prior from the sun seen at attitude ``x``: it
+    depends on the tilt of ``x``. A graph re-linearizes away from the prior, so the tilt
+    coupling needs the prior (the ESKF may default it to its own state).
     """
     if not (np.isfinite(yaw) and np.isfinite(yaw_std) and yaw_std > 0):
         raise ValueError(f"yaw and yaw_std must be finite, yaw_std > 0; got {yaw}, {yaw_std}")
@@ -219,11 +227,20 @@ def yaw_factor(
     sun = None if sun_n is None else np.asarray(sun_n, dtype=float)
     if sun is not None:
         sun = sun / np.linalg.norm(sun)
+    if (sun is None) != (rot_nb_prior is None):
+        raise ValueError("the tilt-coupled yaw factor needs both sun_n and rot_nb_prior")
+    prior = None
+    if rot_nb_prior is not None:
+        prior = (
+            rot_nb_prior.as_matrix()
+            if isinstance(rot_nb_prior, Rotation)
+            else np.asarray(rot_nb_prior, dtype=float)
+        )
     z = float(yaw)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
         mat_nb = values.atPose3(this.keys()[0]).rotation().matrix()
-        lin = yaw_kernel(mat_nb, z, var, sun)
+        lin = yaw_kernel(mat_nb, z, var, sun, prior)
         if jacobians is not None:
             jac = np.zeros((1, 6))
             jac[:, :3] = lin.H[:, ATT] @ mat_nb
@@ -456,7 +473,9 @@ class _MeasFactor:
         it = self.item
         var = it.std * it.std
         if it.kind == "yaw":
-            return yaw_kernel(mat_nb, it.yaw, var, it.sun_n if tilt_coupling else None)
+            if tilt_coupling:
+                return yaw_kernel(mat_nb, it.yaw, var, it.sun_n, it.mat_nb_prior)
+            return yaw_kernel(mat_nb, it.yaw, var, None)
         return sun_kernel(mat_nb, it.sun_b, it.sun_n, var, None)  # type: ignore[arg-type]
 
 
@@ -517,9 +536,18 @@ class _Problem:
                 self.outside.append(it)
                 continue
             factor: gtsam.NonlinearFactor
-            if it.kind == "yaw":
-                sun = it.sun_n if opts.tilt_coupling else None
-                factor = yaw_factor(X(k), it.yaw, it.std, sun_n=sun)
+            if it.kind == "yaw" and opts.tilt_coupling:
+                if it.sun_n is None or it.mat_nb_prior is None:
+                    raise ValueError(
+                        f"tilt_coupling: the yaw row at t={it.t} needs sun_nx/ny/nz and the "
+                        "prior_roll/prior_pitch/prior_yaw of the image (the graph "
+                        "re-linearizes away from the prior polins.measure used)"
+                    )
+                factor = yaw_factor(
+                    X(k), it.yaw, it.std, sun_n=it.sun_n, rot_nb_prior=it.mat_nb_prior
+                )
+            elif it.kind == "yaw":
+                factor = yaw_factor(X(k), it.yaw, it.std)
             else:
                 factor = sun_factor(X(k), it.sun_n, it.sun_b, it.std)  # type: ignore[arg-type]
             self.meas.append(_MeasFactor(k, it, factor))

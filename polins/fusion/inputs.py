@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from polins.attitude import rot_nb_from_euler
 from polins.fusion.eskf import MeasurementItem
 
 FloatArray = NDArray[np.float64]
@@ -21,6 +22,7 @@ IMU_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 YAW_COLUMNS = ("yaw", "yaw_std")
 SUN_COLUMNS = ("sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny", "sun_nz", "sun_std")
 ZUPT_COLUMNS = ("zupt_std",)
+PRIOR_COLUMNS = ("prior_roll", "prior_pitch", "prior_yaw")
 
 # Plausibility limits for unit checks.
 GYRO_MAX_RAD_S = 35.0  # ~2000 deg/s: full scale of common gyros; larger is deg/s data
@@ -152,7 +154,9 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
     Columns: ``t`` [s] and at least one complete group: ``yaw, yaw_std`` [rad]; or
     ``sun_bx, sun_by, sun_bz`` (measured, body), ``sun_nx, sun_ny, sun_nz`` (reference,
     ENU) and ``sun_std`` [rad]; or ``zupt_std`` [m/s] (zero-velocity at that time).
-    NaN values mean "no measurement" (e.g. an image that ``polins.measure`` rejected) and
+    Optionally ``prior_roll, prior_pitch, prior_yaw`` [rad]: the attitude prior
+    ``polins.measure`` used for the yaw (the ``measurements.csv`` of ``polins fuse`` has
+    them; used by the tilt-coupled yaw model). NaN values mean "no measurement" (e.g. an image that ``polins.measure`` rejected) and
     are logged and skipped; a NaN time is an error.
 
     Raises
@@ -169,6 +173,10 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
         raise ValueError("measurements table lacks column 't'")
     groups = {"yaw": YAW_COLUMNS, "sun": SUN_COLUMNS, "zupt": ZUPT_COLUMNS}
     present = {g: [c for c in cols if c in df.columns] for g, cols in groups.items()}
+    prior = [c for c in PRIOR_COLUMNS if c in df.columns]
+    if prior and len(prior) != len(PRIOR_COLUMNS):
+        missing = [c for c in PRIOR_COLUMNS if c not in df.columns]
+        raise ValueError(f"measurements: incomplete prior columns, missing {missing}")
     for g, cols in groups.items():
         if present[g] and len(present[g]) != len(cols):
             missing = [c for c in cols if c not in df.columns]
@@ -202,6 +210,14 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
         _check_std(sun[:, 6], "sun_std", np.pi)
     if present["zupt"]:
         _check_std(_numeric(df, ZUPT_COLUMNS, "measurements")[:, 0], "zupt_std", np.inf)
+    if prior:
+        angles = _numeric(df, PRIOR_COLUMNS, "measurements")
+        big = np.flatnonzero(np.any(np.abs(angles) > 2.0 * np.pi, axis=1))
+        if big.size:
+            raise ValueError(
+                f"measurements: prior angles at row {big[0]} are outside [-2 pi, 2 pi]; "
+                "prior_roll, prior_pitch, prior_yaw must be in radians"
+            )
     return df
 
 
@@ -221,7 +237,8 @@ def measurement_items_from_frame(
 
     Vectorised form of :func:`polins.fusion.eskf.measurement_items` applied to every row
     (the same rules: sun vector if complete and ``use_sun``, else yaw, NaN -> invalid item,
-    ``zupt_std`` -> zero-velocity item).
+    ``zupt_std`` -> zero-velocity item; yaw items carry the prior attitude of the
+    ``prior_*`` columns).
     """
     df = measurements
     n = len(df)
@@ -237,6 +254,11 @@ def measurement_items_from_frame(
     sun_b = np.column_stack([col(f"sun_b{c}") for c in "xyz"])
     sun_n = np.column_stack([col(f"sun_n{c}") for c in "xyz"])
     sun_std, zupt_std = col("sun_std"), col("zupt_std")
+    prior = np.column_stack([col(c) for c in ("prior_yaw", "prior_pitch", "prior_roll")])
+    prior_ok = np.all(np.isfinite(prior), axis=1)
+    mat_prior = np.full((n, 3, 3), np.nan)
+    if prior_ok.any():
+        mat_prior[prior_ok] = rot_nb_from_euler(*prior[prior_ok].T).as_matrix()
     with np.errstate(invalid="ignore"):
         n_ok = np.all(np.isfinite(sun_n), axis=1)
         sun_ok = has_sun & np.all(np.isfinite(sun_b), axis=1) & n_ok & (sun_std > 0)
@@ -261,6 +283,7 @@ def measurement_items_from_frame(
                     yaw=float(yaw[i]) if ok else np.nan,
                     sun_n=sun_n[i].copy() if n_ok[i] else None,
                     valid=ok,
+                    mat_nb_prior=mat_prior[i] if prior_ok[i] else None,
                 )
             )
         elif has_sun:

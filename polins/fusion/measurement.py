@@ -109,18 +109,42 @@ def _wrap(a: float) -> float:
 # ----------------------------------------------------------------------------- kernels
 # The kernels take validated inputs (mat_nb a rotation matrix, unit vectors, variances);
 # the public functions below validate and call them. The ESKF calls the kernels directly.
-def yaw_kernel(mat_nb: FloatArray, yaw: float, var: float, sun_n: FloatArray | None) -> Linearized:
+def yaw_kernel(
+    mat_nb: FloatArray,
+    yaw: float,
+    var: float,
+    sun_n: FloatArray | None,
+    mat_nb_prior: FloatArray | None = None,
+) -> Linearized:
     """:func:`yaw_measurement` on validated inputs (``var`` = yaw_std^2, unit ``sun_n``)."""
-    a = mat_nb[:, 0] if sun_n is None else sun_n
-    ax, ay, az = float(a[0]), float(a[1]), float(a[2])
-    horiz2 = ax * ax + ay * ay
+    if sun_n is None:  # the yaw of body x
+        a = mat_nb[:, 0]
+        ax, ay, az = float(a[0]), float(a[1]), float(a[2])
+        horiz2 = ax * ax + ay * ay
+        if horiz2 < 1e-12:
+            raise ValueError("yaw is undefined: body x is vertical")
+        H = np.zeros((1, N_ERROR))
+        H[0, 0] = -ax * az / horiz2
+        H[0, 1] = -ay * az / horiz2
+        H[0, 2] = 1.0
+        predicted = math.atan2(float(mat_nb[1, 0]), float(mat_nb[0, 0]))
+        return Linearized(np.array([_wrap(yaw - predicted)]), H, np.array([[var]]), "yaw")
+    # The yaw polins.measure computes from the sun seen in the body frame, levelled with the
+    # prior's tilt: h = alpha_s + yaw_P - azimuth(M sun_n), M = mat_nb_P mat_bn (module doc).
+    prior = mat_nb if mat_nb_prior is None else mat_nb_prior
+    M = prior @ mat_nb.T
+    b = M @ sun_n
+    horiz2 = float(b[0] * b[0] + b[1] * b[1])
     if horiz2 < 1e-12:
-        raise ValueError("yaw is undefined: the reference direction is vertical")
+        raise ValueError("yaw is undefined: the sun is at the zenith of the prior's level frame")
+    grad = np.array([-b[1], b[0], 0.0]) / horiz2  # d azimuth(b) / d b
     H = np.zeros((1, N_ERROR))
-    H[0, 0] = -ax * az / horiz2
-    H[0, 1] = -ay * az / horiz2
-    H[0, 2] = 1.0
-    predicted = math.atan2(float(mat_nb[1, 0]), float(mat_nb[0, 0]))
+    H[0, ATT] = -(grad @ M) @ skew(sun_n)
+    predicted = (
+        math.atan2(float(sun_n[1]), float(sun_n[0]))
+        + math.atan2(float(prior[1, 0]), float(prior[0, 0]))
+        - math.atan2(float(b[1]), float(b[0]))
+    )
     return Linearized(np.array([_wrap(yaw - predicted)]), H, np.array([[var]]), "yaw")
 
 
@@ -163,9 +187,37 @@ def _basis(s_b: FloatArray) -> FloatArray:
 
 # ----------------------------------------------------------------------------- public
 def yaw_measurement(
-    rot_nb: Rotation | ArrayLike, yaw: float, yaw_std: float, *, sun_n: ArrayLike | None = None
+    rot_nb: Rotation | ArrayLike,
+    yaw: float,
+    yaw_std: float,
+    *,
+    sun_n: ArrayLike | None = None,
+    rot_nb_prior: Rotation | ArrayLike | None = None,
 ) -> Linearized:
     """Polarization (or any absolute) yaw measurement, SPEC.md 10.2 "Filter update".
+
+    Without ``sun_n``, ``h(x)`` is the yaw of body x of the attitude. With ``sun_n`` the
+    model is the yaw as :func:`polins.measure` computes it, including the SPEC 10.2 tilt
+    coupling in ``H`` (instead of the cot(Z) inflation of ``R``): the camera sees the sun
+    in the body frame, ``sun_b = mat_bn(x) sun_n``, and ``polins.measure`` levels it with
+    the tilt of its prior ``P`` (``rot_nb_prior``), so::
+
+        h(x) = alpha_s + yaw_P - azimuth(mat_nb_P mat_bn(x) sun_n)
+
+    with ``alpha_s`` the azimuth of ``sun_n`` (ENU, counter-clockwise from East) and
+    ``yaw_P`` the prior's yaw; ``h = yaw(x)`` when the prior equals ``x``. With the error
+    state ``mat_bn(x (+) dtheta) = mat_bn exp(-[dtheta x])``, and ``M = mat_nb_P mat_bn``,
+    ``b = M sun_n``::
+
+        H_theta = -grad(b)^T M [sun_n x],   grad(b) = (-b_y, b_x, 0) / (b_x^2 + b_y^2)
+
+    which for ``P = x`` is ``[-a_x a_z, -a_y a_z, a_x^2 + a_y^2] / (a_x^2 + a_y^2)`` with
+    ``a = sun_n``: a tilt ``d`` about the horizontal axis towards the sun moves the
+    measured yaw by ``-cot(Z) d``. With the fixed-zenith estimator
+    (``MeasureOptions.fixed_zenith``) the image gives only the sun's azimuth in the level
+    frame of the prior; by the symmetry of the sky about the solar meridian its first-order
+    dependence on the attitude is the same (tests/test_eskf.py checks the model against
+    ``polins.measure`` with a prior off the truth).
 
     Parameters
     ----------
@@ -176,23 +228,24 @@ def yaw_measurement(
     yaw_std : float
         Its 1-sigma [rad], e.g. ``Measurement.yaw_std`` (already inflated per SPEC 10.2).
     sun_n : (3,) array_like, optional
-        ENU sun vector. Give it when the yaw was computed by ``polins.measure`` with this
-        nominal attitude as ``rot_nb_prior``: the measured yaw then depends on the nominal
-        tilt (the cot(Z) coupling of SPEC 10.2), and ``H`` carries that coupling instead of
-        inflating ``R``. Without it ``h(x)`` is the yaw of body x of the true attitude.
+        ENU sun vector: the yaw was computed by ``polins.measure`` (tilt-coupled model).
+    rot_nb_prior : Rotation or (3, 3) array_like, optional
+        The ``rot_nb_prior`` given to ``polins.measure`` for this image (needs ``sun_n``);
+        default: the nominal attitude ``rot_nb`` (a filter measuring with its own state).
 
     Returns
     -------
     Linearized
-        ``residual = wrap(yaw - yaw(rot_nb))``, ``H`` on the attitude error only
-        (``[-a_x a_z, -a_y a_z, a_x^2 + a_y^2] / (a_x^2 + a_y^2)`` with ``a`` the body x
-        axis in ENU, or the sun vector), ``R = yaw_std^2``.
+        ``residual = wrap(yaw - h(x))``, ``H`` on the attitude error only, ``R = yaw_std^2``.
     """
     mat = _mat_nb(rot_nb)
     if not np.isfinite(yaw):
         raise ValueError(f"yaw must be finite [rad], got {yaw!r}")
     s_n = None if sun_n is None else _vector3(sun_n, "sun_n", unit=True)
-    return yaw_kernel(mat, float(yaw), float(_variance(yaw_std, 1, "yaw_std")[0]), s_n)
+    prior = None if rot_nb_prior is None else _mat_nb(rot_nb_prior)
+    if prior is not None and s_n is None:
+        raise ValueError("rot_nb_prior needs sun_n (the tilt-coupled model)")
+    return yaw_kernel(mat, float(yaw), float(_variance(yaw_std, 1, "yaw_std")[0]), s_n, prior)
 
 
 def sun_basis_b(sun_b: ArrayLike) -> FloatArray:
