@@ -76,7 +76,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.attitude import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
 from polins.calibration import CameraModel, ImuModel
-from polins.fusion import FILTER_OPTIONS, eskf_options
+from polins.fusion import check_filter_options, eskf_options
 from polins.fusion.eskf import ESKF, FilterState, UpdateRecord
 from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.ins import Mechanization, NavState, strapdown
@@ -179,11 +179,7 @@ class LoopOptions:
             "tilt_coupling": self.update == "yaw",
         }
         opts.update(overrides or {})
-        unknown = sorted(set(opts) - set(FILTER_OPTIONS))
-        if unknown:
-            raise TypeError(
-                f"unknown filter option(s) {unknown}; valid: {', '.join(FILTER_OPTIONS)}"
-            )
+        check_filter_options(opts)
         return opts
 
 

@@ -98,6 +98,13 @@ FILTER_OPTIONS = (
 )  # fmt: skip
 
 
+def check_filter_options(options: Any) -> None:
+    """Raise TypeError naming the option names that are not :data:`FILTER_OPTIONS`."""
+    unknown = sorted(set(options) - set(FILTER_OPTIONS))
+    if unknown:
+        raise TypeError(f"unknown filter option(s) {unknown}; valid: {', '.join(FILTER_OPTIONS)}")
+
+
 def eskf_options(imu_model: ImuModel, dt: float, **options: Any) -> EskfOptions:
     """The :class:`~polins.fusion.eskf.EskfOptions` that :func:`fuse` builds.
 
@@ -110,9 +117,7 @@ def eskf_options(imu_model: ImuModel, dt: float, **options: Any) -> EskfOptions:
     **options
         :data:`FILTER_OPTIONS` by their :func:`fuse` names (an unknown name is a TypeError).
     """
-    unknown = sorted(set(options) - set(FILTER_OPTIONS))
-    if unknown:
-        raise TypeError(f"unknown filter option(s) {unknown}; valid: {', '.join(FILTER_OPTIONS)}")
+    check_filter_options(options)
     if not dt > 0:
         raise ValueError(f"dt must be a positive IMU sample interval [s], got {dt}")
     opts = dict(options)
@@ -335,6 +340,7 @@ __all__ = [
     "FILTER_OPTIONS",
     "EskfOptions",
     "build_filter",
+    "check_filter_options",
     "eskf_options",
     "fuse",
     "output_mask",

@@ -550,6 +550,30 @@ class MeasurementItem:
         return (self.t, _KIND_ORDER[self.kind])
 
 
+def item_model(
+    item: MeasurementItem, mat_nb: FloatArray, vel_n: FloatArray | None, tilt_coupling: bool
+) -> Linearized:
+    """The 15-state measurement model (:mod:`polins.fusion.measurement`) of ``item`` at a
+    nominal attitude ``mat_nb`` and ENU velocity ``vel_n`` [m/s] (only zero-velocity and
+    non-holonomic items use it); ``tilt_coupling`` as :class:`EskfOptions`. The ESKF and
+    the GTSAM graph both linearize their items here.
+    """
+    var = item.std * item.std
+    if item.kind == "yaw":
+        if tilt_coupling and item.sun_n is not None:
+            return yaw_kernel(mat_nb, item.yaw, var, item.sun_n, item.mat_nb_prior)
+        return yaw_kernel(mat_nb, item.yaw, var, None)
+    if item.kind == "sun":
+        return sun_kernel(mat_nb, item.sun_b, item.sun_n, var, None)  # type: ignore[arg-type]
+    if item.kind not in ("zupt", "nhc"):  # pragma: no cover - built by measurement_items
+        raise ValueError(f"unknown measurement kind {item.kind!r}")
+    if vel_n is None:
+        raise ValueError(f"a {item.kind} item needs the nominal velocity")
+    if item.kind == "zupt":
+        return zero_velocity_kernel(vel_n, np.full(3, var))
+    return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var))
+
+
 def _finite(*values: Any) -> bool:
     return all(
         v is not None and bool(np.all(np.isfinite(np.asarray(v, dtype=float)))) for v in values
@@ -1201,20 +1225,7 @@ class ESKF:
     def linearize(self, item: MeasurementItem) -> Linearized:
         """The measurement model of ``item`` at the current nominal state."""
         mat, vel = self._nominal_mat_vel()
-        var = item.std * item.std
-        if item.kind == "yaw":
-            if self.options.tilt_coupling and item.sun_n is not None:
-                lin = yaw_kernel(mat, item.yaw, var, item.sun_n, item.mat_nb_prior)
-            else:
-                lin = yaw_kernel(mat, item.yaw, var, None)
-        elif item.kind == "sun":
-            lin = sun_kernel(mat, item.sun_b, item.sun_n, var, None)  # type: ignore[arg-type]
-        elif item.kind == "zupt":
-            lin = zero_velocity_kernel(vel, np.full(3, var))
-        elif item.kind == "nhc":
-            lin = non_holonomic_kernel(mat, vel, np.full(2, var))
-        else:  # pragma: no cover - items are built by measurement_items
-            raise ValueError(f"unknown measurement kind {item.kind!r}")
+        lin = item_model(item, mat, vel, self.options.tilt_coupling)
         if self.n > N_ERROR:
             H = np.zeros((lin.dim, self.n))
             H[:, :N_ERROR] = lin.H

@@ -94,7 +94,7 @@ from polins.attitude import wrap_angle, yaw_from_rot_nb
 from polins.calibration import ImuModel
 from polins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
 from polins.fusion.alignment import level_from_accel
-from polins.fusion.eskf import MeasurementItem, solution_columns
+from polins.fusion.eskf import MeasurementItem, item_model, solution_columns
 from polins.fusion.inputs import (
     measurement_items_from_frame,
     validate_imu,
@@ -108,8 +108,8 @@ from polins.fusion.measurement import (
     POS,
     VEL,
     Linearized,
+    as_mat_nb,
     non_holonomic_kernel,
-    sun_kernel,
     yaw_from_sun,
     yaw_kernel,
 )
@@ -229,13 +229,7 @@ def yaw_factor(
         sun = sun / np.linalg.norm(sun)
     if (sun is None) != (rot_nb_prior is None):
         raise ValueError("the tilt-coupled yaw factor needs both sun_n and rot_nb_prior")
-    prior = None
-    if rot_nb_prior is not None:
-        prior = (
-            rot_nb_prior.as_matrix()
-            if isinstance(rot_nb_prior, Rotation)
-            else np.asarray(rot_nb_prior, dtype=float)
-        )
+    prior = None if rot_nb_prior is None else as_mat_nb(rot_nb_prior)
     z = float(yaw)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
@@ -470,13 +464,7 @@ class _MeasFactor:
     factor: gtsam.NonlinearFactor
 
     def linearized(self, mat_nb: FloatArray, tilt_coupling: bool) -> Linearized:
-        it = self.item
-        var = it.std * it.std
-        if it.kind == "yaw":
-            if tilt_coupling:
-                return yaw_kernel(mat_nb, it.yaw, var, it.sun_n, it.mat_nb_prior)
-            return yaw_kernel(mat_nb, it.yaw, var, None)
-        return sun_kernel(mat_nb, it.sun_b, it.sun_n, var, None)  # type: ignore[arg-type]
+        return item_model(self.item, mat_nb, None, tilt_coupling)
 
 
 class _Problem:

@@ -173,15 +173,12 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
         raise ValueError("measurements table lacks column 't'")
     groups = {"yaw": YAW_COLUMNS, "sun": SUN_COLUMNS, "zupt": ZUPT_COLUMNS}
     present = {g: [c for c in cols if c in df.columns] for g, cols in groups.items()}
-    prior = [c for c in PRIOR_COLUMNS if c in df.columns]
-    if prior and len(prior) != len(PRIOR_COLUMNS):
-        missing = [c for c in PRIOR_COLUMNS if c not in df.columns]
-        raise ValueError(f"measurements: incomplete prior columns, missing {missing}")
-    for g, cols in groups.items():
+    present["prior"] = [c for c in PRIOR_COLUMNS if c in df.columns]  # not a measurement
+    for g, cols in {**groups, "prior": PRIOR_COLUMNS}.items():
         if present[g] and len(present[g]) != len(cols):
             missing = [c for c in cols if c not in df.columns]
             raise ValueError(f"measurements: incomplete {g} columns, missing {missing}")
-    if len(df) and not any(present.values()):
+    if len(df) and not any(present[g] for g in groups):
         raise ValueError(
             "measurements table has no measurement columns; expected yaw, yaw_std and/or "
             f"{list(SUN_COLUMNS)} and/or zupt_std"
@@ -210,7 +207,7 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
         _check_std(sun[:, 6], "sun_std", np.pi)
     if present["zupt"]:
         _check_std(_numeric(df, ZUPT_COLUMNS, "measurements")[:, 0], "zupt_std", np.inf)
-    if prior:
+    if present["prior"]:
         angles = _numeric(df, PRIOR_COLUMNS, "measurements")
         big = np.flatnonzero(np.any(np.abs(angles) > 2.0 * np.pi, axis=1))
         if big.size:

@@ -70,7 +70,7 @@ class Linearized:
         return int(self.residual.shape[0])
 
 
-def _mat_nb(rot_nb: Rotation | ArrayLike) -> FloatArray:
+def as_mat_nb(rot_nb: Rotation | ArrayLike) -> FloatArray:
     """``mat_nb`` of a single scipy Rotation, or a (3, 3) rotation matrix given directly."""
     if isinstance(rot_nb, Rotation):
         if not rot_nb.single:
@@ -238,11 +238,11 @@ def yaw_measurement(
     Linearized
         ``residual = wrap(yaw - h(x))``, ``H`` on the attitude error only, ``R = yaw_std^2``.
     """
-    mat = _mat_nb(rot_nb)
+    mat = as_mat_nb(rot_nb)
     if not np.isfinite(yaw):
         raise ValueError(f"yaw must be finite [rad], got {yaw!r}")
     s_n = None if sun_n is None else _vector3(sun_n, "sun_n", unit=True)
-    prior = None if rot_nb_prior is None else _mat_nb(rot_nb_prior)
+    prior = None if rot_nb_prior is None else as_mat_nb(rot_nb_prior)
     if prior is not None and s_n is None:
         raise ValueError("rot_nb_prior needs sun_n (the tilt-coupled model)")
     return yaw_kernel(mat, float(yaw), float(_variance(yaw_std, 1, "yaw_std")[0]), s_n, prior)
@@ -289,7 +289,7 @@ def sun_measurement(
     Linearized
         ``H[:, 0:3] = (mat_nb E)^T [sun_n x]`` and ``R = sun_std^2 I_2``.
     """
-    mat = _mat_nb(rot_nb)
+    mat = as_mat_nb(rot_nb)
     basis = None
     if basis_b is not None:
         basis = np.asarray(basis_b, dtype=float)
@@ -334,7 +334,7 @@ def non_holonomic(rot_nb: Rotation | ArrayLike, vel_n: ArrayLike, std: ArrayLike
         1-sigma of the lateral and vertical pseudo-measurements [m/s].
     """
     return non_holonomic_kernel(
-        _mat_nb(rot_nb), _vector3(vel_n, "vel_n"), _variance(std, 2, "non-holonomic std")
+        as_mat_nb(rot_nb), _vector3(vel_n, "vel_n"), _variance(std, 2, "non-holonomic std")
     )
 
 
@@ -345,7 +345,7 @@ def yaw_from_sun(rot_nb: Rotation | ArrayLike, sun_b: ArrayLike, sun_n: ArrayLik
     ``alpha_s^n = atan2(sun_n_y, sun_n_x)``. Used for self-alignment from a sun vector.
     """
     if not isinstance(rot_nb, Rotation):
-        rot_nb = Rotation.from_matrix(_mat_nb(rot_nb))
+        rot_nb = Rotation.from_matrix(as_mat_nb(rot_nb))
     s_l = rot_lb_from_rot_nb(rot_nb).apply(_vector3(sun_b, "sun_b", unit=True))
     s_n = _vector3(sun_n, "sun_n", unit=True)
     return float(wrap_angle(np.arctan2(s_n[1], s_n[0]) - np.arctan2(s_l[1], s_l[0])))
