@@ -31,6 +31,15 @@ def normal_gravity(lat: ArrayLike, height: ArrayLike = 0.0) -> FloatArray:
     return gamma0 * (1.0 - 2.0 / A * (1.0 + F + _M - 2.0 * F * s2) * h + 3.0 * h * h / A**2)
 
 
+def normal_gravity_gradient(lat: ArrayLike, height: ArrayLike = 0.0) -> FloatArray:
+    """Vertical gradient ``d gamma / d h`` of :func:`normal_gravity` [1/s^2] (the free-air
+    gradient, about -3.086e-6 1/s^2 at the surface)."""
+    s2 = np.sin(np.asarray(lat, dtype=float)) ** 2
+    h = np.asarray(height, dtype=float)
+    gamma0 = GAMMA_E * (1.0 + _K * s2) / np.sqrt(1.0 - E2 * s2)
+    return gamma0 * (-2.0 / A * (1.0 + F + _M - 2.0 * F * s2) + 6.0 * h / A**2)
+
+
 def gravity_n(lat: ArrayLike, height: ArrayLike = 0.0) -> FloatArray:
     """Normal gravity vector in ENU, ``(..., 3)`` = (0, 0, -gamma) [m/s^2]."""
     g = normal_gravity(lat, height)

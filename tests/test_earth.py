@@ -7,6 +7,7 @@ from polins.earth import (
     earth_rate_n,
     gravity_n,
     normal_gravity,
+    normal_gravity_gradient,
     radii_of_curvature,
     transport_rate_n,
 )
@@ -24,6 +25,11 @@ def test_free_air_gradient_and_vector():
     lat = np.radians(45.0)
     grad = (normal_gravity(lat, 100.0) - normal_gravity(lat, 0.0)) / 100.0
     assert grad == pytest.approx(-3.086e-6, rel=2e-3)
+    # gamma is quadratic in h: the central difference equals the analytic gradient
+    lats, h = np.radians([0.0, 45.6, 90.0]), np.array([-300.0, 148.7, 8000.0])
+    central = 0.5 * (normal_gravity(lats, h + 10.0) - normal_gravity(lats, h - 10.0)) / 10.0
+    np.testing.assert_allclose(normal_gravity_gradient(lats, h), central, rtol=1e-7)
+    assert normal_gravity_gradient(lat) == pytest.approx(-3.086e-6, rel=2e-3)
     np.testing.assert_allclose(gravity_n(lat, 0.0), [0, 0, -normal_gravity(lat)])
 
 

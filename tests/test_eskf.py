@@ -192,6 +192,31 @@ def test_discretisation_matches_van_loan(scale_factors, dt):
     assert np.all(np.linalg.eigvalsh(Q) > -1e-20)
 
 
+@pytest.mark.parametrize("scale_factors", [False, True])
+def test_partial_step_polynomials_equal_the_partial_step(scale_factors):
+    # The batch path's rows inside a covariance step come from polynomials in the step
+    # length tau; they must equal filterpy's predict with van_loan(F tau) for any tau.
+    from filterpy.kalman import predict
+
+    rng = np.random.default_rng(3)
+    n = E.n_states(scale_factors)
+    F = rng.normal(0.0, 3.0, (4, E.N_DYNAMIC, n))
+    L = rng.normal(size=(4, n, n))
+    P0 = L @ np.swapaxes(L, -1, -2) * 1e-4
+    x0 = rng.normal(size=(4, n))
+    qc = rng.uniform(1e-6, 1e-3, n)
+    cx, cv, ca = E.partial_step_polynomials(F, P0, x0, qc)
+    for tau in (0.005, 0.05, 0.1):
+        p = tau ** np.arange(8)
+        for s in range(4):
+            Phi, Q = E.van_loan(F[s] * tau, tau, qc)
+            x, P = predict(x0[s], P0[s], Phi, Q)
+            np.testing.assert_allclose(p[:4] @ cx[s], x, rtol=1e-12, atol=1e-14)
+            np.testing.assert_allclose(p @ cv[s], np.diag(P), rtol=1e-12)
+            att = np.einsum("p,pij->ij", p, ca[s])
+            np.testing.assert_allclose(att, P[:3, :3], rtol=0, atol=1e-13 * np.abs(P).max())
+
+
 def test_transition_matches_mechanization_jacobian():
     # The filter's transition over 40 samples against the numerical Jacobian of the
     # strapdown itself: the error-state model is the linearised mechanization.

@@ -45,7 +45,7 @@ _FUSE_OPTIONS = {
     "earth_rate": "mechanize Earth and transport rate (default: imu_model.earth_rate)",
     "scale_factors": "estimate gyro/accel scale factors (21 states; default False)",
     "gate_prob": "chi-square gate probability, None = no gate (default 0.9973)",
-    "reset_interval_s": "error-state reset interval [s] (default 5.0)",
+    "reset_interval_s": "error-state reset interval [s] (default 20.0)",
     "reset_angle_rad": "reset as soon as |dtheta| exceeds this [rad] (default 0.005)",
     "align_s": "static levelling window for self-alignment [s] (default 1.0)",
     "att_std0": "initial attitude 1-sigma when rot_nb0 is given [rad] (default 1 deg)",

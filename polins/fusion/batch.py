@@ -12,10 +12,13 @@ epoch, in order, with the filter's own measurement handling (``ESKF._apply``: ga
 records, resets). The result equals one ``ESKF.propagate`` call per sample to rounding
 error (tests/test_eskf.py: 1e-9 rad, 1e-9 relative in the sigmas).
 
-Output rows between epochs use the covariance at the start of their step and the partial
-step (what ``ESKF.state()`` computes); without smoothing only what the solution table
-needs is computed: the top 9 rows of the partial transition, the diagonal of the
-covariance and its attitude block.
+Output rows inside a covariance step report what ``ESKF.state()`` gives there: the state
+at the start of their step propagated over the step so far, with the error dynamics frozen
+at their mean over the step's first IMU interval. Without smoothing only what the solution
+table needs is computed, as polynomials in the partial-step length per step
+(:func:`~polins.fusion.eskf.partial_step_polynomials`: the error state, the covariance
+diagonal and its attitude block), evaluated per row; with full covariances (``full_cov``,
+smoothing) the partial transition of every row is computed.
 
 :func:`run_batch` runs a fresh filter over a whole log (``polins.fuse``),
 ``ESKF.propagate_many`` runs :func:`advance` on a filter in any state (streaming use).
@@ -42,11 +45,10 @@ from polins.fusion.eskf import (
     MeasurementItem,
     _StepSums,
     nav_error_dynamics,
-    powers,
+    partial_step_polynomials,
     solution_columns,
     step_exponent,
-    van_loan_full,
-    van_loan_rows,
+    van_loan,
 )
 from polins.fusion.measurement import ATT, BA, BG, N_ERROR, POS, VEL
 from polins.ins import NavTrack, rotation_vectors, strapdown
@@ -253,11 +255,8 @@ def _split_gaps(marks: IntArray, every: int, first: int | None = None) -> IntArr
     ``previous + every, previous + 2 every, ...`` before the mark, then the mark. With
     ``first`` the first piece of the first gap is at most ``first`` long.
     """
-    if first is not None and first < every:
-        if marks[0] <= first:
-            return np.concatenate([marks[:1], _split_gaps(marks[1:] - marks[0], every) + marks[0]])
-        rest = _split_gaps(marks - first, every) + first
-        return np.concatenate([[first], rest]).astype(int)
+    if first is not None and first < every and marks.size and first < marks[0]:
+        marks = np.concatenate([[first], marks])  # the first piece ends there
     if marks.size == 0:
         return marks.astype(int)
     prev = np.concatenate([[0], marks[:-1]])
@@ -274,7 +273,7 @@ def _step_boundaries(n: int, epochs: IntArray, every: int, first: int | None = N
     progress) or at an epoch (a sample with measurements), whichever comes first (the
     streaming rule), and at ``n``.
     """
-    marks = np.unique(np.concatenate([epochs[(epochs > 0) & (epochs < n)], [n]]))
+    marks = np.append(epochs[(epochs > 0) & (epochs < n)], n)  # epochs: sorted, unique
     return _split_gaps(marks.astype(int), every, first)
 
 
@@ -286,13 +285,15 @@ class _Segment:
     ``dt``, ``mat_nb_mid dt`` (9), ``dv_force_n`` (3) and, with scale factors,
     ``mat_nb_mid diag(phi)`` (9) and ``mat_nb_mid diag(f_mid) dt`` (9). ``carry`` ``(m,)``
     are the sums of the step in progress at the segment start (the first step includes
-    them); ``divisors`` the scale-factor terms of the segment (fixed until the next reset).
+    them), ``carry_first`` those of its first interval; ``divisors`` the scale-factor terms
+    of the segment (fixed until the next reset).
     """
 
     track: NavTrack
     divisors: tuple[FloatArray | float, FloatArray | float]
     cs: FloatArray
     carry: FloatArray | None
+    carry_first: FloatArray | None
     carry_start: tuple[FloatArray, float, float] | None
 
     def sums(self, a: IntArray, b: IntArray, q0: NDArray[np.bool_]) -> list[FloatArray]:
@@ -301,11 +302,22 @@ class _Segment:
         s = self.cs[b] - self.cs[a]
         if self.carry is not None and q0.any():
             s[q0] += self.carry
-        k = s.shape[0]
-        out = [s[:, 0], s[:, 1:10].reshape(k, 3, 3), s[:, 10:13]]
-        if s.shape[1] > 13:
-            out += [s[:, 13:22].reshape(k, 3, 3), s[:, 22:31].reshape(k, 3, 3)]
-        return out
+        return _split_sums(s)
+
+    def duration(self, a: IntArray, b: IntArray, q0: NDArray[np.bool_]) -> FloatArray:
+        """The ``dt`` of :meth:`sums`."""
+        T = self.cs[b, 0] - self.cs[a, 0]
+        if self.carry is not None and q0.any():
+            T[q0] += self.carry[0]
+        return T
+
+    def first_sums(self, a: IntArray, q0: NDArray[np.bool_]) -> list[FloatArray]:
+        """:meth:`sums` over the first interval of the steps starting at ``a`` (the carry's
+        first interval where ``q0``)."""
+        s = self.cs[a + 1] - self.cs[a]
+        if self.carry_first is not None and q0.any():
+            s[q0] = self.carry_first
+        return _split_sums(s)
 
     def step_nav(
         self, a: IntArray, q0: NDArray[np.bool_]
@@ -316,6 +328,26 @@ class _Segment:
         if self.carry_start is not None and q0.any():
             vel[q0], lat[q0], h[q0] = self.carry_start
         return vel, lat, h
+
+
+def _split_sums(s: FloatArray) -> list[FloatArray]:
+    """Columns of :class:`_Segment` sums ``(k, m)`` as ``[dt, mat, dv(, mat_omega,
+    mat_force)]``."""
+    k = s.shape[0]
+    out = [s[:, 0], s[:, 1:10].reshape(k, 3, 3), s[:, 10:13]]
+    if s.shape[1] > 13:
+        out += [s[:, 13:22].reshape(k, 3, 3), s[:, 22:31].reshape(k, 3, 3)]
+    return out
+
+
+def _flat_sums(
+    sf: bool, dt: float, mat: FloatArray, dv: FloatArray, *scale: FloatArray
+) -> FloatArray:
+    """The inverse of :func:`_split_sums` for one step (the scale-factor terms if ``sf``)."""
+    parts: list[FloatArray] = [np.array([dt]), mat.ravel(), dv]
+    if sf:
+        parts += [scale[0].ravel(), scale[1].ravel()]
+    return np.concatenate(parts)
 
 
 def _segment(eskf: ESKF, track: NavTrack, Wc: FloatArray, Ac: FloatArray) -> _Segment:
@@ -339,20 +371,20 @@ def _segment(eskf: ESKF, track: NavTrack, Wc: FloatArray, Ac: FloatArray) -> _Se
     sums = eskf._sums
     div = eskf._divisors()
     if sums.n == 0:
-        return _Segment(track, div, cs, None, None)
-    parts: list[FloatArray] = [np.array([sums.dt]), sums.mat.ravel(), sums.dv]
-    if sf:
-        parts += [sums.mat_omega.ravel(), sums.mat_force.ravel()]
-    carry = np.concatenate(parts)
-    return _Segment(track, div, cs, carry, (sums.vel_n, sums.lat, sums.height))
+        return _Segment(track, div, cs, None, None, None)
+    assert sums.first is not None
+    carry = _flat_sums(sf, sums.dt, sums.mat, sums.dv, sums.mat_omega, sums.mat_force)
+    first = _flat_sums(sf, *sums.first)
+    return _Segment(track, div, cs, carry, first, (sums.vel_n, sums.lat, sums.height))
 
 
 def _transition_exponent(
-    eskf: ESKF, seg: _Segment, a: IntArray, b: IntArray, q0: NDArray[np.bool_]
+    eskf: ESKF, seg: _Segment, a: IntArray, b: IntArray | None, q0: NDArray[np.bool_]
 ) -> tuple[FloatArray, FloatArray]:
     """``A = F T`` (top rows) and ``T`` over the intervals ``a .. b - 1`` of steps starting
-    at ``a`` (``q0``: the step that includes the carry)."""
-    s = seg.sums(a, b, q0)
+    at ``a`` (``q0``: the step that includes the carry); ``b`` None: over the first interval
+    of the steps."""
+    s = seg.first_sums(a, q0) if b is None else seg.sums(a, b, q0)
     vel, lat, h = seg.step_nav(a, q0)
     F_nav = nav_error_dynamics(vel, lat, h, eskf.options.mech)
     sf = eskf.n > N_ERROR
@@ -364,7 +396,7 @@ def _transition_exponent(
 
 
 # ============================================================================ the core
-_ROW_CHUNK = 4096  # output rows per chunk (bounds the memory of the row matrices)
+_ROW_CHUNK = 4096  # rows with full covariances per chunk (bounds the row matrices' memory)
 
 
 def advance(
@@ -572,26 +604,10 @@ def advance(
                 a_rows = np.append(a_rows, ends[n_steps - 1] if n_steps else 0)
             q = np.searchsorted(a_rows, sel, side="right") - 1
             mid_i = np.flatnonzero((sel > a_rows[q]) | ((q == 0) & (carry_n > 0)))
-        # ---- transition matrices: complete steps and (a few rows: in the same call)
-        # the partial steps of the rows; many rows are done in chunks after the epochs
-        few = mid_i.size <= _ROW_CHUNK
-        mf = mid_i if few else mid_i[:0]
-        qm = q[mf]
-        a_all = np.concatenate([starts[:n_steps], a_rows[qm]])
-        if a_all.size:
-            A_all, T_all = _transition_exponent(
-                eskf, seg, a_all, np.concatenate([ends[:n_steps], sel[mf]]),
-                np.concatenate([q0_steps, (qm == 0) & (carry_n > 0)]),
-            )  # fmt: skip
-            top, half = powers(A_all)
-            Phi, Q = van_loan_full(top[:n_steps], half[:n_steps], T_all[:n_steps], eskf.qc)
-            if rows is not None and mid_i.size and few:
-                tr, hr, Tr = top[n_steps:], half[n_steps:], T_all[n_steps:]
-                row_mats: tuple[FloatArray, ...] = (
-                    van_loan_full(tr, hr, Tr, eskf.qc)
-                    if rows.full
-                    else van_loan_rows(tr, hr, Tr, eskf.qc)
-                )
+        # ---- transition matrices of the complete steps
+        if n_steps:
+            A_s, T_s = _transition_exponent(eskf, seg, starts[:n_steps], ends[:n_steps], q0_steps)
+            Phi, Q = van_loan(A_s, T_s, eskf.qc)
         broke = False
         x_post, P_post = [eskf.x], [eskf.P]
         P_prior: list[FloatArray] = []
@@ -652,6 +668,7 @@ def advance(
                 q0_t = np.array([done == 0 and carry_n > 0])
                 s_t = seg.sums(a_t, np.array([n_seg]), q0_t)
                 vel, lat, h = seg.step_nav(a_t, q0_t)
+                f_t = seg.first_sums(a_t, q0_t)
                 sums = _StepSums(
                     n=n_seg - rel_end + (carry_n if done == 0 else 0),
                     dt=float(s_t[0][0]),
@@ -661,8 +678,11 @@ def advance(
                     lat=float(lat[0]),
                     height=float(h[0]),
                 )
+                scale_first = (np.zeros((3, 3)), np.zeros((3, 3)))
                 if eskf.n > N_ERROR:
                     sums.mat_omega, sums.mat_force = s_t[3][0].copy(), s_t[4][0].copy()
+                    scale_first = (f_t[3][0], f_t[4][0])
+                sums.first = (float(f_t[0][0]), f_t[1][0], f_t[2][0], *scale_first)
                 eskf._sums = sums
         # ---- output rows of this segment
         if rows is not None and sel.size:
@@ -682,33 +702,43 @@ def advance(
                     Pa = Pi_at[inner]
                     x_step[inner] = (Pa @ x_step[inner][..., None])[..., 0]
                     P_step[inner] = Pa @ P_step[inner] @ np.swapaxes(Pa, -1, -2) + Qa_at[inner]
-                km = keep[mid_i]
+                # rows inside a step: the step so far with the error dynamics frozen at
+                # their mean over the step's first interval (ESKF.state)
+                mid_k = mid_i[keep[mid_i]]
                 kept = np.flatnonzero(keep)
-                mid_pos = np.searchsorted(kept, mid_i[km])  # mid rows among the kept rows
-                width = kept.size if few else _ROW_CHUNK
-                for c0 in range(0, kept.size, width):
-                    ks = kept[c0 : c0 + width]
+                mid_pos = np.searchsorted(kept, mid_k)  # mid rows among the kept rows
+                q_mid = q[mid_k]
+                q0_mid = (q_mid == 0) & (carry_n > 0)
+                tau = seg.duration(a_rows[q_mid], sel[mid_k], q0_mid)
+                steps, step_of = np.unique(q_mid, return_inverse=True)
+                F0 = np.zeros((0, N_DYNAMIC, eskf.n))
+                if steps.size:
+                    A1, T1 = _transition_exponent(
+                        eskf, seg, a_rows[steps], None, (steps == 0) & (carry_n > 0)
+                    )
+                    F0 = A1 / T1[:, None, None]
+                # polynomials per step pay off from about two rows per step
+                per_row = rows.full or mid_k.size < 2 * steps.size
+                if not per_row:
+                    poly = partial_step_polynomials(F0, P_step[steps], x_step[steps], eskf.qc)
+                    _segment_rows(
+                        rows, seg, T[cur + sel[kept]], sel[kept], q[kept], mid_pos,
+                        (*poly, step_of, tau), x_step, P_step, consts,
+                    )  # fmt: skip
+                for c0 in range(0, kept.size if per_row else 0, _ROW_CHUNK):
+                    ks = kept[c0 : c0 + _ROW_CHUNK]
                     m0, m1 = np.searchsorted(mid_pos, [c0, c0 + ks.size])
                     mp = mid_pos[m0:m1] - c0  # mid rows of this chunk
-                    mats: tuple[FloatArray, ...] = ()
-                    if few and mp.size:
-                        mats = tuple(m[km] for m in row_mats)
-                    elif mp.size:
-                        rr = ks[mp]
-                        A_r, T_r = _transition_exponent(
-                            eskf, seg, a_rows[q[rr]], sel[rr], (q[rr] == 0) & (carry_n > 0)
-                        )
-                        tr, hr = powers(A_r)
-                        vl = van_loan_full if rows.full else van_loan_rows
-                        mats = vl(tr, hr, T_r, eskf.qc)
+                    tau_c = tau[m0:m1]
+                    mats = van_loan(F0[step_of[m0:m1]] * tau_c[:, None, None], tau_c, eskf.qc)
                     _segment_rows(
                         rows, seg, T[cur + sel[ks]], sel[ks], q[ks], mp, mats, x_step, P_step,
                         consts,
                     )  # fmt: skip
                     if chain is not None:
                         _chain_rows(
-                            chain, rows, q[ks], mp, done, step_block, Pi_at, Pi,
-                            mats[0] if mats else None, P_prior, n_ep, eskf.n,
+                            chain, rows, q[ks], mp, done, step_block, Pi_at, Pi, mats[0],
+                            P_prior, n_ep, eskf.n,
                         )  # fmt: skip
             if tail:
                 last_done = True
@@ -757,7 +787,7 @@ def _segment_rows(
     sel: IntArray,
     q: IntArray,
     mid: IntArray,
-    mats: tuple[FloatArray, ...],
+    mats: tuple[NDArray[Any], ...],
     x_step: FloatArray,
     P_step: FloatArray,
     consts: tuple[FloatArray, FloatArray, FloatArray, FloatArray, bool],
@@ -765,13 +795,14 @@ def _segment_rows(
     """Rows at the relative samples ``sel`` of a segment (what ``ESKF.state()`` gives).
 
     ``q`` are the rows' steps with the states ``x_step``, ``P_step`` at their starts;
-    the rows ``mid`` (inside a step) propagate the partial step with ``mats``:
-    ``(Phi, Q)`` (full covariances) or ``(Phi[:9], diag Q, Q[:3, :3])``
-    (:func:`~polins.fusion.eskf.van_loan_rows`).
+    the rows ``mid`` (inside a step) propagate the partial step with ``mats``: ``(Phi, Q)``
+    per mid row (always with full covariances), or ``(cx, cv, ca, i, tau)``: the polynomials of
+    :func:`~polins.fusion.eskf.partial_step_polynomials` of the steps, each mid row's index
+    ``i`` into them and its partial-step length ``tau`` [s].
     """
     R = sel.size
     x = x_step[q]
-    if rows.full:
+    if len(mats) == 2:
         P = P_step[q]
         if mid.size:
             Phi_p, Q_p = mats
@@ -779,21 +810,22 @@ def _segment_rows(
             P[mid] = Phi_p @ P[mid] @ np.swapaxes(Phi_p, -1, -2) + Q_p
         var = np.diagonal(P, axis1=-2, axis2=-1).copy()
         P_att = P[:, ATT, ATT]
-        rows.add(P=P)
+        if rows.full:
+            rows.add(P=P)
     else:
         var = np.diagonal(P_step, axis1=-2, axis2=-1)[q]
-        P_att = P_step[q][:, ATT, ATT]
+        P_att = P_step[q, ATT, ATT]
         if mid.size:
-            top, q_diag, q_att = mats
-            qm = q[mid]
-            Mt = top @ P_step[qm]  # (Phi P)[:9]
-            vm = var[mid] + q_diag
-            vm[:, :N_DYNAMIC] = np.einsum("rij,rij->ri", Mt, top) + q_diag[:, :N_DYNAMIC]
-            var[mid] = vm
-            P_att[mid] = Mt[:, ATT, :] @ np.swapaxes(top[:, ATT, :], -1, -2) + q_att
-            xm = x[mid]
-            xm[:, :N_DYNAMIC] = (top @ x_step[qm][..., None])[..., 0]
-            x[mid] = xm
+            cx, cv, ca, i, tau = mats
+            n = x.shape[1]
+            coef = np.concatenate([cv, ca.reshape(*ca.shape[:2], 9), np.zeros_like(cv)], axis=2)
+            coef[:, :4, n + 9 :] = cx
+            val = _polynomials_at(coef, i, tau)
+            var[mid], P_att[mid], x[mid] = (
+                val[:, :n],
+                val[:, n : n + 9].reshape(-1, 3, 3),
+                val[:, n + 9 :],
+            )
     bg, ba, sg, sa, aligned = consts
     tr = seg.track
     rows.add(
@@ -812,6 +844,20 @@ def _segment_rows(
         sa=np.broadcast_to(sa, (R, 3)),
         al=np.full(R, aligned),
     )
+
+
+def _polynomials_at(coef: FloatArray, i: NDArray[Any], tau: NDArray[Any]) -> FloatArray:
+    """``sum_p tau^p coef[i, p]`` per row ``(R, m)``: coefficients ``coef`` ``(steps, degree
+    + 1, m)``, the rows' steps ``i`` (non-decreasing) and arguments ``tau`` ``(R,)``.
+
+    One batched product per step (the rows of a step padded to the longest run of rows).
+    """
+    steps, deg = coef.shape[:2]
+    counts = np.bincount(i, minlength=steps)
+    pos = np.arange(i.size) - (np.cumsum(counts) - counts)[i]  # row within its step
+    powers = np.zeros((steps, int(counts.max(initial=0)), deg))
+    powers[i, pos] = tau[:, None] ** np.arange(deg)
+    return (powers @ coef)[i, pos]
 
 
 def _chain_rows(

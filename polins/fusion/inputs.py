@@ -7,6 +7,7 @@ can be detected (gyro in deg/s, accelerometer in g or mg, yaw in degrees) are re
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -261,33 +262,37 @@ def measurement_items_from_frame(
         sun_ok = has_sun & np.all(np.isfinite(sun_b), axis=1) & n_ok & (sun_std > 0)
         yaw_ok = np.isfinite(yaw) & (yaw_std > 0)
         zupt_ok = zupt_std > 0
+    # Python scalars (lists) in the row loop: numpy scalar indexing costs more
+    t_l, yaw_l, yaw_std_l, sun_std_l = t.tolist(), yaw.tolist(), yaw_std.tolist(), sun_std.tolist()
+    zupt_l, sun_ok_l, yaw_ok_l, zupt_ok_l = (
+        zupt_std.tolist(), sun_ok.tolist(), yaw_ok.tolist(), zupt_ok.tolist()
+    )  # fmt: skip
+    n_ok_l, prior_ok_l = n_ok.tolist(), prior_ok.tolist()
     items: list[MeasurementItem] = []
     for i in range(n):
-        ti = float(t[i])
-        if use_sun and sun_ok[i]:
+        ti = t_l[i]
+        if use_sun and sun_ok_l[i]:
             items.append(
                 MeasurementItem(
-                    ti, "sun", float(sun_std[i]), sun_b=sun_b[i].copy(), sun_n=sun_n[i].copy()
+                    ti, "sun", sun_std_l[i], sun_b=sun_b[i].copy(), sun_n=sun_n[i].copy()
                 )
             )
         elif has_yaw:
-            ok = bool(yaw_ok[i])
+            ok = yaw_ok_l[i]
             items.append(
                 MeasurementItem(
                     ti,
                     "yaw",
-                    float(yaw_std[i]) if ok else np.nan,
-                    yaw=float(yaw[i]) if ok else np.nan,
-                    sun_n=sun_n[i].copy() if n_ok[i] else None,
+                    yaw_std_l[i] if ok else math.nan,
+                    yaw=yaw_l[i] if ok else math.nan,
+                    sun_n=sun_n[i].copy() if n_ok_l[i] else None,
                     valid=ok,
-                    mat_nb_prior=mat_prior[i] if prior_ok[i] else None,
+                    mat_nb_prior=mat_prior[i] if prior_ok_l[i] else None,
                 )
             )
         elif has_sun:
-            items.append(MeasurementItem(ti, "sun", np.nan, valid=False))
-        if has_zupt and np.isfinite(zupt_std[i]):
-            ok = bool(zupt_ok[i])
-            items.append(
-                MeasurementItem(ti, "zupt", float(zupt_std[i]) if ok else np.nan, valid=ok)
-            )
+            items.append(MeasurementItem(ti, "sun", math.nan, valid=False))
+        if has_zupt and math.isfinite(zupt_l[i]):
+            ok = zupt_ok_l[i]
+            items.append(MeasurementItem(ti, "zupt", zupt_l[i] if ok else math.nan, valid=ok))
     return items

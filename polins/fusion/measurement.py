@@ -43,7 +43,7 @@ BG = slice(9, 12)
 BA = slice(12, 15)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False, slots=True)
 class Linearized:
     """One linearized measurement ``(z - h(x), H, R)`` at the nominal state.
 
@@ -118,16 +118,13 @@ def yaw_kernel(
 ) -> Linearized:
     """:func:`yaw_measurement` on validated inputs (``var`` = yaw_std^2, unit ``sun_n``)."""
     if sun_n is None:  # the yaw of body x
-        a = mat_nb[:, 0]
-        ax, ay, az = float(a[0]), float(a[1]), float(a[2])
+        ax, ay, az = mat_nb[:, 0].tolist()
         horiz2 = ax * ax + ay * ay
         if horiz2 < 1e-12:
             raise ValueError("yaw is undefined: body x is vertical")
         H = np.zeros((1, N_ERROR))
-        H[0, 0] = -ax * az / horiz2
-        H[0, 1] = -ay * az / horiz2
-        H[0, 2] = 1.0
-        predicted = math.atan2(float(mat_nb[1, 0]), float(mat_nb[0, 0]))
+        H[0, :3] = (-ax * az / horiz2, -ay * az / horiz2, 1.0)
+        predicted = math.atan2(ay, ax)
         return Linearized(np.array([_wrap(yaw - predicted)]), H, np.array([[var]]), "yaw")
     # The yaw polins.measure computes from the sun seen in the body frame, levelled with the
     # prior's tilt: h = alpha_s + yaw_P - azimuth(M sun_n), M = mat_nb_P mat_bn (module doc).
