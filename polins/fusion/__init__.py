@@ -43,7 +43,12 @@ _FUSE_OPTIONS = {
     "alt_m": "start height above the WGS-84 ellipsoid [m]",
     "vel_n0": "initial ENU velocity [m/s] (default 0)",
     "earth_rate": "mechanize Earth and transport rate (default: imu_model.earth_rate)",
-    "scale_factors": "estimate gyro/accel scale factors (21 states; default False)",
+    "scale_factors": (
+        "estimate gyro/accel scale factors (21 states; default False). Turn it on for "
+        "IMUs with ~1000 ppm scale factors: without it the yaw sigma of 'mems-typical' is "
+        "optimistic in turns (yaw RMS(err/sigma) 1.36 in 50 runs of 120 s; with it 1.04 in "
+        "50 runs of 300 s, tests/test_eskf.py)"
+    ),
     "gate_prob": "chi-square gate probability, None = no gate (default 0.9973)",
     "reset_interval_s": "error-state reset interval [s] (default 20.0)",
     "reset_angle_rad": "reset as soon as |dtheta| exceeds this [rad] (default 0.005)",
