@@ -322,6 +322,19 @@ def _ml_data(
     return _MLData(s0, s1, s2, c, fwd, rays, inv_sigma, mask)
 
 
+def _ml_data_of(stokes: NDArray, forward: ArrayLike, sigma_l: ArrayLike | float) -> _MLData:
+    """:func:`_ml_data` from the public functions' arguments: Stokes ``(n, 3)``, forward
+    rows ``(n, 2, 3)`` and a per-pixel or common ``sigma_L``."""
+    inv_sigma = 1.0 / np.asarray(sigma_l, dtype=float)
+    return _ml_data(
+        stokes[:, 0],
+        stokes[:, 1],
+        stokes[:, 2],
+        np.moveaxis(np.asarray(forward, dtype=float), 0, -1),
+        float(inv_sigma) if inv_sigma.ndim == 0 else inv_sigma,
+    )
+
+
 def _image_plane_evector(data: _MLData, sun_cols: NDArray) -> NDArray:
     """``(x, y)`` of ``s x p`` in the image plane for each column of ``sun_cols`` (3, k):
     returns (k, 2n) rows [x | y]."""
@@ -649,14 +662,7 @@ def ml_residuals(
     sl = np.asarray(sun_l, dtype=float)
     sl = sl / np.linalg.norm(sl)
     theta = np.array([np.arctan2(sl[1], sl[0]), np.arccos(np.clip(sl[2], -1, 1)), epsilon])
-    inv_sigma = 1.0 / np.asarray(sigma_l, dtype=float)
-    data = _ml_data(
-        s[:, 0],
-        s[:, 1],
-        s[:, 2],
-        np.moveaxis(np.asarray(forward, dtype=float), 0, -1),
-        float(inv_sigma) if inv_sigma.ndim == 0 else inv_sigma,
-    )
+    data = _ml_data_of(s, forward, sigma_l)
     r, _, _, _ = _ml_evaluate(data, theta, None, np.asarray(mat_cl, dtype=float), False)
     return r if isinstance(data.inv_sigma, np.ndarray) else r * data.inv_sigma
 
@@ -698,14 +704,7 @@ def sun_joint_ml(
     sl = sl / np.linalg.norm(sl)
     a0 = np.arctan2(sl[1], sl[0])
     theta0 = [a0, epsilon0] if zenith is not None else [a0, np.arccos(sl[2]), epsilon0]
-    inv_sigma = 1.0 / np.asarray(sigma_l, dtype=float)
-    data = _ml_data(
-        s[:, 0],
-        s[:, 1],
-        s[:, 2],
-        np.moveaxis(np.asarray(forward, dtype=float), 0, -1),
-        float(inv_sigma) if inv_sigma.ndim == 0 else inv_sigma,
-    )
+    data = _ml_data_of(s, forward, sigma_l)
     solution, _ = _gauss_newton(
         data,
         np.asarray(theta0),

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import scipy.linalg
+from numerics import numjac
 from scipy.spatial.transform import Rotation
 
 import polins
@@ -33,16 +34,6 @@ YAW_STD = np.radians(0.3)
 
 
 # ----------------------------------------------------------------------------- helpers
-def numjac(fun, n=15, eps=1e-7):
-    """Central-difference Jacobian of fun at 0."""
-    cols = []
-    for i in range(n):
-        d = np.zeros(n)
-        d[i] = eps
-        cols.append((fun(d) - fun(-d)) / (2 * eps))
-    return np.stack(cols, axis=-1)
-
-
 def perturb(rot, vel, dx):
     """The error-state convention: rot_true = exp(dtheta) rot, vel_true = vel + dv."""
     return Rotation.from_rotvec(dx[0:3]) * rot, vel + dx[3:6]

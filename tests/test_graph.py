@@ -9,6 +9,7 @@ import gtsam
 import numpy as np
 import pandas as pd
 import pytest
+from numerics import numjac
 from scipy.spatial.transform import Rotation
 
 import polins
@@ -27,16 +28,6 @@ AZIMUTH = np.radians(200.0)
 SUN_N = sun_vector_n(AZIMUTH, ZENITH)
 ROT_NB = Rotation.from_euler("ZYX", [0.3, 0.05, -0.02])
 ANGLES = ("roll", "pitch", "yaw")
-
-
-def numjac(fun, n, eps=1e-6):
-    """Central-difference Jacobian of fun at 0."""
-    cols = []
-    for i in range(n):
-        d = np.zeros(n)
-        d[i] = eps
-        cols.append((fun(d) - fun(-d)) / (2 * eps))
-    return np.stack(cols, axis=-1)
 
 
 def pose_values(rot_nb, pos=(1.0, 2.0, 3.0), vel=None, bias=None):
@@ -66,7 +57,9 @@ def check_factor_jacobians(factor, values, keys_dims):
                 v.update(key, values.atVector(key) + d)
             return factor.whitenedError(v)
 
-        np.testing.assert_allclose(A[:, col : col + dim], numjac(err, dim), atol=1e-6, rtol=1e-6)
+        np.testing.assert_allclose(
+            A[:, col : col + dim], numjac(err, dim, eps=1e-6), atol=1e-6, rtol=1e-6
+        )
         col += dim
 
 
@@ -118,7 +111,7 @@ def test_attitude_factor_jacobian_frames_and_eskf_information():
         return f.evaluateError(pose_values(Rotation.from_rotvec(d) * ROT_NB).atPose3(X(0)))
 
     j_n = j_b @ mat.T
-    np.testing.assert_allclose(j_n, numjac(err_left, 3), atol=1e-8)
+    np.testing.assert_allclose(j_n, numjac(err_left, 3, eps=1e-6), atol=1e-8)
     # At the truth both models project the attitude error on the plane normal to sun_n:
     # J^T J = H^T H = [sun_n x]^T [sun_n x] (rotations about sun_n are unobserved).
     a_true, _ = f.linearize(pose_values(rot_true)).jacobian()
