@@ -10,7 +10,7 @@ Prints IMU samples per second of, in the same run and over the same IMU samples:
   state and covariance read after every sample, beside ``polins.fuse`` with every row
   (each row also carries the sigmas of all states, Euler angles and a quaternion);
 * the streaming filter: ``ESKF.propagate`` once per sample, and ``ESKF.propagate_many`` on
-  runs of 0.1 s (how ``polins.pipeline`` feeds it between images) and on the whole log;
+  runs of 0.1 s (how ``polins.loop.stream`` feeds it between images) and on the whole log;
 * the floor of filterpy's ``predict`` + ``update`` alone at the 10 Hz epochs;
 
 then the largest differences to the straightforward per-sample filter (``fast=False``),
@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 import polins
-from polins.attitude import wrap_angle
+from polins.frames import wrap_angle
 from polins.fusion import build_filter
 from polins.fusion.inputs import measurement_items_from_frame
 from polins.sim.imu import ideal_imu, imu_errors
@@ -84,7 +84,7 @@ def gtsam_run(
     sample of a solution table needs)."""
     import gtsam
 
-    g = float(polins.earth.normal_gravity(np.radians(SITE["lat_deg"]), SITE["alt_m"]))
+    g = float(polins.ins.earth.normal_gravity(np.radians(SITE["lat_deg"]), SITE["alt_m"]))
     params = gtsam.PreintegrationParams.MakeSharedU(g)
     params.setGyroscopeCovariance(np.eye(3) * model.gyro_arw**2)
     params.setAccelerometerCovariance(np.eye(3) * model.accel_vrw**2)

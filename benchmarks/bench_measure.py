@@ -28,7 +28,7 @@ def main() -> None:
     from scipy.spatial.transform import Rotation
 
     import polins
-    from polins.compass import measure
+    from polins.compass.measure import measure
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from render_simple import render  # the independent test renderer

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from polins.io import load_raw, read_log
-from polins.pipeline import NavigationStream, run_log
+from polins.loop.stream import NavigationStream, run_log
 from polins.sim.scenario import simulate_log
 
 

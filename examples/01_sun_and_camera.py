@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 import polins
-from polins.camera import fov_mask, pixel_rays_c
+from polins.compass.camera import fov_mask, pixel_rays_c
 
 HARBIN = {"lat_deg": 45.6234, "lon_deg": 126.7264, "alt_m": 148.74}
 SESSIONS = ["11:33", "12:18", "12:56", "13:29", "15:07", "16:29"]  # paper Table 3

@@ -38,7 +38,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 import polins
-from polins.attitude import wrap_angle, yaw_from_rot_nb
+from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import HARBIN_ALT_M, HARBIN_LAT_DEG, HARBIN_LON_DEG, ugv_drive
 

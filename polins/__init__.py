@@ -6,13 +6,13 @@ error-state Kalman filter (filterpy) or a GTSAM factor graph.
 
 Data flow (one module per physical concept)::
 
-    raw DoFP mosaic                     polins.polarimetry   (mosaic -> channels -> Stokes)
-      -> four polarizer channels        polins.camera        (per-pixel rays, lens polarization)
+    raw DoFP mosaic                     polins.compass.polarimetry   (mosaic -> channels -> Stokes)
+      -> four polarizer channels        polins.compass.camera        (per-pixel rays, lens polarization)
       -> Stokes (traditional / paper / compensated)
-      -> per-pixel E-vectors, camera    polins.sky           (Rayleigh single scattering)
-      -> sun vector (eigen / joint ML)  polins.compass       (polins.measure)
-      -> heading, 180 deg resolved      polins.ephemeris     (sun position, pvlib NREL SPA)
-      -> ESKF or GTSAM graph            polins.ins, polins.fusion (polins.fuse)
+      -> per-pixel E-vectors, camera    polins.sky.scattering           (Rayleigh single scattering)
+      -> sun vector (eigen / joint ML)  polins.compass.measure       (polins.measure)
+      -> heading, 180 deg resolved      polins.sky.ephemeris     (sun position, pvlib NREL SPA)
+      -> ESKF or GTSAM graph            polins.ins.strapdown, polins.fusion (polins.fuse)
       -> INS attitude back into the next image's compensation and tilt handling
 
 Conventions (the contract is ``CONVENTIONS.md``; ``docs/conventions.md`` explains it)
@@ -50,22 +50,22 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from polins.attitude import (
+from polins.frames import (
     heading_deg_from_yaw,
     rot_nb_from_euler,
     wrap_angle,
     yaw_from_heading_deg,
 )
-from polins.calibration import CameraModel, ImuModel, load_camera, load_imu
-from polins.ephemeris import SunPosition, sun_position, sun_vector_n
+from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
+from polins.sky.ephemeris import SunPosition, sun_position, sun_vector_n
 
 __version__ = "0.1.0"
 
 # Heavy or optional parts load on first use: ``polins.sim`` is never imported by library
 # code, and the fusion backends pull in filterpy (and gtsam for the graph).
 _LAZY = {
-    "measure": "polins.compass",
-    "Measurement": "polins.compass",
+    "measure": "polins.compass.measure",
+    "Measurement": "polins.compass.measure",
     "fuse": "polins.fusion",
     "sim": "polins.sim",
 }

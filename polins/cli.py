@@ -30,7 +30,7 @@ def _add_site_args(p: argparse.ArgumentParser) -> None:
 
 def sun_report(time: str, lat_deg: float, lon_deg: float, alt_m: float) -> dict[str, object]:
     """Solar azimuth/zenith [deg] and the ENU sun vector at one time and place."""
-    from polins.ephemeris import sun_position, sun_vector_n, to_utc_index
+    from polins.sky.ephemeris import sun_position, sun_vector_n, to_utc_index
 
     sun = sun_position(time, lat_deg, lon_deg, alt_m)
     return {
@@ -119,10 +119,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_fuse(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from polins.attitude import rot_nb_from_euler, yaw_from_heading_deg
+    from polins.frames import rot_nb_from_euler, yaw_from_heading_deg
     from polins.io import read_log
     from polins.io.report import format_summary, summarize, write_report
-    from polins.pipeline import LoopOptions, run_log
+    from polins.loop.stream import LoopOptions, run_log
 
     try:
         log = read_log(args.manifest, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
@@ -174,10 +174,10 @@ def _cmd_heading(args: argparse.Namespace) -> int:
 
     import cv2
 
-    from polins.attitude import rot_nb_from_euler
-    from polins.calibration import load_camera
-    from polins.compass import measure
-    from polins.ephemeris import sun_position, sun_vector_n, to_utc_index
+    from polins.frames import rot_nb_from_euler
+    from polins.models.loader import load_camera
+    from polins.compass.measure import measure
+    from polins.sky.ephemeris import sun_position, sun_vector_n, to_utc_index
 
     path = Path(args.image)
     if not path.is_file():

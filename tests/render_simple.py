@@ -1,6 +1,6 @@
 """An independent, deliberately plain DoFP sky renderer for the measurement-chain tests.
 
-It shares no code with ``polins.polarimetry``, ``polins.sunvector`` or ``polins.compass``
+It shares no code with ``polins.compass.polarimetry``, ``polins.compass.sunvector`` or ``polins.compass.measure``
 (nor with ``polins.sim``): the rays come from its own Kannala-Brandt Newton inversion, the
 E-vectors from ``s x p`` written out here, the AoP from its own lens-model lines, and the
 four channels from Malus' law. All four channels are sampled at the superpixel centre (no

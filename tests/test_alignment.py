@@ -1,4 +1,4 @@
-"""Self-alignment: levelling and gyrocompassing (polins.fusion.alignment) and the ESKF's use
+"""Self-alignment: levelling and gyrocompassing (polins.ins.alignment) and the ESKF's use
 of them with a navigation-grade IMU whose Earth rate is mechanized."""
 
 import numpy as np
@@ -7,9 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import polins
-from polins.attitude import rot_nb_from_euler, wrap_angle
-from polins.earth import OMEGA_IE, earth_rate_n, gravity_n
-from polins.fusion.alignment import gyrocompass, level_from_accel
+from polins.frames import rot_nb_from_euler, wrap_angle
+from polins.ins.earth import OMEGA_IE, earth_rate_n, gravity_n
+from polins.ins.alignment import gyrocompass, level_from_accel
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
 

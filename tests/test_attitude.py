@@ -5,7 +5,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from polins.attitude import (
+from polins.frames import (
     euler_from_rot_nb,
     heading_deg_from_yaw,
     rot_lb_from_rot_nb,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import polins
-from polins.calibration import ModelFileError, shipped_models
+from polins.models.loader import ModelFileError, shipped_models
 
 CAMERA = polins.load_camera("paper-table1").path.read_text()
 

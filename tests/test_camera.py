@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import polins
-from polins.camera import (
+from polins.compass.camera import (
     doubled_aop_from_evector,
     evector_from_aop,
     fov_mask,

@@ -7,11 +7,11 @@ from render_simple import random_attitude, render
 from scipy.spatial.transform import Rotation
 
 import polins
-from polins.attitude import wrap_angle, yaw_from_rot_nb
-from polins.camera import pixel_rays_c
-from polins.compass import MeasureOptions, measure, measure_with_maps, yaw_crlb
-from polins.polarimetry import mosaic_channels, stokes_from_channels
-from polins.sunvector import evectors_from_stokes, lens_basis, sun_eigen, yaw_from_sun_level
+from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.compass.camera import pixel_rays_c
+from polins.compass.measure import MeasureOptions, measure, measure_with_maps, yaw_crlb
+from polins.compass.polarimetry import mosaic_channels, stokes_from_channels
+from polins.compass.sunvector import evectors_from_stokes, lens_basis, sun_eigen, yaw_from_sun_level
 
 CAM = polins.load_camera("paper-table1")
 CAM4 = CAM.downscaled(4)
@@ -112,7 +112,7 @@ def test_tilt_handled_in_the_camera_frame():
     stokes = np.stack(
         [np.ones(valid.sum()), np.cos(2 * maps.aop[valid]), np.sin(2 * maps.aop[valid])], -1
     )
-    mat_lc = polins.attitude.rot_lb_from_rot_nb(rot).as_matrix()  # camera = body here
+    mat_lc = polins.frames.rot_lb_from_rot_nb(rot).as_matrix()  # camera = body here
     right = evectors_from_stokes(stokes, lens_basis(rays_c, "projection")) @ mat_lc.T
     wrong = evectors_from_stokes(stokes, lens_basis(rays_c @ mat_lc.T, "projection"))
     yaw = yaw_from_rot_nb(rot)
@@ -132,7 +132,7 @@ def test_flipped_stokes_sign_is_90_degrees_off():
     # Same with the library's own eigen solution on sign-flipped Stokes vectors.
     stokes, _ = stokes_from_channels(mosaic_channels(raw, CAM4), CAM4)
     valid = measure_with_maps(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot)[1].valid
-    mat_lc = polins.attitude.rot_lb_from_rot_nb(rot).as_matrix()
+    mat_lc = polins.frames.rot_lb_from_rot_nb(rot).as_matrix()
     basis = lens_basis(pixel_rays_c(CAM4)[valid], "projection")
     flipped = stokes[valid] * [1.0, -1.0, -1.0]
     sun_l = sun_eigen(evectors_from_stokes(flipped, basis) @ mat_lc.T).sun
@@ -419,7 +419,7 @@ def test_cross_check_with_the_library_renderer():
     kw = {"dop_max": 0.6, "radiance": 300.0, "epsilon": 0.0125}
     mine = render(CAM4, SUN_N, rot, **kw)
     theirs = render_raw(CAM4, SUN_N, rot, **kw, quantize=False, sun_disc_deg=0.0)
-    fov = np.repeat(np.repeat(np.asarray(polins.camera.fov_mask(CAM4)), 2, 0), 2, 1)
+    fov = np.repeat(np.repeat(np.asarray(polins.compass.camera.fov_mask(CAM4)), 2, 0), 2, 1)
     np.testing.assert_allclose(theirs[fov], mine[fov], rtol=1e-9)
     raw = render_raw(CAM4, SUN_N, rot, **kw, rng=np.random.default_rng(17))
     m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot)
@@ -457,9 +457,9 @@ def test_pinhole_camera_both_lens_models(tmp_path):
 # ----------------------------------------------------------------------------- sunvector API
 @pytest.mark.parametrize("model", ["projection", "meridian"])
 def test_public_sun_vector_functions(model):
-    from polins.camera import doubled_aop_from_evector, evector_from_aop
-    from polins.polarimetry import sunlight_direction, sunlight_stokes
-    from polins.sunvector import (
+    from polins.compass.camera import doubled_aop_from_evector, evector_from_aop
+    from polins.compass.polarimetry import sunlight_direction, sunlight_stokes
+    from polins.compass.sunvector import (
         eigen_gap,
         eigen_sun_covariance,
         lens_forward,
@@ -473,7 +473,7 @@ def test_public_sun_vector_functions(model):
     theta = np.arccos(rng.uniform(np.cos(np.radians(80)), 1.0, 20_000))
     phi = rng.uniform(-np.pi, np.pi, 20_000)
     rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
-    # Lens constants agree with polins.camera's lens models.
+    # Lens constants agree with polins.compass.camera's lens models.
     zeta = rng.uniform(-np.pi / 2, np.pi / 2, 20_000)
     e_cam = evector_from_aop(zeta, rays, model)
     e_lib = evectors_from_stokes(

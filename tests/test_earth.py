@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from polins.earth import (
+from polins.ins.earth import (
     earth_rate_n,
     gravity_n,
     normal_gravity,

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 import polins
-from polins.ephemeris import sun_azimuth_zenith
+from polins.sky.ephemeris import sun_azimuth_zenith
 
 
 def test_nrel_spa_worked_example():

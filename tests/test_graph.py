@@ -15,8 +15,8 @@ from scipy.spatial.transform import Rotation
 import polins
 import polins.fusion
 import polins.fusion.graph as G
-from polins.attitude import wrap_angle, yaw_from_rot_nb
-from polins.ephemeris import sun_vector_n
+from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.sky.ephemeris import sun_vector_n
 from polins.fusion.measurement import sun_measurement
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import turntable, ugv_drive

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from polins import load_imu
-from polins.earth import OMEGA_IE, normal_gravity, radii_of_curvature
+from polins.ins.earth import OMEGA_IE, normal_gravity, radii_of_curvature
 from polins.sim.imu import ERROR_COLUMNS, IMU_COLUMNS, ideal_imu, imu_errors
 from polins.sim.trajectory import Trajectory, turntable, ugv_drive
 

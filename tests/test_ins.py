@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from polins.earth import gravity_n, normal_gravity
-from polins.ins import (
+from polins.ins.earth import gravity_n, normal_gravity
+from polins.ins.strapdown import (
     Mechanization,
     NavState,
     cross,

@@ -9,11 +9,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from polins.attitude import wrap_angle
+from polins.frames import wrap_angle
 from polins.cli import main
 from polins.io import load_raw, read_log
 from polins.io.report import summarize, truth_at
-from polins.pipeline import LoopOptions, NavigationStream, run_log
+from polins.loop.stream import LoopOptions, NavigationStream, run_log
 
 DURATION_S = 12.0
 

@@ -7,7 +7,7 @@ from render_simple import render
 from scipy.spatial.transform import Rotation
 
 import polins
-from polins.polarimetry import (
+from polins.compass.polarimetry import (
     aop,
     check_raw,
     dop,
@@ -211,7 +211,7 @@ def test_validity_mask_criteria():
     raw = render(SMALL, SUN_N, rot, epsilon=0.0, radiance=220.0)
     sun_c = rot.inv().apply(SUN_N)
     base = validity_mask(raw, SMALL, sun_c=sun_c)
-    fov = np.asarray(polins.camera.fov_mask(SMALL))
+    fov = np.asarray(polins.compass.camera.fov_mask(SMALL))
     assert not base[~fov].any() and base.sum() > 0.9 * fov.sum() * 0.9
     i, j = np.argwhere(base)[len(np.argwhere(base)) // 2]
     ri, rj = 2 * i, 2 * j
@@ -232,7 +232,7 @@ def test_validity_mask_criteria():
         and m.sum() == validity_mask(raw, SMALL, sun_c=sun_c, gradient_max=None).sum() - 1
     )
     # The sun circle: exactly the pixels within 10 deg of the sun are removed.
-    rays = polins.camera.pixel_rays_c(SMALL)
+    rays = polins.compass.camera.pixel_rays_c(SMALL)
     with np.errstate(invalid="ignore"):
         angle = np.degrees(np.arccos(np.clip(rays @ sun_c, -1, 1)))
     assert not base[angle < 10.0].any()

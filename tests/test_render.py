@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import polins
-from polins.camera import fov_mask, pixel_rays_c
+from polins.compass.camera import fov_mask, pixel_rays_c
 from polins.sim import CloudPatch, azimuth_band, render_raw
 from polins.sim.render import (
     azimuth_elevation_deg,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from polins.sky import (
+from polins.sky.scattering import (
     berry_dop,
     berry_evector,
     berry_neutral_points,

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from polins.attitude import yaw_from_rot_nb
-from polins.earth import radii_of_curvature
+from polins.frames import yaw_from_rot_nb
+from polins.ins.earth import radii_of_curvature
 from polins.sim.trajectory import (
     Trajectory,
     body_rate_from_euler_rates,

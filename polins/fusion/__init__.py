@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from polins.calibration import ImuModel, load_imu
+from polins.models.loader import ImuModel, load_imu
 from polins.fusion.batch import run_batch
 from polins.fusion.eskf import (
     ESKF,
@@ -32,7 +32,7 @@ from polins.fusion.inputs import (
     validate_imu,
     validate_measurements,
 )
-from polins.ins import Mechanization
+from polins.ins.strapdown import Mechanization
 
 DEFAULT_SITE = (45.6234, 126.7264, 148.74)  # the paper's site (Harbin), as in polins.sim
 

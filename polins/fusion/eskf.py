@@ -5,7 +5,7 @@ Error state (INTERFACES.md), 15 states, or 21 with ``scale_factors=True``::
     dx = [dtheta (0:3), dv_n (3:6), dp (6:9), dbg (9:12), dba (12:15), dsg (15:18), dsa (18:21)]
 
 ``rot_nb_true = exp(dtheta) rot_nb``; ``dp`` in local ENU metres; biases and scale factors
-are "true minus estimate". The IMU error model is that of ``polins.calibration.ImuModel``:
+are "true minus estimate". The IMU error model is that of ``polins.models.loader.ImuModel``:
 ``measured = (1 + s) ideal + b + white noise``, so the corrected rate is
 ``w = (w_measured - bg) / (1 + sg)`` (and the same for the specific force).
 
@@ -76,7 +76,7 @@ zero). The vehicle may move before that measurement only if the yaw does not mat
 the velocity then (e.g. it stands still or drives straight from rest, which only rotates
 the velocity with the frame, and is corrected by the alignment rotation). When the
 mechanization includes the Earth rate, the levelling also gyrocompasses
-(:func:`polins.fusion.alignment.gyrocompass`, with the yaw error's correlation with the
+(:func:`polins.ins.alignment.gyrocompass`, with the yaw error's correlation with the
 gyro bias), if that yaw is better than ``GYROCOMPASS_MAX_STD``: the Earth rate is then
 compensated about the right axes until the first yaw measurement (with a yaw off by
 ``d`` the tilt would drift by ``2 sin(d/2) Omega cos L``, up to 1e-4 rad/s). That coarse
@@ -99,10 +99,10 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from polins.attitude import euler_from_rot_nb, heading_deg_from_yaw, wrap_angle, yaw_from_rot_nb
-from polins.calibration import ImuModel
-from polins.earth import OMEGA_IE, normal_gravity, normal_gravity_gradient, radii_of_curvature
-from polins.fusion.alignment import gyrocompass, level_from_accel
+from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, wrap_angle, yaw_from_rot_nb
+from polins.models.loader import ImuModel
+from polins.ins.earth import OMEGA_IE, normal_gravity, normal_gravity_gradient, radii_of_curvature
+from polins.ins.alignment import gyrocompass, level_from_accel
 from polins.fusion.measurement import (
     ATT,
     BA,
@@ -117,7 +117,7 @@ from polins.fusion.measurement import (
     yaw_kernel,
     zero_velocity_kernel,
 )
-from polins.ins import (
+from polins.ins.strapdown import (
     Mechanization,
     NavState,
     NavTrack,
@@ -994,7 +994,7 @@ class ESKF:
         yaw_var = 1.0  # yaw unknown until the first yaw measurement
         if self.options.mech.earth_rotation:
             # Gyrocompass so that the Earth rate is compensated about the right axes until
-            # then (polins.fusion.alignment); the yaw is still reported from that measurement.
+            # then (polins.ins.alignment); the yaw is still reported from that measurement.
             yaw0, j_bg = gyrocompass(gyro.mean(axis=0), rot, self.nav.lat)
             var = j_bg @ P[BG, BG] @ j_bg + (self.model.gyro_arw**2 / duration) * (j_bg @ j_bg)
             if var < GYROCOMPASS_MAX_STD**2:

@@ -17,7 +17,7 @@ gyro bias). Factors:
 * ``CombinedImuFactor`` between consecutive keyframes: preintegrated IMU (Forster et al.,
   "On-manifold preintegration for real-time visual-inertial odometry", IEEE TRO 2017) with
   the white-noise densities and bias random walks of the
-  :class:`~polins.calibration.ImuModel`, ENU gravity (``PreintegrationCombinedParams.
+  :class:`~polins.models.loader.ImuModel`, ENU gravity (``PreintegrationCombinedParams.
   MakeSharedU``, WGS-84 normal gravity at the start). The IMU samples vary linearly between
   rows (INTERFACES.md); each integration step uses the mean of that linear signal, the
   specific force rotated to the start of the step (GTSAM's velocity update is first order:
@@ -90,10 +90,10 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from polins.attitude import wrap_angle, yaw_from_rot_nb
-from polins.calibration import ImuModel
-from polins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
-from polins.fusion.alignment import level_from_accel
+from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.models.loader import ImuModel
+from polins.ins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
+from polins.ins.alignment import level_from_accel
 from polins.fusion.eskf import MeasurementItem, item_model, solution_columns
 from polins.fusion.inputs import (
     measurement_items_from_frame,
@@ -164,7 +164,7 @@ def preintegration_params(
     gravity_mps2 : float
         Magnitude of gravity [m/s^2]: ``n_gravity = (0, 0, -g)`` (``MakeSharedU``).
     omega_ie_n : (3,) array_like, optional
-        Earth rate in ENU [rad/s] (:func:`polins.earth.earth_rate_n`) as ``omegaCoriolis``;
+        Earth rate in ENU [rad/s] (:func:`polins.ins.earth.earth_rate_n`) as ``omegaCoriolis``;
         None for a non-rotating navigation frame.
     integration_std : float
         Position-integration noise density [m/sqrt(s)] (GTSAM's integration covariance).

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from polins.attitude import rot_nb_from_euler
+from polins.frames import rot_nb_from_euler
 from polins.fusion.eskf import MeasurementItem
 
 FloatArray = NDArray[np.float64]

@@ -30,8 +30,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.attitude import rot_lb_from_rot_nb, wrap_angle
-from polins.ins import skew
+from polins.frames import rot_lb_from_rot_nb, wrap_angle
+from polins.ins.strapdown import skew
 
 FloatArray = NDArray[np.float64]
 
@@ -102,7 +102,7 @@ def _variance(std: ArrayLike, m: int, name: str) -> FloatArray:
 
 
 def _wrap(a: float) -> float:
-    """Scalar :func:`polins.attitude.wrap_angle`, to (-pi, pi]."""
+    """Scalar :func:`polins.frames.wrap_angle`, to (-pi, pi]."""
     return math.pi - (math.pi - a) % (2.0 * math.pi)
 
 

@@ -57,8 +57,8 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from polins.calibration import CameraModel, ImuModel, load_camera, load_imu
-from polins.ephemeris import sun_position, sun_vector_n
+from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
+from polins.sky.ephemeris import sun_position, sun_vector_n
 from polins.io.atomic import atomic_path, write_text_atomic
 from polins.io.images import IMAGE_SUFFIXES, read_image_index, write_image
 from polins.io.images import write_image_index as _write_index

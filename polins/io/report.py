@@ -24,7 +24,7 @@ import pandas as pd
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
-from polins.attitude import wrap_angle
+from polins.frames import wrap_angle
 from polins.io.atomic import atomic_path, write_text_atomic
 from polins.io.tables import write_table
 

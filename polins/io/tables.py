@@ -165,7 +165,7 @@ def read_imu(
     -------
     DataFrame
         Columns ``t`` [s], ``gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2], float64, in file
-        order (sample-order policies are the pipeline's, see ``polins.pipeline``).
+        order (sample-order policies are the pipeline's, see ``polins.loop.stream``).
 
     Raises
     ------

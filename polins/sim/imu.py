@@ -8,10 +8,10 @@ Inertial and Multisensor Integrated Navigation, 2nd ed., Eq. 5.53-5.54)::
     f_b        = C_bn (a_n + (2 omega_ie_n + omega_en_n) x v_n - g_n)
 
 with ``a_n = d(v_n)/dt``, WGS-84 normal gravity ``g_n`` (gravitation plus centrifugal) and the
-Earth and transport rates from ``polins.earth``. Row k holds the instantaneous values at
+Earth and transport rates from ``polins.ins.earth``. Row k holds the instantaneous values at
 ``t_k`` (INTERFACES.md: the strapdown integrates assuming they vary linearly between rows).
 
-The error model (``polins.calibration.ImuModel``), per axis and independently::
+The error model (``polins.models.loader.ImuModel``), per axis and independently::
 
     measured = (1 + s) * ideal + b(t) + w_k
     b(t_k)   = b0 + sum_{j=1..k} q_j,   q_j ~ N(0, K^2 dt)      (bias random walk K)
@@ -28,8 +28,8 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from polins.calibration import ImuModel
-from polins.earth import earth_rate_n, gravity_n, transport_rate_n
+from polins.models.loader import ImuModel
+from polins.ins.earth import earth_rate_n, gravity_n, transport_rate_n
 from polins.sim.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]

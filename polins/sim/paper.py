@@ -32,9 +32,9 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from polins.attitude import heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
-from polins.calibration import CameraModel, load_camera
-from polins.ephemeris import sun_position, sun_vector_n
+from polins.frames import heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
+from polins.models.loader import CameraModel, load_camera
+from polins.sky.ephemeris import sun_position, sun_vector_n
 from polins.sim.render import azimuth_band, occluded, render_raw
 
 FloatArray = NDArray[np.float64]
@@ -238,7 +238,7 @@ def run_scenario(
     progress : bool
         Show a tqdm progress bar over the images.
     """
-    from polins.compass import measure
+    from polins.compass.measure import measure
 
     cam = scenario_camera(scenario)
     rng = np.random.default_rng(scenario.seed)
@@ -320,9 +320,9 @@ def heading_crlb_deg(cam: CameraModel, sun_n: FloatArray, yaw: float, scenario: 
     """Cramer-Rao bound [deg] of the heading of one level image (``polins.compass.yaw_crlb``,
     AUDIT 5) over the pixels the estimator uses: field of view, 10 deg sun exclusion,
     DoP >= 0.03, and not behind the scenario's occluders. 0 for noise-free scenarios."""
-    from polins.camera import fov_mask, pixel_rays_c
-    from polins.compass import yaw_crlb
-    from polins.sky import rayleigh_dop
+    from polins.compass.camera import fov_mask, pixel_rays_c
+    from polins.compass.measure import yaw_crlb
+    from polins.sky.scattering import rayleigh_dop
 
     if scenario.noise_std == 0:
         return 0.0

@@ -1,16 +1,16 @@
 """Raw DoFP sky images: the sensor model of SPEC.md section 6.2 rendered into a mosaic.
 
 :func:`render_raw` turns a sun vector and an attitude into the full-resolution raw mosaic a
-division-of-focal-plane camera (``polins.calibration.CameraModel``) would deliver:
+division-of-focal-plane camera (``polins.models.loader.CameraModel``) would deliver:
 
 1. every sample point (the superpixel centre, or with ``ifov=True`` each channel's own
-   full-resolution pixel) is back-projected to a camera ray (``polins.camera``) and rotated
+   full-resolution pixel) is back-projected to a camera ray (``polins.compass.camera``) and rotated
    to ENU with ``rot_nb`` and the camera's mount ``mat_bc``;
-2. the scene Stokes vector there: a Rayleigh or Berry sky (``polins.sky``) with constant or
+2. the scene Stokes vector there: a Rayleigh or Berry sky (``polins.sky.scattering``) with constant or
    Rayleigh ``1 + cos^2`` radiance, optional depolarizing cloud patches, world-fixed
    occluders (tree lines, buildings) and the ground below the horizon, unpolarized and dark;
    the sky E-vector goes to the image-plane AoP through the camera's lens polarization
-   model (``polins.camera.doubled_aop_from_evector``);
+   model (``polins.compass.camera.doubled_aop_from_evector``);
 3. the paper's direct-sunlight term in Stokes form (SPEC 6.2), ``dS0 = -eps u``,
    ``dL = eps u w``, ``w = -(cos 2 alpha_s^c, sin 2 alpha_s^c)``, with ``alpha_s^c`` the sun's
    camera-frame azimuth and ``u`` the pixel's unpolarized intensity (off when the sun is
@@ -22,7 +22,7 @@ division-of-focal-plane camera (``polins.calibration.CameraModel``) would delive
    a saturated sun disc, rounding to integer DN and clipping to ``[0, cam.saturation_dn]``.
 
 Azimuths of occluders and clouds are compass azimuths (clockwise from North, like the solar
-azimuth of ``polins.ephemeris``); elevations are above the horizon. All in degrees, as the
+azimuth of ``polins.sky.ephemeris``); elevations are above the horizon. All in degrees, as the
 ``_deg`` names say.
 """
 
@@ -36,9 +36,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.calibration import CameraModel
-from polins.camera import doubled_aop_from_evector, pixel_rays_c, superpixel_uv, unproject
-from polins.sky import berry_dop, berry_evector, rayleigh_dop, rayleigh_evector
+from polins.models.loader import CameraModel
+from polins.compass.camera import doubled_aop_from_evector, pixel_rays_c, superpixel_uv, unproject
+from polins.sky.scattering import berry_dop, berry_evector, rayleigh_dop, rayleigh_evector
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -347,7 +347,7 @@ def render_raw(
     rng : numpy.random.Generator, optional
         Noise source; ``None`` renders noise-free (``noise_std`` and ``shot_noise`` ignored).
     sky : {"rayleigh", "berry"}
-        Sky polarization model (``polins.sky``).
+        Sky polarization model (``polins.sky.scattering``).
     neutral_sep : float
         Berry sky: separation [rad] of the Babinet and Brewster points.
     radiance_model : {"constant", "rayleigh"}

@@ -9,7 +9,7 @@ attitude rates and accelerations are continuous and so are their first derivativ
 Frames and angles follow CONVENTIONS.md: ``rot_nb`` maps body FLU to local ENU,
 ``rot_nb = Rotation.from_euler("ZYX", [yaw, pitch, roll])``, positive pitch is nose down,
 positive roll is right side down. The geodetic position integrates the ENU velocity
-through the WGS-84 radii of curvature (``polins.earth``):
+through the WGS-84 radii of curvature (``polins.ins.earth``):
 ``lat' = v_N / (R_M + h)``, ``lon' = v_E / ((R_N + h) cos lat)``, ``h' = v_U``.
 """
 
@@ -24,8 +24,8 @@ from numpy.typing import NDArray
 from scipy.integrate import cumulative_simpson
 from scipy.spatial.transform import Rotation
 
-from polins.attitude import heading_deg_from_yaw, wrap_angle
-from polins.earth import radii_of_curvature
+from polins.frames import heading_deg_from_yaw, wrap_angle
+from polins.ins.earth import radii_of_curvature
 
 FloatArray = NDArray[np.float64]
 

@@ -74,12 +74,12 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.attitude import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
-from polins.calibration import CameraModel, ImuModel
+from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
+from polins.models.loader import CameraModel, ImuModel
 from polins.fusion import check_filter_options, eskf_options
 from polins.fusion.eskf import ESKF, FilterState, UpdateRecord
 from polins.fusion.inputs import PRIOR_COLUMNS
-from polins.ins import Mechanization, NavState, strapdown
+from polins.ins.strapdown import Mechanization, NavState, strapdown
 from polins.io.images import ImageReadError, load_raw
 from polins.io.log import Log, utc_timestamp
 
@@ -196,7 +196,7 @@ class ImageMeasurer:
     """
 
     def __init__(self, camera: CameraModel, method: str, options: Mapping[str, Any]) -> None:
-        from polins.compass import _options
+        from polins.compass.measure import _options
 
         _options(dict(options))  # unknown options fail here, not in every image
         self.camera = camera
@@ -205,7 +205,7 @@ class ImageMeasurer:
 
     def __call__(self, item: Any, sun_n: FloatArray, quat_prior: FloatArray) -> dict[str, Any]:
         """Measure one image; returns a measurement row (``ok=False`` with a reason on failure)."""
-        from polins.compass import measure
+        from polins.compass.measure import measure
 
         start = time.perf_counter()
         row: dict[str, Any] = {"ok": False, "reason": "", "event": ""}
@@ -640,7 +640,7 @@ class NavigationStream:
         return np.asarray(v / np.linalg.norm(v), dtype=float)
 
     def _sun_grid(self, k: int) -> FloatArray:
-        from polins.ephemeris import sun_position, sun_vector_n
+        from polins.sky.ephemeris import sun_position, sun_vector_n
 
         block, i = divmod(k, _SUN_BLOCK)
         if block not in self._sun_blocks:

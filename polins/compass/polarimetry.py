@@ -14,7 +14,7 @@ the paper's Eq. 14 has both signs flipped, which turns the AoP by 90 deg).
 
 Performance note: the functions with a leading underscore work on component-first arrays
 (``(3, n)``, one contiguous row per Stokes component) because that is what makes the
-per-image pipeline of :mod:`polins.compass` fast; the public functions take and return the
+per-image pipeline of :mod:`polins.compass.measure` fast; the public functions take and return the
 library's usual trailing-component layout and call them through transposed views.
 """
 
@@ -27,8 +27,8 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from polins.calibration import CameraModel
-from polins.camera import fov_mask
+from polins.models.loader import CameraModel
+from polins.compass.camera import fov_mask
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -180,7 +180,7 @@ def _fov_pixel_set(cam: CameraModel) -> PixelSet:
 
 def pixel_set(cam: CameraModel, mask: ArrayLike | None = None) -> PixelSet:
     """The superpixels of ``mask`` (default: the camera's field of view and static occlusion
-    mask, :func:`polins.camera.fov_mask`, cached per camera)."""
+    mask, :func:`polins.compass.camera.fov_mask`, cached per camera)."""
     if mask is None:
         return _fov_pixel_set(cam)
     return _build_pixel_set(cam, np.asarray(mask, dtype=bool))
@@ -436,7 +436,7 @@ def validity_mask(
         gradient_max=gradient_max,
     )
     if sun_c is not None:
-        from polins.camera import pixel_rays_c
+        from polins.compass.camera import pixel_rays_c
 
         rays = pixel_rays_c(cam).reshape(-1, 3)[pixels.index]
         s = np.asarray(sun_c, dtype=float)

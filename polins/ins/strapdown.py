@@ -2,7 +2,7 @@
 
 State: attitude ``rot_nb`` (body FLU -> ENU, scipy ``Rotation``), ENU velocity relative to
 the Earth ``vel_n`` [m/s], geodetic latitude, longitude [rad] and height [m] (WGS-84,
-``polins.earth``). The continuous equations (Titterton & Weston 2004, Eq. 3.39-3.41;
+``polins.ins.earth``). The continuous equations (Titterton & Weston 2004, Eq. 3.39-3.41;
 Groves 2013, Eq. 5.53-5.56) are::
 
     d(mat_nb)/dt = mat_nb [omega_ib_b x] - [omega_in_n x] mat_nb,
@@ -39,8 +39,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.calibration import ImuModel
-from polins.earth import (
+from polins.models.loader import ImuModel
+from polins.ins.earth import (
     earth_rate_n,
     normal_gravity,
     radii_of_curvature,

@@ -10,7 +10,6 @@ that names the file and the key.
 from __future__ import annotations
 
 import difflib
-import importlib.resources
 import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -145,19 +144,31 @@ def _resolve(name_or_path: str | Path, kind: str) -> Path:
         if not candidate.is_file():
             raise FileNotFoundError(f"{kind} model file not found: {candidate}")
         return candidate
-    shipped = importlib.resources.files("polins.models") / kind / f"{name_or_path}.toml"
+    shipped = shipped_folder(kind) / f"{name_or_path}.toml"
     if not shipped.is_file():
         raise FileNotFoundError(
             f"unknown {kind[:-1]} model {str(name_or_path)!r}: shipped models are "
             f"{', '.join(shipped_models(kind))}; or give a path to a .toml file"
         )
-    return Path(str(shipped))
+    return shipped
+
+
+def shipped_folder(kind: str) -> Path:
+    """The folder of the shipped ``kind`` models ('cameras' or 'imus').
+
+    Installed, the TOML files are package data beside this module; in a source checkout
+    they are the repository's top-level ``models/<kind>`` folder.
+    """
+    here = Path(__file__).resolve().parent
+    for folder in (here / kind, here.parents[1] / "models" / kind):
+        if folder.is_dir():
+            return folder
+    raise FileNotFoundError(f"no shipped {kind} folder beside {here} or in the checkout")
 
 
 def shipped_models(kind: str) -> list[str]:
     """Names of the models shipped in ``models/<kind>`` (``kind``: 'cameras' or 'imus')."""
-    folder = importlib.resources.files("polins.models") / kind
-    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+    return sorted(p.stem for p in shipped_folder(kind).glob("*.toml"))
 
 
 def _read(name_or_path: str | Path, kind: str, schema: Schema) -> tuple[Path, dict]:

@@ -34,15 +34,15 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.attitude import (
+from polins.frames import (
     heading_deg_from_yaw,
     rot_lb_from_rot_nb,
     wrap_angle,
     yaw_from_rot_nb,
 )
-from polins.calibration import CameraModel
-from polins.camera import pixel_rays_c
-from polins.polarimetry import (
+from polins.models.loader import CameraModel
+from polins.compass.camera import pixel_rays_c
+from polins.compass.polarimetry import (
     PixelSet,
     _gather,
     _paper_rows,
@@ -55,7 +55,7 @@ from polins.polarimetry import (
     sunlight_direction,
     sunlight_stokes,
 )
-from polins.sunvector import (
+from polins.compass.sunvector import (
     LOSSES,
     EigenSolution,
     _dot,

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.earth import OMEGA_IE
+from polins.ins.earth import OMEGA_IE
 
 FloatArray = NDArray[np.float64]
 

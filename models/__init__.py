@@ -1,1 +1,0 @@
-"""Shipped sensor model files (TOML), installed as ``polins.models`` package data."""

@@ -1,0 +1,1 @@
+"""The polarization compass: raw DoFP mosaic -> Stokes -> E-vectors -> sun vector -> heading."""

@@ -1,0 +1,1 @@
+"""Inertial navigation: the Earth model, strapdown mechanization and static alignment."""
