@@ -174,9 +174,9 @@ def _cmd_heading(args: argparse.Namespace) -> int:
 
     import cv2
 
+    from polins.compass.measure import measure
     from polins.frames import rot_nb_from_euler
     from polins.models.loader import load_camera
-    from polins.compass.measure import measure
     from polins.sky.ephemeris import sun_position, sun_vector_n, to_utc_index
 
     path = Path(args.image)

@@ -8,8 +8,8 @@ from scipy.spatial.transform import Rotation
 
 import polins
 from polins.frames import rot_nb_from_euler, wrap_angle
-from polins.ins.earth import OMEGA_IE, earth_rate_n, gravity_n
 from polins.ins.alignment import gyrocompass, level_from_accel
+from polins.ins.earth import OMEGA_IE, earth_rate_n, gravity_n
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
 

@@ -7,11 +7,11 @@ from render_simple import random_attitude, render
 from scipy.spatial.transform import Rotation
 
 import polins
-from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.compass.camera import pixel_rays_c
 from polins.compass.measure import MeasureOptions, measure, measure_with_maps, yaw_crlb
 from polins.compass.polarimetry import mosaic_channels, stokes_from_channels
 from polins.compass.sunvector import evectors_from_stokes, lens_basis, sun_eigen, yaw_from_sun_level
+from polins.frames import wrap_angle, yaw_from_rot_nb
 
 CAM = polins.load_camera("paper-table1")
 CAM4 = CAM.downscaled(4)

@@ -14,7 +14,6 @@ from scipy.spatial.transform import Rotation
 
 import polins
 from polins.frames import rot_nb_from_euler, wrap_angle, yaw_from_rot_nb
-from polins.ins.earth import radii_of_curvature
 from polins.fusion import eskf as E
 from polins.fusion.inputs import measurement_items_from_frame
 from polins.fusion.measurement import (
@@ -25,6 +24,7 @@ from polins.fusion.measurement import (
     yaw_measurement,
     zero_velocity,
 )
+from polins.ins.earth import radii_of_curvature
 from polins.ins.strapdown import Mechanization, NavState, strapdown
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import turntable, ugv_drive

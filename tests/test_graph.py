@@ -16,10 +16,10 @@ import polins
 import polins.fusion
 import polins.fusion.graph as G
 from polins.frames import wrap_angle, yaw_from_rot_nb
-from polins.sky.ephemeris import sun_vector_n
 from polins.fusion.measurement import sun_measurement
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import turntable, ugv_drive
+from polins.sky.ephemeris import sun_vector_n
 
 X, V, B = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B
 

@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from polins.frames import wrap_angle
 from polins.cli import main
+from polins.frames import wrap_angle
 from polins.io import load_raw, read_log
 from polins.io.report import summarize, truth_at
 from polins.loop.stream import LoopOptions, NavigationStream, run_log

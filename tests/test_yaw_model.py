@@ -9,8 +9,8 @@ from render_simple import render
 from scipy.spatial.transform import Rotation
 
 import polins
-from polins.frames import rot_nb_from_euler, wrap_angle, yaw_from_rot_nb
 from polins.compass.measure import measure
+from polins.frames import rot_nb_from_euler, wrap_angle, yaw_from_rot_nb
 from polins.fusion.graph import yaw_factor
 from polins.fusion.measurement import yaw_from_sun, yaw_measurement
 

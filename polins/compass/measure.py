@@ -34,13 +34,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.frames import (
-    heading_deg_from_yaw,
-    rot_lb_from_rot_nb,
-    wrap_angle,
-    yaw_from_rot_nb,
-)
-from polins.models.loader import CameraModel
 from polins.compass.camera import pixel_rays_c
 from polins.compass.polarimetry import (
     PixelSet,
@@ -78,6 +71,13 @@ from polins.compass.sunvector import (
     yaw_from_sun_level,
     yaw_variance_from_sun_covariance,
 )
+from polins.frames import (
+    heading_deg_from_yaw,
+    rot_lb_from_rot_nb,
+    wrap_angle,
+    yaw_from_rot_nb,
+)
+from polins.models.loader import CameraModel
 
 FloatArray = NDArray[np.float64]
 

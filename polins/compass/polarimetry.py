@@ -27,8 +27,8 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from polins.models.loader import CameraModel
 from polins.compass.camera import fov_mask
+from polins.models.loader import CameraModel
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 
-from polins.frames import wrap_angle
 from polins.compass.polarimetry import _sunlight_unpolarized, sunlight_direction
+from polins.frames import wrap_angle
 
 FloatArray = NDArray[np.float64]
 

@@ -16,7 +16,6 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from polins.models.loader import ImuModel, load_imu
 from polins.fusion.batch import run_batch
 from polins.fusion.eskf import (
     ESKF,
@@ -33,6 +32,7 @@ from polins.fusion.inputs import (
     validate_measurements,
 )
 from polins.ins.strapdown import Mechanization
+from polins.models.loader import ImuModel, load_imu
 
 DEFAULT_SITE = (45.6234, 126.7264, 148.74)  # the paper's site (Harbin), as in polins.sim
 

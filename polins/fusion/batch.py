@@ -36,7 +36,6 @@ from filterpy.kalman import predict as kf_predict
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.ins.earth import radii_of_curvature
 from polins.fusion.eskf import (
     ESKF,
     N_DYNAMIC,
@@ -51,6 +50,7 @@ from polins.fusion.eskf import (
     van_loan,
 )
 from polins.fusion.measurement import ATT, BA, BG, N_ERROR, POS, VEL
+from polins.ins.earth import radii_of_curvature
 from polins.ins.strapdown import NavTrack, rotation_vectors, strapdown
 
 FloatArray = NDArray[np.float64]

@@ -100,9 +100,6 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, wrap_angle, yaw_from_rot_nb
-from polins.models.loader import ImuModel
-from polins.ins.earth import OMEGA_IE, normal_gravity, normal_gravity_gradient, radii_of_curvature
-from polins.ins.alignment import gyrocompass, level_from_accel
 from polins.fusion.measurement import (
     ATT,
     BA,
@@ -117,6 +114,8 @@ from polins.fusion.measurement import (
     yaw_kernel,
     zero_velocity_kernel,
 )
+from polins.ins.alignment import gyrocompass, level_from_accel
+from polins.ins.earth import OMEGA_IE, normal_gravity, normal_gravity_gradient, radii_of_curvature
 from polins.ins.strapdown import (
     Mechanization,
     NavState,
@@ -126,6 +125,7 @@ from polins.ins.strapdown import (
     skew,
     strapdown_increment,
 )
+from polins.models.loader import ImuModel
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger("polins.fusion")

@@ -91,9 +91,6 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from polins.frames import wrap_angle, yaw_from_rot_nb
-from polins.models.loader import ImuModel
-from polins.ins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
-from polins.ins.alignment import level_from_accel
 from polins.fusion.eskf import MeasurementItem, item_model, solution_columns
 from polins.fusion.inputs import (
     measurement_items_from_frame,
@@ -113,6 +110,9 @@ from polins.fusion.measurement import (
     yaw_from_sun,
     yaw_kernel,
 )
+from polins.ins.alignment import level_from_accel
+from polins.ins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
+from polins.models.loader import ImuModel
 
 FloatArray = NDArray[np.float64]
 

@@ -39,13 +39,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.models.loader import ImuModel
 from polins.ins.earth import (
     earth_rate_n,
     normal_gravity,
     radii_of_curvature,
     transport_rate_n,
 )
+from polins.models.loader import ImuModel
 
 FloatArray = NDArray[np.float64]
 

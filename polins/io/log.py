@@ -57,12 +57,12 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
-from polins.sky.ephemeris import sun_position, sun_vector_n
 from polins.io.atomic import atomic_path, write_text_atomic
 from polins.io.images import IMAGE_SUFFIXES, read_image_index, write_image
 from polins.io.images import write_image_index as _write_index
 from polins.io.tables import ACCEL_UNITS, GYRO_UNITS, read_imu, read_table, write_imu, write_table
+from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
+from polins.sky.ephemeris import sun_position, sun_vector_n
 
 MANIFEST_NAME = "manifest.toml"
 

@@ -28,8 +28,8 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from polins.models.loader import ImuModel
 from polins.ins.earth import earth_rate_n, gravity_n, transport_rate_n
+from polins.models.loader import ImuModel
 from polins.sim.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]

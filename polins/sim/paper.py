@@ -34,8 +34,8 @@ from numpy.typing import NDArray
 
 from polins.frames import heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
 from polins.models.loader import CameraModel, load_camera
-from polins.sky.ephemeris import sun_position, sun_vector_n
 from polins.sim.render import azimuth_band, occluded, render_raw
+from polins.sky.ephemeris import sun_position, sun_vector_n
 
 FloatArray = NDArray[np.float64]
 

@@ -36,8 +36,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.models.loader import CameraModel
 from polins.compass.camera import doubled_aop_from_evector, pixel_rays_c, superpixel_uv, unproject
+from polins.models.loader import CameraModel
 from polins.sky.scattering import berry_dop, berry_evector, rayleigh_dop, rayleigh_evector
 
 FloatArray = NDArray[np.float64]

@@ -28,9 +28,8 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
-from polins.sky.ephemeris import sun_position, sun_vector_n, to_utc_index
 from polins.io.log import write_log
+from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.render import render_raw
 from polins.sim.trajectory import (
@@ -41,6 +40,7 @@ from polins.sim.trajectory import (
     turntable,
     ugv_drive,
 )
+from polins.sky.ephemeris import sun_position, sun_vector_n, to_utc_index
 
 FloatArray = NDArray[np.float64]
 
