@@ -30,7 +30,8 @@ def _add_site_args(p: argparse.ArgumentParser) -> None:
 
 def sun_report(time: str, lat_deg: float, lon_deg: float, alt_m: float) -> dict[str, object]:
     """Solar azimuth/zenith [deg] and the ENU sun vector at one time and place."""
-    from polins.sky.ephemeris import sun_position, sun_vector_n, to_utc_index
+    from polins.site import to_utc_index
+    from polins.sky.ephemeris import sun_position, sun_vector_n
 
     sun = sun_position(time, lat_deg, lon_deg, alt_m)
     return {
@@ -177,7 +178,8 @@ def _cmd_heading(args: argparse.Namespace) -> int:
     from polins.compass.measure import measure
     from polins.frames import rot_nb_from_euler
     from polins.models.loader import load_camera
-    from polins.sky.ephemeris import sun_position, sun_vector_n, to_utc_index
+    from polins.site import to_utc_index
+    from polins.sky.ephemeris import sun_position, sun_vector_n
 
     path = Path(args.image)
     if not path.is_file():

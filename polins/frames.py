@@ -1,4 +1,4 @@
-"""Attitude and angle helpers on ``scipy.spatial.transform.Rotation`` (CONVENTIONS.md).
+"""Frames, rotations and angles: Euler conventions, angle wrapping, cross-product matrices.
 
 ``rot_nb = Rotation.from_euler("ZYX", [yaw, pitch, roll])`` maps body (FLU) to navigation
 (ENU) vectors. Positive pitch is nose down, positive roll is right side down (ROS REP-103).
@@ -59,3 +59,13 @@ def yaw_from_rot_nb(rot_nb: Rotation) -> FloatArray:
 def rot_lb_from_rot_nb(rot_nb: Rotation) -> Rotation:
     """Body-to-level rotation: ``rot_nb`` with its yaw removed (``rot_nb = Rz(yaw) rot_lb``)."""
     return Rotation.from_euler("Z", -yaw_from_rot_nb(rot_nb)) * rot_nb
+
+
+def skew(v: ArrayLike) -> FloatArray:
+    """Cross-product matrix ``[v x]`` with ``skew(a) @ b == cross(a, b)``; ``(..., 3, 3)``."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from polins.frames import skew
 from polins.ins.earth import gravity_n, normal_gravity
 from polins.ins.strapdown import (
     Mechanization,
@@ -11,7 +12,6 @@ from polins.ins.strapdown import (
     cross,
     prefix_products,
     rotation_vectors,
-    skew,
     strapdown,
     strapdown_step,
 )

@@ -99,7 +99,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, wrap_angle, yaw_from_rot_nb
+from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, skew, wrap_angle, yaw_from_rot_nb
 from polins.fusion.measurement import (
     ATT,
     BA,
@@ -122,7 +122,6 @@ from polins.ins.strapdown import (
     NavTrack,
     nav_rates_n,
     rotation_vectors,
-    skew,
     strapdown_increment,
 )
 from polins.models.loader import ImuModel

@@ -90,7 +90,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.frames import skew, wrap_angle, yaw_from_rot_nb
 from polins.fusion.eskf import MeasurementItem, item_model, solution_columns
 from polins.fusion.inputs import (
     measurement_items_from_frame,
@@ -296,7 +296,7 @@ def levelling_factor(
         f = f_b - b_a
         if jacobians is not None:
             jac_pose = np.zeros((2, 6))
-            jac_pose[:, :3] = -(mat_nb @ _skew(f))[:2]
+            jac_pose[:, :3] = -(mat_nb @ skew(f))[:2]
             jac_bias = np.zeros((2, 6))
             jac_bias[:, :3] = -mat_nb[:2]
             jacobians[0] = jac_pose
@@ -306,10 +306,6 @@ def levelling_factor(
     return gtsam.CustomFactor(
         gtsam.noiseModel.Isotropic.Sigma(2, float(std)), [pose_key, bias_key], error
     )
-
-
-def _skew(v: FloatArray) -> FloatArray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 # ============================================================================ IMU steps

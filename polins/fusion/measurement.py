@@ -30,8 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.frames import rot_lb_from_rot_nb, wrap_angle
-from polins.ins.strapdown import skew
+from polins.frames import rot_lb_from_rot_nb, skew, wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -101,11 +100,6 @@ def _variance(std: ArrayLike, m: int, name: str) -> FloatArray:
     return s * s
 
 
-def _wrap(a: float) -> float:
-    """Scalar :func:`polins.frames.wrap_angle`, to (-pi, pi]."""
-    return math.pi - (math.pi - a) % (2.0 * math.pi)
-
-
 # ----------------------------------------------------------------------------- kernels
 # The kernels take validated inputs (mat_nb a rotation matrix, unit vectors, variances);
 # the public functions below validate and call them. The ESKF calls the kernels directly.
@@ -125,7 +119,9 @@ def yaw_kernel(
         H = np.zeros((1, N_ERROR))
         H[0, :3] = (-ax * az / horiz2, -ay * az / horiz2, 1.0)
         predicted = math.atan2(ay, ax)
-        return Linearized(np.array([_wrap(yaw - predicted)]), H, np.array([[var]]), "yaw")
+        return Linearized(
+            np.array([float(wrap_angle(yaw - predicted))]), H, np.array([[var]]), "yaw"
+        )
     # The yaw polins.measure computes from the sun seen in the body frame, levelled with the
     # prior's tilt: h = alpha_s + yaw_P - azimuth(M sun_n), M = mat_nb_P mat_bn (module doc).
     prior = mat_nb if mat_nb_prior is None else mat_nb_prior
@@ -142,7 +138,7 @@ def yaw_kernel(
         + math.atan2(float(prior[1, 0]), float(prior[0, 0]))
         - math.atan2(float(b[1]), float(b[0]))
     )
-    return Linearized(np.array([_wrap(yaw - predicted)]), H, np.array([[var]]), "yaw")
+    return Linearized(np.array([float(wrap_angle(yaw - predicted))]), H, np.array([[var]]), "yaw")
 
 
 def sun_kernel(

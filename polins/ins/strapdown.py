@@ -50,16 +50,6 @@ from polins.models.loader import ImuModel
 FloatArray = NDArray[np.float64]
 
 
-def skew(v: ArrayLike) -> FloatArray:
-    """Cross-product matrix ``[v x]`` with ``skew(a) @ b == cross(a, b)``; ``(..., 3, 3)``."""
-    v = np.asarray(v, dtype=float)
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
 def cross(a: FloatArray, b: FloatArray) -> FloatArray:
     """``np.cross`` over the last axis, written out (several times faster for small arrays)."""
     return np.stack(

@@ -62,6 +62,7 @@ from polins.io.images import IMAGE_SUFFIXES, read_image_index, write_image
 from polins.io.images import write_image_index as _write_index
 from polins.io.tables import ACCEL_UNITS, GYRO_UNITS, read_imu, read_table, write_imu, write_table
 from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
+from polins.site import utc_timestamp
 from polins.sky.ephemeris import sun_position, sun_vector_n
 
 MANIFEST_NAME = "manifest.toml"
@@ -186,26 +187,6 @@ def imu_model_toml(model: ImuModel) -> str:
 
 
 # ----------------------------------------------------------------------------- manifest
-def utc_timestamp(value: Any, what: str | None = "epoch_utc") -> pd.Timestamp:
-    """A timezone-aware time as a UTC ``Timestamp``; a naive time is a ``ValueError``.
-
-    ``what`` names the value in messages (None: the caller names it).
-    """
-    prefix = f"{what} = {value!r}: " if what else ""
-    try:
-        ts = pd.Timestamp(value)
-    except (ValueError, TypeError):
-        raise ValueError(f"{prefix}not an ISO time") from None
-    if ts is pd.NaT:
-        raise ValueError(f"{prefix}not an ISO time")
-    if ts.tzinfo is None:
-        raise ValueError(
-            f"{prefix}naive datetime: give a timezone, e.g. '2023-09-05T07:00:00+00:00'; "
-            "polins never assumes UTC"
-        )
-    return ts.tz_convert("UTC")
-
-
 def _str(v: Any) -> str:
     if not isinstance(v, str) or not v:
         raise TypeError("expected a non-empty string")

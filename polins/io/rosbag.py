@@ -191,7 +191,7 @@ def read_bag(
     images : BagImages
         Image times ``.t`` [s] and lazy iteration; images are decoded on use.
     """
-    from polins.io.log import utc_timestamp
+    from polins.site import utc_timestamp
 
     rb = _rosbags()
     path = _bag_path(Path(path))
@@ -250,7 +250,7 @@ def write_bag(
     defaults to ``mono8`` / ``mono16`` by dtype (a polarized-mono name may be given).
     The bag must not exist yet (``rosbags`` never overwrites).
     """
-    from polins.io.log import utc_timestamp
+    from polins.site import utc_timestamp
 
     _rosbags()
     path = Path(path)

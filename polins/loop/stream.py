@@ -80,8 +80,9 @@ from polins.fusion.eskf import ESKF, FilterState, UpdateRecord
 from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.ins.strapdown import Mechanization, NavState, strapdown
 from polins.io.images import ImageReadError, load_raw
-from polins.io.log import Log, utc_timestamp
+from polins.io.log import Log
 from polins.models.loader import CameraModel, ImuModel
+from polins.site import utc_timestamp
 
 FloatArray = NDArray[np.float64]
 

@@ -40,7 +40,8 @@ from polins.sim.trajectory import (
     turntable,
     ugv_drive,
 )
-from polins.sky.ephemeris import sun_position, sun_vector_n, to_utc_index
+from polins.site import to_utc_index
+from polins.sky.ephemeris import sun_position, sun_vector_n
 
 FloatArray = NDArray[np.float64]
 

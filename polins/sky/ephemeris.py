@@ -9,20 +9,15 @@ zenith, radians, timezone-aware times.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import TypeAlias
 
 import numpy as np
-import pandas as pd
 import pvlib
 from numpy.typing import ArrayLike, NDArray
 
-FloatArray = NDArray[np.float64]
+from polins.site import TimeLike, to_utc_index
 
-TimeLike: TypeAlias = (
-    str | dt.datetime | pd.Timestamp | pd.DatetimeIndex | Iterable[str | dt.datetime]
-)
+FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -39,19 +34,6 @@ class SunPosition:
 
     azimuth: FloatArray
     zenith: FloatArray
-
-
-def to_utc_index(t: TimeLike) -> pd.DatetimeIndex:
-    """Timezone-aware times as a UTC ``DatetimeIndex``; naive times raise ``ValueError``."""
-    items = [t] if isinstance(t, str | dt.datetime) else list(t)
-    stamps = [pd.Timestamp(item) for item in items]
-    naive = [str(s) for s in stamps if s.tzinfo is None]
-    if naive:
-        raise ValueError(
-            f"naive datetime {naive[0]!r}: give a timezone (e.g. '2023-09-05T15:06+08:00' "
-            "or tz='UTC'); polins never assumes UTC"
-        )
-    return pd.DatetimeIndex([s.tz_convert("UTC") for s in stamps])
 
 
 def sun_position(
