@@ -33,7 +33,7 @@ import pandas as pd
 import polins
 from polins.frames import wrap_angle
 from polins.fusion import build_filter
-from polins.fusion.inputs import measurement_items_from_frame
+from polins.fusion.items import items_from_table
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
 
@@ -135,7 +135,7 @@ def streaming(imu: pd.DataFrame, meas: pd.DataFrame, kw: dict, run_len: int | No
     w = imu[["gx", "gy", "gz"]].to_numpy()
     f = imu[["ax", "ay", "az"]].to_numpy()
     filt = build_filter(float(t[0]), float(t[1] - t[0]), **kw)
-    filt.add_items(measurement_items_from_frame(meas))
+    filt.add_items(items_from_table(meas))
     if run_len is None:
         for k in range(len(t)):
             filt.propagate(t[k], w[k], f[k])

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 import polins
 from polins.frames import rot_nb_from_euler, wrap_angle, yaw_from_rot_nb
 from polins.fusion import eskf as E
-from polins.fusion.inputs import measurement_items_from_frame
+from polins.fusion.items import items_from_table
 from polins.fusion.measurement import (
     non_holonomic,
     sun_basis_b,
@@ -313,7 +313,7 @@ def _rich_case(model_name, scale_factors, seed=7, gap=True):
         meas[f"sun_b{c}"] = np.where(use, sun_b[:, i], np.nan)
         meas[f"sun_n{c}"] = sun_n[i]
     meas["sun_std"] = np.where(use, 1e-3, np.nan)
-    items = measurement_items_from_frame(meas)
+    items = items_from_table(meas)
     items += [E.MeasurementItem(tz, "zupt", 0.02) for tz in (1.3, 2.1, 2.6, 9.0)]
     if gap:  # drop 0.1 s of IMU samples
         t = imu["t"].to_numpy()

@@ -5,11 +5,8 @@ import pandas as pd
 import pytest
 
 import polins
-from polins.fusion.inputs import (
-    measurement_items_from_frame,
-    validate_imu,
-    validate_measurements,
-)
+from polins.fusion.inputs import validate_imu, validate_measurements
+from polins.fusion.items import items_from_table
 
 
 def _imu(n=400, rate=200.0):
@@ -120,7 +117,7 @@ def test_items_from_frame_rules():
             "zupt_std": [np.nan, 0.02, np.nan, np.nan],
         }
     )
-    items = measurement_items_from_frame(df)
+    items = items_from_table(df)
     assert [(it.kind, it.valid) for it in items] == [
         ("sun", True),
         ("yaw", True),
@@ -129,10 +126,10 @@ def test_items_from_frame_rules():
         ("sun", True),
     ]
     # yaw instead of the sun vector when asked
-    kinds = [it.kind for it in measurement_items_from_frame(df, use_sun=False)]
+    kinds = [it.kind for it in items_from_table(df, use_sun=False)]
     assert kinds == ["yaw", "yaw", "zupt", "yaw", "yaw"]
     # the streaming helper gives the same items row by row
-    from polins.fusion.eskf import measurement_items
+    from polins.fusion.items import measurement_items
 
     row = df.iloc[0]
     one = measurement_items(

@@ -21,15 +21,17 @@ from polins.fusion.eskf import (
     ESKF,
     EskfOptions,
     FilterState,
-    MeasurementItem,
-    UpdateRecord,
     solution_columns,
 )
 from polins.fusion.inputs import (
     PRIOR_COLUMNS,
-    measurement_items_from_frame,
     validate_imu,
     validate_measurements,
+)
+from polins.fusion.items import (
+    MeasurementItem,
+    items_from_table,
+    records_table,
 )
 from polins.ins.strapdown import Mechanization
 from polins.models.loader import ImuModel, load_imu
@@ -266,7 +268,7 @@ def fuse(
     filt_opts.setdefault("tilt_coupling", _has_priors(meas))
     filt = build_filter(float(arrays.t[0]), arrays.dt, rot_nb0, **filt_opts)
     model = filt.model
-    items = measurement_items_from_frame(meas, use_sun=filt.options.use_sun)
+    items = items_from_table(meas, use_sun=filt.options.use_sun)
     zupt_std = options.get("zupt_std")
     stationary = options.get("stationary")
     if stationary is not None:
@@ -290,7 +292,7 @@ def fuse(
         if smooth:
             raise ValueError("smooth=True needs the batch path (fast=True)")
         sol = _fuse_streaming(filt, arrays.t, arrays.gyro_b, arrays.accel_b, items, mask)
-    sol.attrs["updates"] = records_frame(filt.records)
+    sol.attrs["updates"] = records_table(filt.records)
     sol.attrs["backend"] = "eskf"
     sol.attrs["imu_model"] = model.name
     return sol
@@ -326,20 +328,6 @@ def _has_priors(measurements: pd.DataFrame) -> bool:
     return all(c in measurements.columns for c in PRIOR_COLUMNS)
 
 
-def records_frame(records: list[UpdateRecord]) -> pd.DataFrame:
-    """The measurement log as a table: ``t, name, dim, nis, accepted, reason``."""
-    return pd.DataFrame(
-        {
-            "t": np.array([r.t for r in records], dtype=float),
-            "name": [r.name for r in records],
-            "dim": np.array([r.dim for r in records], dtype=int),
-            "nis": np.array([r.nis for r in records], dtype=float),
-            "accepted": np.array([r.accepted for r in records], dtype=bool),
-            "reason": [r.reason for r in records],
-        }
-    )
-
-
 __all__ = [
     "ESKF",
     "FILTER_OPTIONS",
@@ -349,5 +337,5 @@ __all__ = [
     "eskf_options",
     "fuse",
     "output_mask",
-    "records_frame",
+    "records_table",
 ]

@@ -41,7 +41,6 @@ from polins.fusion.eskf import (
     N_DYNAMIC,
     SA,
     SG,
-    MeasurementItem,
     _StepSums,
     nav_error_dynamics,
     partial_step_polynomials,
@@ -49,6 +48,7 @@ from polins.fusion.eskf import (
     step_exponent,
     van_loan,
 )
+from polins.fusion.items import MeasurementItem
 from polins.fusion.measurement import ATT, BA, BG, N_ERROR, POS, VEL
 from polins.ins.earth import radii_of_curvature
 from polins.ins.strapdown import NavTrack, rotation_vectors, strapdown

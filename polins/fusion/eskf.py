@@ -85,7 +85,6 @@ yaw is not reported; the first measurement still sets it.
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -97,9 +96,15 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
 
 from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, skew, wrap_angle, yaw_from_rot_nb
+from polins.fusion.items import (
+    MeasurementItem,
+    UpdateRecord,
+    gate_limit,
+    item_model,
+    measurement_items,
+)
 from polins.fusion.measurement import (
     ATT,
     BA,
@@ -108,11 +113,7 @@ from polins.fusion.measurement import (
     POS,
     VEL,
     Linearized,
-    non_holonomic_kernel,
-    sun_kernel,
     yaw_from_sun,
-    yaw_kernel,
-    zero_velocity_kernel,
 )
 from polins.ins.alignment import gyrocompass, level_from_accel
 from polins.ins.earth import OMEGA_IE, normal_gravity, normal_gravity_gradient, radii_of_curvature
@@ -132,13 +133,6 @@ log = logging.getLogger("polins.fusion")
 N_DYNAMIC = 9  # attitude, velocity, position: the error states with dynamics
 SG = slice(15, 18)
 SA = slice(18, 21)
-_KIND_ORDER = {"yaw": 0, "sun": 1, "zupt": 2, "nhc": 3}
-
-
-@functools.lru_cache(maxsize=64)
-def _chi2_limit(prob: float | None, dof: int) -> float:
-    """Chi-square gate: the ``prob`` quantile with ``dof`` degrees of freedom (inf for None)."""
-    return math.inf if prob is None else float(chi2.ppf(prob, dof))
 
 
 # ============================================================================ options
@@ -575,127 +569,6 @@ def _euler_jacobian(yaw: FloatArray, pitch: FloatArray) -> FloatArray:
 
 
 # ============================================================================ measurements
-@dataclass(frozen=True, eq=False)
-class MeasurementItem:
-    """One scalar/vector measurement waiting to be applied at time ``t``.
-
-    ``kind`` is ``"yaw"``, ``"sun"``, ``"zupt"`` or ``"nhc"``; ``valid`` is False for rows
-    with NaN values (they are logged as rejected and not used).
-    """
-
-    t: float
-    kind: str
-    std: float
-    yaw: float = math.nan
-    sun_b: FloatArray | None = None
-    sun_n: FloatArray | None = None
-    valid: bool = True
-    mat_nb_prior: FloatArray | None = None  # the prior polins.measure used (yaw rows)
-
-    @property
-    def order(self) -> tuple[float, int]:
-        """Processing order: time, then yaw/sun before zero-velocity before NHC."""
-        return (self.t, _KIND_ORDER[self.kind])
-
-
-def item_model(
-    item: MeasurementItem, mat_nb: FloatArray, vel_n: FloatArray | None, tilt_coupling: bool
-) -> Linearized:
-    """The 15-state measurement model (:mod:`polins.fusion.measurement`) of ``item`` at a
-    nominal attitude ``mat_nb`` and ENU velocity ``vel_n`` [m/s] (only zero-velocity and
-    non-holonomic items use it); ``tilt_coupling`` as :class:`EskfOptions`. The ESKF and
-    the GTSAM graph both linearize their items here.
-    """
-    var = item.std * item.std
-    if item.kind == "yaw":
-        if tilt_coupling and item.sun_n is not None:
-            return yaw_kernel(mat_nb, item.yaw, var, item.sun_n, item.mat_nb_prior)
-        return yaw_kernel(mat_nb, item.yaw, var, None)
-    if item.kind == "sun":
-        return sun_kernel(mat_nb, item.sun_b, item.sun_n, var, None)  # type: ignore[arg-type]
-    if item.kind not in ("zupt", "nhc"):  # pragma: no cover - built by measurement_items
-        raise ValueError(f"unknown measurement kind {item.kind!r}")
-    if vel_n is None:
-        raise ValueError(f"a {item.kind} item needs the nominal velocity")
-    if item.kind == "zupt":
-        return zero_velocity_kernel(vel_n, np.full(3, var))
-    return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var))
-
-
-def _finite(*values: Any) -> bool:
-    return all(
-        v is not None and bool(np.all(np.isfinite(np.asarray(v, dtype=float)))) for v in values
-    )
-
-
-def measurement_items(
-    t: float,
-    *,
-    yaw: float | None = None,
-    yaw_std: float | None = None,
-    sun_b: ArrayLike | None = None,
-    sun_n: ArrayLike | None = None,
-    sun_std: float | None = None,
-    zupt_std: float | None = None,
-    use_sun: bool = True,
-    rot_nb_prior: Rotation | None = None,
-) -> list[MeasurementItem]:
-    """The measurement items of one row (``measurements`` DataFrame columns).
-
-    A row with a complete sun vector (``sun_b``, ``sun_n``, ``sun_std``) gives a sun item
-    when ``use_sun``; otherwise a row with yaw columns gives a yaw item (carrying ``sun_n``
-    and ``rot_nb_prior``, the prior ``polins.measure`` used, for the optional tilt
-    coupling: :func:`polins.fusion.measurement.yaw_measurement`). NaN values give an
-    invalid item (logged, not used). ``zupt_std`` adds a zero-velocity item.
-    """
-    items: list[MeasurementItem] = []
-    t = float(t)
-    has_sun = sun_b is not None or sun_std is not None
-    sun_ok = has_sun and _finite(sun_b, sun_n, sun_std) and float(sun_std) > 0  # type: ignore[arg-type]
-    s_n = None if not _finite(sun_n) else np.asarray(sun_n, dtype=float).copy()
-    if use_sun and sun_ok:
-        items.append(
-            MeasurementItem(
-                t,
-                "sun",
-                float(sun_std),  # type: ignore[arg-type]
-                sun_b=np.asarray(sun_b, dtype=float).copy(),
-                sun_n=s_n,
-            )
-        )
-    elif yaw is not None or yaw_std is not None:
-        ok = _finite(yaw, yaw_std) and float(yaw_std) > 0  # type: ignore[arg-type]
-        items.append(
-            MeasurementItem(
-                t,
-                "yaw",
-                float(yaw_std) if ok else math.nan,  # type: ignore[arg-type]
-                yaw=float(yaw) if ok else math.nan,  # type: ignore[arg-type]
-                sun_n=s_n,
-                valid=ok,
-                mat_nb_prior=None if rot_nb_prior is None else rot_nb_prior.as_matrix(),
-            )
-        )
-    elif has_sun:
-        items.append(MeasurementItem(t, "sun", math.nan, valid=False))
-    if zupt_std is not None and not (isinstance(zupt_std, float) and math.isnan(zupt_std)):
-        ok = _finite(zupt_std) and float(zupt_std) > 0
-        items.append(MeasurementItem(t, "zupt", float(zupt_std) if ok else math.nan, valid=ok))
-    return items
-
-
-@dataclass(frozen=True)
-class UpdateRecord:
-    """Log entry of one measurement: NIS, acceptance, and the reason for a rejection."""
-
-    t: float
-    name: str
-    dim: int
-    nis: float
-    accepted: bool
-    reason: str
-
-
 # ============================================================================ state
 @dataclass(frozen=True, eq=False)
 class FilterState:
@@ -1418,7 +1291,7 @@ class ESKF:
         S = H @ (self.P @ H.T) + lin.R
         nis = float(y[0] * y[0] / S[0, 0]) if dim == 1 else float(y @ np.linalg.solve(S, y))
         gate = self.options.gate_prob
-        limit = _chi2_limit(gate, dim)
+        limit = gate_limit(gate, dim)
         if nis > limit:
             reason = f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {dim} dof, p={gate})"
             self._record(item, dim, nis, False, reason)

@@ -88,15 +88,14 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
 
 from polins.frames import skew, wrap_angle, yaw_from_rot_nb
-from polins.fusion.eskf import MeasurementItem, item_model, solution_columns
+from polins.fusion.eskf import solution_columns
 from polins.fusion.inputs import (
-    measurement_items_from_frame,
     validate_imu,
     validate_measurements,
 )
+from polins.fusion.items import MeasurementItem, gate_limit, item_model, items_from_table
 from polins.fusion.measurement import (
     ATT,
     BA,
@@ -756,10 +755,6 @@ class _Log:
         )
 
 
-def _gate_limit(gate_prob: float | None, dim: int) -> float:
-    return np.inf if gate_prob is None else float(chi2.ppf(gate_prob, dim))
-
-
 # ============================================================================ batch
 def gauss_newton_qr(
     graph: gtsam.NonlinearFactorGraph,
@@ -948,7 +943,7 @@ def _post_fit_gate(
         s = lin.R - lin.H @ est.cov[mf.k] @ lin.H.T
         s = 0.5 * (s + s.T) + 1e-6 * lin.R  # kept regular when the measurement dominates
         nis = float(lin.residual @ np.linalg.solve(s, lin.residual))
-        limit = _gate_limit(o.gate_prob, lin.dim)
+        limit = gate_limit(o.gate_prob, lin.dim)
         if nis > limit and not final:
             reason = f"post-fit NIS {nis:.3g} > gate {limit:.3g} (chi2, {lin.dim} dof)"
             exceed[i] = (nis, reason)
@@ -1016,7 +1011,7 @@ def _solve_incremental(prob: _Problem, log: _Log) -> _Estimates:
             else:
                 s = lin.H @ cov_prev @ lin.H.T + lin.R
                 nis = float(lin.residual @ np.linalg.solve(s, lin.residual))
-            limit = _gate_limit(o.gate_prob, lin.dim)
+            limit = gate_limit(o.gate_prob, lin.dim)
             if seen_aiding and nis > limit:
                 reason = f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {lin.dim} dof)"
                 log.rows.append((mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
@@ -1195,7 +1190,7 @@ def fuse_graph(
         Columns ``t`` and ``yaw, yaw_std`` [rad] and/or ``sun_bx, sun_by, sun_bz``,
         ``sun_nx, sun_ny, sun_nz``, ``sun_std`` [rad], optionally ``zupt_std`` [m/s]
         (CONVENTIONS.md); rows become factors by the ESKF's rules
-        (:func:`polins.fusion.inputs.measurement_items_from_frame`).
+        (:func:`polins.fusion.inputs.items_from_table`).
     rot_nb0 : Rotation, optional
         Initial attitude (body -> ENU) at the first IMU sample; None: self-alignment (module
         docstring).
@@ -1254,7 +1249,7 @@ def fuse_graph(
 
     arrays = validate_imu(imu, max_gap_s=max_gap_s)
     meas = validate_measurements(measurements)
-    items = measurement_items_from_frame(meas, use_sun=opts.use_sun)
+    items = items_from_table(meas, use_sun=opts.use_sun)
     t_imu = arrays.t
     stationary = stationary[(stationary >= t_imu[0]) & (stationary <= t_imu[-1])]
     prob = _Problem(

@@ -7,15 +7,11 @@ can be detected (gyro in deg/s, accelerometer in g or mg, yaw in degrees) are re
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
-
-from polins.frames import rot_nb_from_euler
-from polins.fusion.eskf import MeasurementItem
 
 FloatArray = NDArray[np.float64]
 
@@ -226,73 +222,3 @@ def _check_std(std: FloatArray, name: str, upper: float) -> None:
             f"measurements: {name}={std[bad[0]]:.4g} at row {bad[0]} must be > 0"
             + (f" and <= {upper:.4g} (radians expected)" if np.isfinite(upper) else "")
         )
-
-
-def measurement_items_from_frame(
-    measurements: pd.DataFrame, *, use_sun: bool = True
-) -> list[MeasurementItem]:
-    """The filter's measurement items of a validated measurements table, in row order.
-
-    Vectorised form of :func:`polins.fusion.eskf.measurement_items` applied to every row
-    (the same rules: sun vector if complete and ``use_sun``, else yaw, NaN -> invalid item,
-    ``zupt_std`` -> zero-velocity item; yaw items carry the prior attitude of the
-    ``prior_*`` columns).
-    """
-    df = measurements
-    n = len(df)
-
-    def col(name: str) -> FloatArray:
-        return df[name].to_numpy(dtype=float) if name in df.columns else np.full(n, np.nan)
-
-    t = col("t")
-    has_yaw = "yaw" in df.columns
-    has_sun = "sun_std" in df.columns
-    has_zupt = "zupt_std" in df.columns
-    yaw, yaw_std = col("yaw"), col("yaw_std")
-    sun_b = np.column_stack([col(f"sun_b{c}") for c in "xyz"])
-    sun_n = np.column_stack([col(f"sun_n{c}") for c in "xyz"])
-    sun_std, zupt_std = col("sun_std"), col("zupt_std")
-    prior = np.column_stack([col(c) for c in ("prior_yaw", "prior_pitch", "prior_roll")])
-    prior_ok = np.all(np.isfinite(prior), axis=1)
-    mat_prior = np.full((n, 3, 3), np.nan)
-    if prior_ok.any():
-        mat_prior[prior_ok] = rot_nb_from_euler(*prior[prior_ok].T).as_matrix()
-    with np.errstate(invalid="ignore"):
-        n_ok = np.all(np.isfinite(sun_n), axis=1)
-        sun_ok = has_sun & np.all(np.isfinite(sun_b), axis=1) & n_ok & (sun_std > 0)
-        yaw_ok = np.isfinite(yaw) & (yaw_std > 0)
-        zupt_ok = zupt_std > 0
-    # Python scalars (lists) in the row loop: numpy scalar indexing costs more
-    t_l, yaw_l, yaw_std_l, sun_std_l = t.tolist(), yaw.tolist(), yaw_std.tolist(), sun_std.tolist()
-    zupt_l, sun_ok_l, yaw_ok_l, zupt_ok_l = (
-        zupt_std.tolist(), sun_ok.tolist(), yaw_ok.tolist(), zupt_ok.tolist()
-    )  # fmt: skip
-    n_ok_l, prior_ok_l = n_ok.tolist(), prior_ok.tolist()
-    items: list[MeasurementItem] = []
-    for i in range(n):
-        ti = t_l[i]
-        if use_sun and sun_ok_l[i]:
-            items.append(
-                MeasurementItem(
-                    ti, "sun", sun_std_l[i], sun_b=sun_b[i].copy(), sun_n=sun_n[i].copy()
-                )
-            )
-        elif has_yaw:
-            ok = yaw_ok_l[i]
-            items.append(
-                MeasurementItem(
-                    ti,
-                    "yaw",
-                    yaw_std_l[i] if ok else math.nan,
-                    yaw=yaw_l[i] if ok else math.nan,
-                    sun_n=sun_n[i].copy() if n_ok_l[i] else None,
-                    valid=ok,
-                    mat_nb_prior=mat_prior[i] if prior_ok_l[i] else None,
-                )
-            )
-        elif has_sun:
-            items.append(MeasurementItem(ti, "sun", math.nan, valid=False))
-        if has_zupt and math.isfinite(zupt_l[i]):
-            ok = zupt_ok_l[i]
-            items.append(MeasurementItem(ti, "zupt", zupt_l[i] if ok else math.nan, valid=ok))
-    return items

@@ -76,8 +76,9 @@ from scipy.spatial.transform import Rotation
 
 from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
 from polins.fusion import check_filter_options, eskf_options
-from polins.fusion.eskf import ESKF, FilterState, UpdateRecord
+from polins.fusion.eskf import ESKF, FilterState
 from polins.fusion.inputs import PRIOR_COLUMNS
+from polins.fusion.items import UpdateRecord
 from polins.ins.strapdown import Mechanization, NavState, strapdown
 from polins.io.images import ImageReadError, load_raw
 from polins.io.log import Log

@@ -1,0 +1,277 @@
+"""The one configuration of the fusion: every filter and graph option, its unit and default, defined once.
+
+:class:`FuseConfig` is used by ``polins.fuse``, ``build_filter``, the GTSAM graph, the
+streaming loop, the manifest's ``[filter]`` table and the CLI's ``--set KEY=VALUE``. Each
+option is one dataclass field whose metadata holds its description (with the unit) and the
+backends it applies to; :func:`option_table` renders them for docs and ``--help``. Options
+are SI and radians unless the name carries another unit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from polins.models import ImuModel, load_imu
+from polins.site import Site
+
+BACKENDS = ("eskf", "graph")
+SOLVERS = ("batch", "isam2", "fixed_lag")
+OPTIMIZERS = ("gauss-newton", "levenberg-marquardt")
+GRAPH_OUTPUTS = ("samples", "keyframes")
+
+
+def _opt(default: Any, doc: str, backends: tuple[str, ...] = BACKENDS, **kw: Any) -> Any:
+    """A config field: its default, its one-line description [unit], the backends using it."""
+    if isinstance(default, list | dict | set):
+        raise TypeError("mutable defaults are not allowed")
+    return field(default=default, metadata={"doc": doc, "backends": backends}, **kw)
+
+
+ESKF = ("eskf",)
+GRAPH = ("graph",)
+
+
+@dataclass(frozen=True)
+class FuseConfig:
+    """Configuration of the fusion (both backends). Build with :meth:`from_options`.
+
+    Every field is documented in its metadata; ``option_table()`` lists them. Fields that
+    apply to one backend only are refused by the other when set to a non-default value.
+    """
+
+    imu_model: ImuModel | str = _opt(
+        "mems-typical", "IMU error model: shipped name, TOML path or ImuModel"
+    )
+    site: Site | None = _opt(
+        None,
+        "start position (polins.Site: lat_deg, lon_deg, alt_m); None: no site known, "
+        "reported as a warning",
+    )
+    vel_n0: tuple[float, float, float] = _opt((0.0, 0.0, 0.0), "initial ENU velocity [m/s]")
+    earth_rate: bool | None = _opt(
+        None, "mechanize the Earth and transport rates (None: the IMU model's earth_rate)"
+    )
+    gate_prob: float | None = _opt(
+        0.9973, "chi-square gate probability of the innovations (None: no gate)"
+    )
+    align_s: float = _opt(1.0, "static levelling window of the self-alignment [s]")
+    att_std0: tuple[float, float, float] = _opt(
+        (math.radians(1.0),) * 3, "initial attitude 1-sigma when rot_nb0 is given [rad]"
+    )
+    vel_std0: float = _opt(0.1, "initial velocity 1-sigma [m/s]")
+    pos_std0: float = _opt(1.0, "initial position 1-sigma [m]")
+    use_sun: bool = _opt(True, "use a row's sun vector (2-DOF) instead of its yaw")
+    tilt_coupling: bool | None = _opt(
+        None,
+        "tilt-coupled yaw model (docs/measurement.md); None: on when the table has the "
+        "prior_roll/pitch/yaw columns",
+    )
+    nhc_std: float | None = _opt(
+        None, "non-holonomic constraint 1-sigma [m/s] (ground vehicle); None: off"
+    )
+    nhc_rate_hz: float = _opt(10.0, "rate of the non-holonomic constraint [Hz]")
+    zupt_std: float | None = _opt(None, "zero-velocity 1-sigma at the stationary times [m/s]")
+    stationary: tuple[float, ...] = _opt((), "times at which the vehicle stands still [s]")
+    output_rate_hz: float | None = _opt(None, "output rows per second (None: every IMU sample)")
+    max_gap_s: float | None = _opt(
+        None, "longest IMU gap bridged [s] (None: 5 median sample intervals)"
+    )
+    time_tol_s: float = _opt(1e-6, "measurement times this close to an IMU sample use it [s]")
+    # ESKF only
+    scale_factors: bool = _opt(False, "estimate gyro/accel scale factors (21 states)", ESKF)
+    reset_interval_s: float = _opt(
+        20.0, "inject and zero the error state this long after the last reset [s]", ESKF
+    )
+    reset_angle_rad: float = _opt(
+        0.005, "... or as soon as the attitude error estimate exceeds this [rad]", ESKF
+    )
+    cov_step_s: float = _opt(0.1, "longest covariance-propagation step [s]", ESKF)
+    smooth: bool = _opt(False, "run the Rauch-Tung-Striebel smoother", ESKF)
+    # graph only
+    solver: str = _opt("batch", f"graph solver, one of {SOLVERS}", GRAPH)
+    lag_s: float = _opt(10.0, "window of the fixed-lag smoother [s]", GRAPH)
+    max_keyframe_dt_s: float = _opt(1.0, "longest interval between keyframes [s]", GRAPH)
+    max_iterations: int = _opt(20, "Gauss-Newton iterations of the batch solver", GRAPH)
+    integration_std: float = _opt(
+        1e-2, "GTSAM position-integration noise density [m/sqrt(s)]", GRAPH
+    )
+    graph_output: str = _opt(
+        "samples", f"report IMU samples or keyframes, one of {GRAPH_OUTPUTS}", GRAPH
+    )
+    max_gate_rounds: int = _opt(
+        10, "batch solver: most re-solves after gating post-fit outliers", GRAPH
+    )
+    optimizer: str = _opt("gauss-newton", f"batch optimizer, one of {OPTIMIZERS}", GRAPH)
+
+    def __post_init__(self) -> None:
+        model = self.imu_model
+        if isinstance(model, str | Path):
+            object.__setattr__(self, "imu_model", load_imu(model))
+        elif not isinstance(model, ImuModel):
+            raise TypeError(
+                f"imu_model must be a model name, a TOML path or an ImuModel, got {model!r}"
+            )
+        if self.site is not None:
+            object.__setattr__(self, "site", Site.coerce(self.site))
+        object.__setattr__(self, "vel_n0", _floats(self.vel_n0, 3, "vel_n0"))
+        att = self.att_std0
+        att = (att,) * 3 if isinstance(att, int | float) else att
+        object.__setattr__(self, "att_std0", _floats(att, 3, "att_std0"))
+        object.__setattr__(
+            self, "stationary", _floats(self.stationary, len(self.stationary), "stationary")
+        )
+        _check(self)
+
+    @property
+    def imu(self) -> ImuModel:
+        """The resolved IMU model."""
+        assert isinstance(self.imu_model, ImuModel)  # resolved in __post_init__
+        return self.imu_model
+
+    @property
+    def mechanize_earth_rate(self) -> bool:
+        """Whether the Earth and transport rates are mechanized."""
+        return self.imu.earth_rate if self.earth_rate is None else bool(self.earth_rate)
+
+    @classmethod
+    def from_options(cls, base: FuseConfig | None = None, /, **options: Any) -> FuseConfig:
+        """A config from keyword options (an unknown name is a ``TypeError`` with a hint).
+
+        ``lat_deg``, ``lon_deg`` and ``alt_m`` are accepted as a shorthand for ``site``.
+        Values given replace those of ``base`` (default: all defaults).
+        """
+        opts = dict(options)
+        if {"lat_deg", "lon_deg", "alt_m"} & set(opts):
+            if "site" in opts:
+                raise TypeError("give either site or lat_deg/lon_deg/alt_m, not both")
+            if "lat_deg" not in opts or "lon_deg" not in opts:
+                raise TypeError("a site needs both lat_deg and lon_deg (alt_m is optional)")
+            opts["site"] = Site(opts.pop("lat_deg"), opts.pop("lon_deg"), opts.pop("alt_m", 0.0))
+        names = option_names()
+        unknown = [k for k in opts if k not in names]
+        if unknown:
+            hints = []
+            for k in unknown:
+                close = difflib.get_close_matches(k, names, n=1)
+                hints.append(f"{k!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+            raise TypeError(f"unknown fuse option(s) {', '.join(hints)}; valid: {', '.join(names)}")
+        return dataclasses.replace(base or cls(), **opts)
+
+    def check_backend(self, backend: str) -> None:
+        """Raise ``ValueError`` if an option set away from its default does not apply to ``backend``."""
+        if backend not in BACKENDS:
+            raise ValueError(f"backend={backend!r}: expected one of {BACKENDS}")
+        default = FuseConfig(imu_model=self.imu_model)
+        for f in dataclasses.fields(self):
+            if backend not in f.metadata["backends"] and getattr(self, f.name) != getattr(
+                default, f.name
+            ):
+                only = "/".join(f.metadata["backends"])
+                raise ValueError(f"option {f.name} applies to the {only} backend only")
+
+    def changes(self) -> dict[str, Any]:
+        """The options that differ from their defaults (for run stamps and reports)."""
+        default = FuseConfig(imu_model=self.imu_model)
+        out: dict[str, Any] = {"imu_model": self.imu.name}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.name != "imu_model" and value != getattr(default, f.name):
+                out[f.name] = dataclasses.asdict(value) if isinstance(value, Site) else value
+        return out
+
+
+def _floats(value: Any, n: int, name: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be {n} numbers, got {value!r}") from None
+    if len(out) != n or not all(math.isfinite(v) for v in out):
+        raise ValueError(f"{name} must be {n} finite numbers, got {value!r}")
+    return out
+
+
+def _check(c: FuseConfig) -> None:
+    """Range checks of every option (one-line ``ValueError`` naming the option)."""
+    positive = ("align_s", "vel_std0", "pos_std0", "nhc_rate_hz", "time_tol_s", "cov_step_s",
+                "lag_s", "max_keyframe_dt_s", "integration_std")  # fmt: skip
+    for name in positive:
+        value = getattr(c, name)
+        if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    for name in ("nhc_std", "zupt_std", "output_rate_hz", "max_gap_s"):
+        value = getattr(c, name)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be > 0 or None, got {value!r}")
+    if not all(a > 0 for a in c.att_std0):
+        raise ValueError(f"att_std0 must be 3 positive sigmas [rad], got {c.att_std0}")
+    if c.gate_prob is not None and not 0.0 < c.gate_prob < 1.0:
+        raise ValueError(f"gate_prob must be in (0, 1) or None, got {c.gate_prob}")
+    if not c.reset_interval_s >= 0.0:
+        raise ValueError(f"reset_interval_s must be >= 0 [s], got {c.reset_interval_s}")
+    if not c.reset_angle_rad > 0.0:
+        raise ValueError(f"reset_angle_rad must be > 0 [rad], got {c.reset_angle_rad}")
+    for name in ("max_iterations", "max_gate_rounds"):
+        value = getattr(c, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    for name, allowed in (("solver", SOLVERS), ("optimizer", OPTIMIZERS),
+                          ("graph_output", GRAPH_OUTPUTS)):  # fmt: skip
+        if getattr(c, name) not in allowed:
+            raise ValueError(f"{name}={getattr(c, name)!r}: expected one of {allowed}")
+    if c.stationary and c.zupt_std is None:
+        raise ValueError("stationary times need zupt_std [m/s]")
+
+
+def option_names() -> list[str]:
+    """Names of all options (the fields of :class:`FuseConfig`)."""
+    return [f.name for f in dataclasses.fields(FuseConfig)]
+
+
+def option_table(backends: Sequence[str] = BACKENDS) -> list[tuple[str, str, str, str]]:
+    """``(name, default, backends, description)`` of every option, for docs and ``--help``."""
+    rows = []
+    for f in dataclasses.fields(FuseConfig):
+        if set(f.metadata["backends"]) & set(backends):
+            rows.append((f.name, repr(f.default), "/".join(f.metadata["backends"]),
+                         f.metadata["doc"]))  # fmt: skip
+    return rows
+
+
+def parse_option_value(name: str, text: str) -> Any:
+    """The value of ``--set name=text`` (CLI) or a manifest entry, typed as the field."""
+    fields = {f.name: f for f in dataclasses.fields(FuseConfig)}
+    if name not in fields:
+        close = difflib.get_close_matches(name, list(fields), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"unknown filter option {name!r}{hint}")
+    default = fields[name].default
+    low = text.strip().lower()
+    if low in ("none", "null", "off") and (default is None or "None" in str(fields[name].type)):
+        return None
+    if isinstance(default, bool) or "bool" in str(fields[name].type):
+        if low in ("true", "1", "yes", "on"):
+            return True
+        if low in ("false", "0", "no", "off"):
+            return False
+        raise ValueError(f"{name}={text!r}: expected true or false")
+    if isinstance(default, tuple):
+        return tuple(float(v) for v in text.split(","))
+    if isinstance(default, int):
+        return int(text)
+    if isinstance(default, float) or default is None:
+        try:
+            return float(text)
+        except ValueError:
+            raise ValueError(f"{name}={text!r}: expected a number") from None
+    return text
+
+
+def config_from_mapping(table: Mapping[str, Any], base: FuseConfig | None = None) -> FuseConfig:
+    """A config from a mapping of option names (a manifest ``[filter]`` table)."""
+    return FuseConfig.from_options(base, **dict(table))

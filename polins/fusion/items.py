@@ -1,0 +1,216 @@
+"""Measurement items: the rows of a measurements table turned into filter measurements, their models and gate.
+
+One set of rules turns a table row into items (:func:`items_from_table`: a complete sun
+vector, else a yaw, NaN -> an invalid item that is logged, ``zupt_std`` -> a zero-velocity
+item); :func:`item_model` linearizes an item with the shared ``(z, H, R)`` models of
+:mod:`polins.fusion.measurement`; :func:`gate_limit` is the chi-square gate. The ESKF and
+the GTSAM graph both use exactly these.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from polins.frames import euler_from_rot_nb, rot_nb_from_euler
+from polins.fusion.measurement import (
+    Linearized,
+    non_holonomic_kernel,
+    sun_kernel,
+    yaw_kernel,
+    zero_velocity_kernel,
+)
+
+FloatArray = NDArray[np.float64]
+
+_KIND_ORDER = {"yaw": 0, "sun": 1, "zupt": 2, "nhc": 3}
+
+
+@functools.lru_cache(maxsize=64)
+def gate_limit(prob: float | None, dof: int) -> float:
+    """Chi-square gate: the ``prob`` quantile with ``dof`` degrees of freedom (inf for None)."""
+    return math.inf if prob is None else float(chi2.ppf(prob, dof))
+
+
+@dataclass(frozen=True, eq=False)
+class MeasurementItem:
+    """One scalar/vector measurement waiting to be applied at time ``t``.
+
+    ``kind`` is ``"yaw"``, ``"sun"``, ``"zupt"`` or ``"nhc"``; ``valid`` is False for rows
+    with NaN values (they are logged as rejected and not used).
+    """
+
+    t: float
+    kind: str
+    std: float
+    yaw: float = math.nan
+    sun_b: FloatArray | None = None
+    sun_n: FloatArray | None = None
+    valid: bool = True
+    mat_nb_prior: FloatArray | None = None  # the prior polins.measure used (yaw rows)
+
+    @property
+    def order(self) -> tuple[float, int]:
+        """Processing order: time, then yaw/sun before zero-velocity before NHC."""
+        return (self.t, _KIND_ORDER[self.kind])
+
+
+def item_model(
+    item: MeasurementItem, mat_nb: FloatArray, vel_n: FloatArray | None, tilt_coupling: bool
+) -> Linearized:
+    """The 15-state measurement model (:mod:`polins.fusion.measurement`) of ``item`` at a
+    nominal attitude ``mat_nb`` and ENU velocity ``vel_n`` [m/s] (only zero-velocity and
+    non-holonomic items use it); ``tilt_coupling`` as :class:`EskfOptions`. The ESKF and
+    the GTSAM graph both linearize their items here.
+    """
+    var = item.std * item.std
+    if item.kind == "yaw":
+        if tilt_coupling and item.sun_n is not None:
+            return yaw_kernel(mat_nb, item.yaw, var, item.sun_n, item.mat_nb_prior)
+        return yaw_kernel(mat_nb, item.yaw, var, None)
+    if item.kind == "sun":
+        return sun_kernel(mat_nb, item.sun_b, item.sun_n, var, None)  # type: ignore[arg-type]
+    if item.kind not in ("zupt", "nhc"):  # pragma: no cover - built by measurement_items
+        raise ValueError(f"unknown measurement kind {item.kind!r}")
+    if vel_n is None:
+        raise ValueError(f"a {item.kind} item needs the nominal velocity")
+    if item.kind == "zupt":
+        return zero_velocity_kernel(vel_n, np.full(3, var))
+    return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var))
+
+
+def items_from_table(measurements: pd.DataFrame, *, use_sun: bool = True) -> list[MeasurementItem]:
+    """The filter's measurement items of a validated measurements table, in row order.
+
+    The rules ( sun vector if complete and ``use_sun``, else yaw, NaN -> invalid item,
+    ``zupt_std`` -> zero-velocity item; yaw items carry the prior attitude of the
+    ``prior_*`` columns).
+    """
+    df = measurements
+    n = len(df)
+
+    def col(name: str) -> FloatArray:
+        return df[name].to_numpy(dtype=float) if name in df.columns else np.full(n, np.nan)
+
+    t = col("t")
+    has_yaw = "yaw" in df.columns
+    has_sun = "sun_std" in df.columns
+    has_zupt = "zupt_std" in df.columns
+    yaw, yaw_std = col("yaw"), col("yaw_std")
+    sun_b = np.column_stack([col(f"sun_b{c}") for c in "xyz"])
+    sun_n = np.column_stack([col(f"sun_n{c}") for c in "xyz"])
+    sun_std, zupt_std = col("sun_std"), col("zupt_std")
+    prior = np.column_stack([col(c) for c in ("prior_yaw", "prior_pitch", "prior_roll")])
+    prior_ok = np.all(np.isfinite(prior), axis=1)
+    mat_prior = np.full((n, 3, 3), np.nan)
+    if prior_ok.any():
+        mat_prior[prior_ok] = rot_nb_from_euler(*prior[prior_ok].T).as_matrix()
+    with np.errstate(invalid="ignore"):
+        n_ok = np.all(np.isfinite(sun_n), axis=1)
+        sun_ok = has_sun & np.all(np.isfinite(sun_b), axis=1) & n_ok & (sun_std > 0)
+        yaw_ok = np.isfinite(yaw) & (yaw_std > 0)
+        zupt_ok = zupt_std > 0
+    # Python scalars (lists) in the row loop: numpy scalar indexing costs more
+    t_l, yaw_l, yaw_std_l, sun_std_l = t.tolist(), yaw.tolist(), yaw_std.tolist(), sun_std.tolist()
+    zupt_l, sun_ok_l, yaw_ok_l, zupt_ok_l = (
+        zupt_std.tolist(), sun_ok.tolist(), yaw_ok.tolist(), zupt_ok.tolist()
+    )  # fmt: skip
+    n_ok_l, prior_ok_l = n_ok.tolist(), prior_ok.tolist()
+    items: list[MeasurementItem] = []
+    for i in range(n):
+        ti = t_l[i]
+        if use_sun and sun_ok_l[i]:
+            items.append(
+                MeasurementItem(
+                    ti, "sun", sun_std_l[i], sun_b=sun_b[i].copy(), sun_n=sun_n[i].copy()
+                )
+            )
+        elif has_yaw:
+            ok = yaw_ok_l[i]
+            items.append(
+                MeasurementItem(
+                    ti,
+                    "yaw",
+                    yaw_std_l[i] if ok else math.nan,
+                    yaw=yaw_l[i] if ok else math.nan,
+                    sun_n=sun_n[i].copy() if n_ok_l[i] else None,
+                    valid=ok,
+                    mat_nb_prior=mat_prior[i] if prior_ok_l[i] else None,
+                )
+            )
+        elif has_sun:
+            items.append(MeasurementItem(ti, "sun", math.nan, valid=False))
+        if has_zupt and math.isfinite(zupt_l[i]):
+            ok = zupt_ok_l[i]
+            items.append(MeasurementItem(ti, "zupt", zupt_l[i] if ok else math.nan, valid=ok))
+    return items
+
+
+def measurement_items(
+    t: float,
+    *,
+    yaw: float | None = None,
+    yaw_std: float | None = None,
+    sun_b: ArrayLike | None = None,
+    sun_n: ArrayLike | None = None,
+    sun_std: float | None = None,
+    zupt_std: float | None = None,
+    use_sun: bool = True,
+    rot_nb_prior: Rotation | None = None,
+) -> list[MeasurementItem]:
+    """The measurement items of one row, by the rules of :func:`items_from_table`.
+
+    Parameters are the ``measurements`` table's columns (docs/filter.md); ``rot_nb_prior``
+    is the prior ``polins.measure`` used for the yaw (tilt coupling).
+    """
+    row: dict[str, list[float]] = {"t": [float(t)]}
+    if yaw is not None or yaw_std is not None:
+        row["yaw"] = [math.nan if yaw is None else float(yaw)]
+        row["yaw_std"] = [math.nan if yaw_std is None else float(yaw_std)]
+    if sun_b is not None or sun_std is not None or sun_n is not None:
+        b = np.full(3, np.nan) if sun_b is None else np.asarray(sun_b, dtype=float)
+        n = np.full(3, np.nan) if sun_n is None else np.asarray(sun_n, dtype=float)
+        row.update({f"sun_b{c}": [b[i]] for i, c in enumerate("xyz")})
+        row.update({f"sun_n{c}": [n[i]] for i, c in enumerate("xyz")})
+        if sun_std is not None or sun_b is not None:
+            row["sun_std"] = [math.nan if sun_std is None else float(sun_std)]
+    if zupt_std is not None:
+        row["zupt_std"] = [float(zupt_std)]
+    if rot_nb_prior is not None:
+        y, p, r = euler_from_rot_nb(rot_nb_prior)
+        row.update(prior_yaw=[float(y)], prior_pitch=[float(p)], prior_roll=[float(r)])
+    return items_from_table(pd.DataFrame(row), use_sun=use_sun)
+
+
+@dataclass(frozen=True)
+class UpdateRecord:
+    """Log entry of one measurement: NIS, acceptance, and the reason for a rejection."""
+
+    t: float
+    name: str
+    dim: int
+    nis: float
+    accepted: bool
+    reason: str
+
+
+def records_table(records: Sequence[UpdateRecord]) -> pd.DataFrame:
+    """The measurement log as a table: ``t, name, dim, nis, accepted, reason``."""
+    return pd.DataFrame(
+        {
+            "t": np.array([r.t for r in records], dtype=float),
+            "name": [r.name for r in records],
+            "dim": np.array([r.dim for r in records], dtype=int),
+            "nis": np.array([r.nis for r in records], dtype=float),
+            "accepted": np.array([r.accepted for r in records], dtype=bool),
+            "reason": [r.reason for r in records],
+        }
+    )
