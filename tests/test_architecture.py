@@ -1,0 +1,66 @@
+"""The package's shape: no private names imported across modules, modules of a readable size, first lines that say what a module is."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "polins"
+MODULES = sorted(PACKAGE.rglob("*.py"))
+MAX_LINES = 600  # "no module over about 600 lines": a little slack for a docstring
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _private_imports(source: str, own: str) -> list[str]:
+    """``from polins.x import _name`` (or ``import polins.x._y``) where x is not ``own``."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("polins"):
+            if node.module == own:
+                continue
+            found += [
+                f"{node.module}.{a.name} (line {node.lineno})"
+                for a in node.names
+                if a.name.startswith("_") and not a.name.startswith("__")
+            ]
+            if any(p.startswith("_") and not p.startswith("__") for p in node.module.split(".")):
+                found.append(f"{node.module} (line {node.lineno})")
+        elif isinstance(node, ast.Import):
+            found += [
+                f"{a.name} (line {node.lineno})"
+                for a in node.names
+                if a.name.startswith("polins")
+                and any(p.startswith("_") and not p.startswith("__") for p in a.name.split("."))
+            ]
+    return found
+
+
+def test_the_package_has_modules():
+    assert len(MODULES) > 30
+    assert {_module_name(p) for p in MODULES} >= {"polins", "polins.site", "polins.fusion.config"}
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda p: str(p.relative_to(PACKAGE.parent)))
+def test_no_private_names_imported_across_modules(path):
+    assert _private_imports(path.read_text(), _module_name(path)) == []
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda p: str(p.relative_to(PACKAGE.parent)))
+def test_module_size_and_first_line(path):
+    text = path.read_text()
+    assert text.count("\n") <= MAX_LINES, f"{path.name}: split it by concept"
+    doc = ast.get_docstring(ast.parse(text))
+    assert doc, f"{path.name}: the first line must say what the module is"
+    assert len(doc.splitlines()[0]) >= 20
+
+
+def test_the_private_import_check_catches_one():
+    source = "from polins.frames import _x, y\nfrom polins.fusion import _own\nimport polins._hidden\n"
+    assert _private_imports(source, "polins.fusion") == [
+        "polins.frames._x (line 1)",
+        "polins._hidden (line 3)",
+    ]
