@@ -2,8 +2,12 @@
 
 
 class UserInputError(ValueError):
-    """A mistake in what the user gave polins: a bad option, file, unit or argument.
+    """A mistake in what the user gave polins: a bad option value, file, unit or argument.
 
     The command line prints it as one line and exits with status 2; any other exception
     is a bug and propagates with its traceback.
     """
+
+
+class UnknownOptionError(UserInputError, TypeError):
+    """An option or keyword polins does not know (a ``TypeError``, as for a bad keyword)."""

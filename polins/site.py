@@ -15,6 +15,8 @@ from typing import Any, TypeAlias
 
 import pandas as pd
 
+from polins.errors import UserInputError
+
 TimeLike: TypeAlias = (
     str | dt.datetime | pd.Timestamp | pd.DatetimeIndex | Iterable[str | dt.datetime]
 )
@@ -42,16 +44,22 @@ class Site:
         for name in ("lat_deg", "lon_deg", "alt_m"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float):
-                raise TypeError(f"Site.{name} must be a number, got {value!r}")
+                raise UserInputError(f"Site.{name} must be a number, got {value!r}")
             if not math.isfinite(value):
-                raise ValueError(f"Site.{name} must be finite, got {value}")
+                raise UserInputError(f"Site.{name} must be finite, got {value}")
             object.__setattr__(self, name, float(value))
         if not -90.0 <= self.lat_deg <= 90.0:
-            raise ValueError(f"Site.lat_deg={self.lat_deg} outside [-90, 90] (degrees expected)")
+            raise UserInputError(
+                f"Site.lat_deg={self.lat_deg} outside [-90, 90] (degrees expected)"
+            )
         if not -180.0 <= self.lon_deg < 360.0:
-            raise ValueError(f"Site.lon_deg={self.lon_deg} outside [-180, 360) (degrees expected)")
+            raise UserInputError(
+                f"Site.lon_deg={self.lon_deg} outside [-180, 360) (degrees expected)"
+            )
         if not -1.0e4 <= self.alt_m <= 1.0e5:
-            raise ValueError(f"Site.alt_m={self.alt_m} outside [-10 km, 100 km] (metres expected)")
+            raise UserInputError(
+                f"Site.alt_m={self.alt_m} outside [-10 km, 100 km] (metres expected)"
+            )
 
     @property
     def lat(self) -> float:
@@ -90,11 +98,11 @@ def utc_timestamp(value: Any, what: str | None = "epoch_utc") -> pd.Timestamp:
     try:
         ts = pd.Timestamp(value)
     except (ValueError, TypeError):
-        raise ValueError(f"{prefix}not an ISO time") from None
+        raise UserInputError(f"{prefix}not an ISO time") from None
     if ts is pd.NaT:
-        raise ValueError(f"{prefix}not an ISO time")
+        raise UserInputError(f"{prefix}not an ISO time")
     if ts.tzinfo is None:
-        raise ValueError(
+        raise UserInputError(
             f"{prefix}naive datetime: give a timezone, e.g. '2023-09-05T07:00:00+00:00'; "
             "polins never assumes UTC"
         )

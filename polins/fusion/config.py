@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from polins.errors import UnknownOptionError, UserInputError
 from polins.models import ImuModel, load_imu
 from polins.site import Site
 
@@ -29,7 +30,7 @@ GRAPH_OUTPUTS = ("samples", "keyframes")
 def _opt(default: Any, doc: str, backends: tuple[str, ...] = BACKENDS, **kw: Any) -> Any:
     """A config field: its default, its one-line description [unit], the backends using it."""
     if isinstance(default, list | dict | set):
-        raise TypeError("mutable defaults are not allowed")
+        raise UserInputError("mutable defaults are not allowed")
     return field(default=default, metadata={"doc": doc, "backends": backends}, **kw)
 
 
@@ -114,7 +115,7 @@ class FuseConfig:
         if isinstance(model, str | Path):
             object.__setattr__(self, "imu_model", load_imu(model))
         elif not isinstance(model, ImuModel):
-            raise TypeError(
+            raise UserInputError(
                 f"imu_model must be a model name, a TOML path or an ImuModel, got {model!r}"
             )
         if self.site is not None:
@@ -149,9 +150,11 @@ class FuseConfig:
         opts = dict(options)
         if {"lat_deg", "lon_deg", "alt_m"} & set(opts):
             if "site" in opts:
-                raise TypeError("give either site or lat_deg/lon_deg/alt_m, not both")
+                raise UnknownOptionError("give either site or lat_deg/lon_deg/alt_m, not both")
             if "lat_deg" not in opts or "lon_deg" not in opts:
-                raise TypeError("a site needs both lat_deg and lon_deg (alt_m is optional)")
+                raise UnknownOptionError(
+                    "a site needs both lat_deg and lon_deg (alt_m is optional)"
+                )
             opts["site"] = Site(opts.pop("lat_deg"), opts.pop("lon_deg"), opts.pop("alt_m", 0.0))
         names = option_names()
         unknown = [k for k in opts if k not in names]
@@ -160,20 +163,22 @@ class FuseConfig:
             for k in unknown:
                 close = difflib.get_close_matches(k, names, n=1)
                 hints.append(f"{k!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
-            raise TypeError(f"unknown fuse option(s) {', '.join(hints)}; valid: {', '.join(names)}")
+            raise UserInputError(
+                f"unknown fuse option(s) {', '.join(hints)}; valid: {', '.join(names)}"
+            )
         return dataclasses.replace(base or cls(), **opts)
 
     def check_backend(self, backend: str) -> None:
         """Raise ``ValueError`` if an option set away from its default does not apply to ``backend``."""
         if backend not in BACKENDS:
-            raise ValueError(f"backend={backend!r}: expected one of {BACKENDS}")
+            raise UserInputError(f"backend={backend!r}: expected one of {BACKENDS}")
         default = FuseConfig(imu_model=self.imu_model)
         for f in dataclasses.fields(self):
             if backend not in f.metadata["backends"] and getattr(self, f.name) != getattr(
                 default, f.name
             ):
                 only = "/".join(f.metadata["backends"])
-                raise ValueError(f"option {f.name} applies to the {only} backend only")
+                raise UserInputError(f"option {f.name} applies to the {only} backend only")
 
     def changes(self) -> dict[str, Any]:
         """The options that differ from their defaults (for run stamps and reports)."""
@@ -190,9 +195,9 @@ def _floats(value: Any, n: int, name: str) -> tuple[float, ...]:
     try:
         out = tuple(float(v) for v in value)
     except (TypeError, ValueError):
-        raise TypeError(f"{name} must be {n} numbers, got {value!r}") from None
+        raise UserInputError(f"{name} must be {n} numbers, got {value!r}") from None
     if len(out) != n or not all(math.isfinite(v) for v in out):
-        raise ValueError(f"{name} must be {n} finite numbers, got {value!r}")
+        raise UserInputError(f"{name} must be {n} finite numbers, got {value!r}")
     return out
 
 
@@ -203,29 +208,29 @@ def _check(c: FuseConfig) -> None:
     for name in positive:
         value = getattr(c, name)
         if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+            raise UserInputError(f"{name} must be a finite number > 0, got {value!r}")
     for name in ("nhc_std", "zupt_std", "output_rate_hz", "max_gap_s"):
         value = getattr(c, name)
         if value is not None and not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be > 0 or None, got {value!r}")
+            raise UserInputError(f"{name} must be > 0 or None, got {value!r}")
     if not all(a > 0 for a in c.att_std0):
-        raise ValueError(f"att_std0 must be 3 positive sigmas [rad], got {c.att_std0}")
+        raise UserInputError(f"att_std0 must be 3 positive sigmas [rad], got {c.att_std0}")
     if c.gate_prob is not None and not 0.0 < c.gate_prob < 1.0:
-        raise ValueError(f"gate_prob must be in (0, 1) or None, got {c.gate_prob}")
+        raise UserInputError(f"gate_prob must be in (0, 1) or None, got {c.gate_prob}")
     if not c.reset_interval_s >= 0.0:
-        raise ValueError(f"reset_interval_s must be >= 0 [s], got {c.reset_interval_s}")
+        raise UserInputError(f"reset_interval_s must be >= 0 [s], got {c.reset_interval_s}")
     if not c.reset_angle_rad > 0.0:
-        raise ValueError(f"reset_angle_rad must be > 0 [rad], got {c.reset_angle_rad}")
+        raise UserInputError(f"reset_angle_rad must be > 0 [rad], got {c.reset_angle_rad}")
     for name in ("max_iterations", "max_gate_rounds"):
         value = getattr(c, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+            raise UserInputError(f"{name} must be an integer >= 1, got {value!r}")
     for name, allowed in (("solver", SOLVERS), ("optimizer", OPTIMIZERS),
                           ("graph_output", GRAPH_OUTPUTS)):  # fmt: skip
         if getattr(c, name) not in allowed:
-            raise ValueError(f"{name}={getattr(c, name)!r}: expected one of {allowed}")
+            raise UserInputError(f"{name}={getattr(c, name)!r}: expected one of {allowed}")
     if c.stationary and c.zupt_std is None:
-        raise ValueError("stationary times need zupt_std [m/s]")
+        raise UserInputError("stationary times need zupt_std [m/s]")
 
 
 def option_names() -> list[str]:
@@ -249,7 +254,7 @@ def parse_option_value(name: str, text: str) -> Any:
     if name not in fields:
         close = difflib.get_close_matches(name, list(fields), n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ValueError(f"unknown filter option {name!r}{hint}")
+        raise UnknownOptionError(f"unknown filter option {name!r}{hint}")
     default = fields[name].default
     low = text.strip().lower()
     if low in ("none", "null", "off") and (default is None or "None" in str(fields[name].type)):
@@ -259,7 +264,7 @@ def parse_option_value(name: str, text: str) -> Any:
             return True
         if low in ("false", "0", "no", "off"):
             return False
-        raise ValueError(f"{name}={text!r}: expected true or false")
+        raise UserInputError(f"{name}={text!r}: expected true or false")
     if isinstance(default, tuple):
         return tuple(float(v) for v in text.split(","))
     if isinstance(default, int):
@@ -268,7 +273,7 @@ def parse_option_value(name: str, text: str) -> Any:
         try:
             return float(text)
         except ValueError:
-            raise ValueError(f"{name}={text!r}: expected a number") from None
+            raise UserInputError(f"{name}={text!r}: expected a number") from None
     return text
 
 

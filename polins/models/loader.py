@@ -1,4 +1,4 @@
-"""Sensor calibration files: typed, strict loading of camera and IMU models (TOML).
+"""Sensor model files: typed, strict loading of the camera and IMU models (TOML).
 
 Shipped models live in ``models/`` (installed as the ``polins.models`` package data):
 ``models/cameras/<name>.toml`` and ``models/imus/<name>.toml``. Every key carries its unit
@@ -20,14 +20,16 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from polins.errors import UserInputError
+
 FloatArray = NDArray[np.float64]
 
 _DEG_PER_H = np.pi / 180.0 / 3600.0  # [rad/s] per [deg/h]
 _MG = 9.80665e-3  # [m/s^2] per [mg]
 
 
-class ModelFileError(ValueError):
-    """A calibration file is missing a key, has an unknown key, or a bad value."""
+class ModelFileError(UserInputError):
+    """A model file is missing a key, has an unknown key, or a bad value."""
 
 
 # ----------------------------------------------------------------------------- schema
