@@ -64,3 +64,13 @@ def test_the_private_import_check_catches_one():
         "polins.frames._x (line 1)",
         "polins._hidden (line 3)",
     ]
+
+
+def test_every_package_is_installed():
+    """Every folder of polins/ with an ``__init__.py`` is listed in pyproject's packages."""
+    import tomllib
+
+    pyproject = tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())
+    listed = set(pyproject["tool"]["setuptools"]["packages"])
+    found = {_module_name(p) for p in PACKAGE.rglob("__init__.py")}
+    assert found - listed == set()

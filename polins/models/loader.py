@@ -3,8 +3,9 @@
 Shipped models live in ``models/`` (installed as the ``polins.models`` package data):
 ``models/cameras/<name>.toml`` and ``models/imus/<name>.toml``. Every key carries its unit
 in its name (``fov_max_deg``, ``arw_deg_per_sqrt_h``); the loaders convert to SI and
-radians, and reject unknown keys, missing keys and keys in the wrong unit with a message
-that names the file and the key.
+radians, and reject unknown keys, missing keys, keys in the wrong unit and IMU values
+outside the plausible range of their grade (``IMU_PLAUSIBLE_RANGES``, docs/imu-model.md)
+with a message that names the file and the key.
 """
 
 from __future__ import annotations
@@ -401,6 +402,57 @@ _IMU_SCHEMA: Schema = {
 }
 
 
+# Plausible ranges per grade, in the TOML's units, [low, high] inclusive; 0 is always
+# accepted and means "this error term is absent" (simulations). Each range spans the
+# sensors of its class with a margin, and excludes the usual unit mistakes (rad for deg,
+# deg/s for deg/h, deg/s/sqrt(Hz) for deg/sqrt(h)). docs/imu-model.md tabulates them.
+IMU_PLAUSIBLE_RANGES: dict[str, dict[str, tuple[float, float]]] = {
+    "navigation": {
+        "gyro.arw_deg_per_sqrt_h": (1e-4, 0.01),
+        "gyro.bias_deg_per_h": (1e-4, 0.1),
+        "gyro.bias_rw_deg_per_h_per_sqrt_h": (1e-5, 0.05),
+        "gyro.scale_factor_ppm": (0.1, 100.0),
+        "accel.vrw_m_per_s_per_sqrt_h": (1e-4, 0.05),
+        "accel.bias_mg": (1e-3, 0.2),
+        "accel.bias_rw_mg_per_sqrt_h": (1e-5, 0.05),
+        "accel.scale_factor_ppm": (1.0, 300.0),
+    },
+    "tactical": {
+        "gyro.arw_deg_per_sqrt_h": (0.005, 0.5),
+        "gyro.bias_deg_per_h": (0.05, 50.0),
+        "gyro.bias_rw_deg_per_h_per_sqrt_h": (1e-3, 5.0),
+        "gyro.scale_factor_ppm": (10.0, 3000.0),
+        "accel.vrw_m_per_s_per_sqrt_h": (0.005, 0.3),
+        "accel.bias_mg": (0.05, 5.0),
+        "accel.bias_rw_mg_per_sqrt_h": (1e-3, 1.0),
+        "accel.scale_factor_ppm": (10.0, 3000.0),
+    },
+    "mems": {
+        "gyro.arw_deg_per_sqrt_h": (0.05, 10.0),
+        "gyro.bias_deg_per_h": (1.0, 1e5),
+        "gyro.bias_rw_deg_per_h_per_sqrt_h": (0.01, 1000.0),
+        "gyro.scale_factor_ppm": (100.0, 5e4),
+        "accel.vrw_m_per_s_per_sqrt_h": (0.01, 2.0),
+        "accel.bias_mg": (0.1, 200.0),
+        "accel.bias_rw_mg_per_sqrt_h": (1e-3, 50.0),
+        "accel.scale_factor_ppm": (100.0, 5e4),
+    },
+}
+
+
+def _check_plausible(path: Path, grade: str, d: Mapping[str, Any]) -> None:
+    """Raise a one-line ModelFileError for the first value outside its grade's range."""
+    for key, (lo, hi) in IMU_PLAUSIBLE_RANGES[grade].items():
+        table, name = key.split(".")
+        value = d[table][name]
+        if value != 0.0 and not lo <= value <= hi:
+            raise ModelFileError(
+                f"{path}: key '{key}' = {value:g} is implausible for grade '{grade}': "
+                f"expected {lo:g} to {hi:g} (or 0 to switch the term off); check the unit "
+                "in the key's name or the grade"
+            )
+
+
 @dataclass(frozen=True)
 class ImuModel:
     """IMU error model, in SI units, as read from ``models/imus/*.toml``.
@@ -424,10 +476,52 @@ class ImuModel:
     accel_bias_rw: float  # [m/s^2/sqrt(s)]
     accel_scale_factor: float  # [-] 1-sigma
 
+    def toml_values(self) -> dict[str, dict[str, float]]:
+        """The error terms in the TOML's units: ``{"gyro": {...}, "accel": {...}}``.
+
+        The inverse of the unit conversion :func:`load_imu` applies (docs/imu-model.md).
+        """
+        sqrt_h = 60.0  # sqrt(3600 s)
+        return {
+            "gyro": {
+                "arw_deg_per_sqrt_h": float(np.degrees(self.gyro_arw)) * sqrt_h,
+                "bias_deg_per_h": self.gyro_bias / _DEG_PER_H,
+                "bias_rw_deg_per_h_per_sqrt_h": self.gyro_bias_rw / _DEG_PER_H * sqrt_h,
+                "scale_factor_ppm": self.gyro_scale_factor * 1e6,
+            },
+            "accel": {
+                "vrw_m_per_s_per_sqrt_h": self.accel_vrw * sqrt_h,
+                "bias_mg": self.accel_bias / _MG,
+                "bias_rw_mg_per_sqrt_h": self.accel_bias_rw / _MG * sqrt_h,
+                "scale_factor_ppm": self.accel_scale_factor * 1e6,
+            },
+        }
+
+    def check_plausible(self) -> None:
+        """Raise :class:`ModelFileError` if a value is outside its grade's plausible range."""
+        if self.grade not in IMU_PLAUSIBLE_RANGES:
+            raise ModelFileError(
+                f"{self.path}: unknown grade {self.grade!r}: expected one of "
+                f"{', '.join(repr(g) for g in IMU_PLAUSIBLE_RANGES)}"
+            )
+        _check_plausible(self.path, self.grade, self.toml_values())
+
 
 def load_imu(name_or_path: str | Path) -> ImuModel:
-    """Load an IMU model: a shipped name (``"fins-paper"``, ``"mems-typical"``) or a TOML path."""
+    """Load an IMU model: a shipped name (``"fins-paper"``, ``"mems-typical"``) or a TOML path.
+
+    The keys and their units are documented in docs/imu-model.md.
+
+    Raises
+    ------
+    FileNotFoundError
+        Unknown name or missing file.
+    ModelFileError
+        Unknown, missing or malformed keys, or a value outside the plausible range of the
+        model's grade (``IMU_PLAUSIBLE_RANGES``), named with the file and the key.
+    """
     path, d = _read(name_or_path, "imus", _IMU_SCHEMA)
+    _check_plausible(path, d["grade"], d)
     g, a = d["gyro"], d["accel"]
     sqrt_h = 60.0  # sqrt(3600 s)
     return ImuModel(

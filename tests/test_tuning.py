@@ -1,0 +1,211 @@
+"""IMU models from static recordings: Allan fit, plot, plausible ranges, the BROAD sensor."""
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import polins
+from polins.errors import UserInputError
+from polins.io.model_files import imu_model_toml
+from polins.models.loader import ModelFileError
+from polins.sim.imu import IMU_COLUMNS, imu_errors
+from polins.tuning import (
+    NoiseTerms,
+    fit_allan,
+    imu_model_from_static,
+    model_random_walk,
+    plot_allan,
+)
+
+BROAD = Path(__file__).parent / "data" / "broad"
+RATE_HZ = 100.0
+
+
+def _static_ideal(rate_hz: float, seconds: float) -> pd.DataFrame:
+    n = int(rate_hz * seconds)
+    data = np.zeros((n, 7))
+    data[:, 0] = np.arange(n) / rate_hz
+    data[:, 6] = 9.80665
+    return pd.DataFrame(data, columns=IMU_COLUMNS)
+
+
+@pytest.fixture(scope="module")
+def truth_model():
+    """A MEMS model whose random walks show within the record (crossover near 70 s)."""
+    base = polins.load_imu("mems-typical")
+    return dataclasses.replace(base, gyro_bias_rw=base.gyro_bias_rw * 10.0)
+
+
+@pytest.fixture(scope="module")
+def static_fit(truth_model):
+    """1.5 h at 100 Hz from the simulator's error model (independent of the estimator)."""
+    measured, _ = imu_errors(_static_ideal(RATE_HZ, 5400.0), truth_model, np.random.default_rng(16))
+    return imu_model_from_static(measured, name="sim-static", grade="mems")
+
+
+def test_static_recording_recovers_the_noise_model(static_fit, truth_model, tmp_path):
+    model, fit = static_fit
+    # through the TOML file the CLI writes, back with the loader
+    path = tmp_path / "my-imu.toml"
+    path.write_text(imu_model_toml(model))
+    loaded = polins.load_imu(path)
+    assert loaded.gyro_arw / truth_model.gyro_arw == pytest.approx(1.0, abs=0.10)
+    assert loaded.accel_vrw / truth_model.accel_vrw == pytest.approx(1.0, abs=0.10)
+    assert 0.5 < loaded.gyro_bias_rw / truth_model.gyro_bias_rw < 2.0
+    assert 0.5 < loaded.accel_bias_rw / truth_model.accel_bias_rw < 2.0
+    assert loaded.sample_rate_hz == pytest.approx(RATE_HZ)
+    for sensor in (fit.gyro, fit.accel):
+        assert sensor.combined.identified["white"] and sensor.combined.identified["random_walk"]
+        assert not sensor.combined.identified["bias_instability"]  # none was simulated
+    lo, hi = fit.gyro.combined.white_ci
+    assert lo < truth_model.gyro_arw < hi
+    assert fit.notes[0].startswith("gyro.arw_deg_per_sqrt_h = ")
+    assert any("grade-typical" in n for n in fit.comment_lines())
+
+
+def test_plot_is_written(static_fit, tmp_path):
+    path = plot_allan(static_fit[1], tmp_path / "plots" / "allan.png")
+    assert path.is_file() and 20_000 < path.stat().st_size < 300_000
+
+
+def test_short_record_leaves_the_random_walk_unidentified(truth_model):
+    measured, _ = imu_errors(_static_ideal(RATE_HZ, 60.0), truth_model, np.random.default_rng(3))
+    model, fit = imu_model_from_static(measured)
+    gyro = fit.gyro.combined
+    assert not gyro.identified["random_walk"]
+    # the model carries the upper bound, which cannot be below the truth here
+    assert model.gyro_bias_rw == pytest.approx(gyro.random_walk_ci[1])
+    assert model.gyro_bias_rw > truth_model.gyro_bias_rw
+
+
+def test_bias_instability_becomes_a_random_walk_at_the_floor():
+    terms = NoiseTerms(
+        white=1e-4,
+        white_ci=(0.9e-4, 1.1e-4),
+        bias_instability=1e-5,
+        bias_instability_ci=(5e-6, 2e-5),
+        random_walk=0.0,
+        random_walk_ci=(0.0, 1e-7),
+        tau_floor=300.0,
+    )
+    value, how = model_random_walk(terms)
+    # the random walk whose Allan line touches the flicker floor 0.664 B at tau_floor
+    k_b = 0.6643 * 1e-5 * np.sqrt(3.0 / 300.0)
+    assert value == pytest.approx(np.hypot(1e-7, k_b), rel=1e-3)
+    assert value * np.sqrt(300.0 / 3.0) == pytest.approx(0.6643e-5, rel=0.02)
+    assert "upper bound" in how and "bias instability" in how
+
+
+@pytest.mark.slow
+def test_confidence_intervals_cover_the_truth():
+    """95 % intervals: the white and random-walk terms are covered in most of 20 records."""
+    n_white = n_walk = 0
+    rng = np.random.default_rng(7)
+    white, walk, n = 1e-4, 2e-6, int(RATE_HZ * 3600)
+    for _ in range(20):
+        x = white * np.sqrt(RATE_HZ) * rng.standard_normal(n)
+        x += np.cumsum(walk / np.sqrt(RATE_HZ) * rng.standard_normal(n))
+        _, terms = fit_allan([x], RATE_HZ)
+        n_white += terms.white_ci[0] <= white <= terms.white_ci[1]
+        n_walk += terms.random_walk_ci[0] <= walk <= terms.random_walk_ci[1]
+    assert n_white >= 16 and n_walk >= 16
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (lambda d: d.assign(gx=np.degrees(d.gx) + 60.0), "deg/s"),
+        (lambda d: d.assign(az=d.az / 9.80665), "in g"),
+        (lambda d: d.drop(columns="ay"), "lacks columns"),
+        (lambda d: d.drop(index=range(100, 200)), "not uniformly spaced"),
+        (lambda d: d.assign(gz=np.where(d.index == 5, np.nan, d.gz)), "NaN"),
+    ],
+)
+def test_bad_static_input_is_one_line(change, match, truth_model):
+    measured, _ = imu_errors(_static_ideal(RATE_HZ, 20.0), truth_model, np.random.default_rng(1))
+    with pytest.raises(UserInputError, match=match) as err:
+        imu_model_from_static(change(measured))
+    assert "\n" not in str(err.value)
+
+
+def test_fit_implausible_for_the_grade_is_refused(truth_model):
+    measured, _ = imu_errors(_static_ideal(RATE_HZ, 20.0), truth_model, np.random.default_rng(1))
+    with pytest.raises(UserInputError, match=r"gyro\.arw_deg_per_sqrt_h.*'navigation'"):
+        imu_model_from_static(measured, grade="navigation")
+
+
+# ----------------------------------------------------------------------------- loader ranges
+def _imu_text(**replace: str) -> str:
+    text = polins.load_imu("mems-typical").path.read_text()
+    for old, new in replace.items():
+        assert old in text
+        text = text.replace(old, new)
+    return text
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "key"),
+    [
+        ("arw_deg_per_sqrt_h = 0.34", "arw_deg_per_sqrt_h = 340", "gyro.arw_deg_per_sqrt_h"),
+        ("arw_deg_per_sqrt_h = 0.34", "arw_deg_per_sqrt_h = 0.0059", "gyro.arw_deg_per_sqrt_h"),
+        ("bias_mg = 2.0", "bias_mg = 2000.0", "accel.bias_mg"),
+        ('grade = "mems"', 'grade = "navigation"', "gyro.arw_deg_per_sqrt_h"),
+    ],
+)
+def test_loader_names_the_implausible_key(tmp_path, old, new, key):
+    path = tmp_path / "imu.toml"
+    path.write_text(_imu_text(**{old: new}))
+    with pytest.raises(ModelFileError) as err:
+        polins.load_imu(path)
+    msg = str(err.value)
+    assert str(path) in msg and f"'{key}'" in msg and "expected" in msg and "\n" not in msg
+
+
+def test_loader_accepts_zero_to_switch_a_term_off(tmp_path):
+    path = tmp_path / "imu.toml"
+    path.write_text(_imu_text(**{"scale_factor_ppm = 1000.0": "scale_factor_ppm = 0.0"}))
+    assert polins.load_imu(path).gyro_scale_factor == 0.0
+
+
+def test_shipped_models_are_plausible_and_round_trip():
+    for name in polins.models.shipped_models("imus"):
+        model = polins.load_imu(name)
+        model.check_plausible()
+        values = model.toml_values()
+        assert set(values) == {"gyro", "accel"} and len(values["gyro"]) == 4
+
+
+# ----------------------------------------------------------------------------- BROAD sensor
+def broad_rest_segments(margin_s: float = 2.0) -> list[pd.DataFrame]:
+    """The rests (moving == 0) before and after the motion of both trials, minus a margin."""
+    segments = []
+    for trial in ("trial_02", "trial_15"):
+        df = pd.read_csv(BROAD / f"{trial}.csv.gz")
+        t = df["t"].to_numpy()
+        moving = np.flatnonzero(df["moving"].to_numpy() == 1)
+        segments.append(df[t < t[moving[0]] - margin_s])
+        segments.append(df[t > t[moving[-1]] + margin_s])
+    return segments
+
+
+def test_broad_model_loads_and_matches_its_rest_segments():
+    shipped = polins.load_imu("broad-aktos-t")
+    assert shipped.grade == "mems" and not shipped.earth_rate
+    assert shipped.sample_rate_hz == pytest.approx(1.0 / 0.0035)
+    segments = broad_rest_segments()
+    assert all((s["moving"] == 0).all() for s in segments)
+    model, fit = imu_model_from_static(segments, grade="mems")
+    assert fit.n_segments == 4 and 130.0 < fit.duration_s < 150.0
+    assert model.sample_rate_hz == pytest.approx(shipped.sample_rate_hz, rel=1e-9)
+    assert model.gyro_arw / shipped.gyro_arw == pytest.approx(1.0, abs=0.10)
+    assert model.accel_vrw / shipped.accel_vrw == pytest.approx(1.0, abs=0.10)
+    # the two sessions' turn-on biases (RMS over segments and axes) stay within the 1-sigma
+    assert np.degrees(model.gyro_bias) == pytest.approx(0.23, abs=0.02)
+    assert shipped.gyro_bias > model.gyro_bias
+    # 40-s rests cannot show the bias random walk: the shipped value stays below the bound
+    assert not fit.gyro.combined.identified["random_walk"]
+    assert shipped.gyro_bias_rw <= fit.gyro.combined.random_walk_ci[1]
+    assert shipped.accel_bias_rw >= fit.accel.combined.random_walk_ci[1]
