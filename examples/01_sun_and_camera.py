@@ -2,7 +2,7 @@
 
 Prints the sun at the paper's six outdoor sessions (Harbin, 2023-09-05, Table 3) and plots
 the solar azimuth/zenith over that day, and the paper camera's per-superpixel ray zenith
-angle with the 80 deg field-of-view limit (SPEC.md section 5).
+angle with the 80 deg field-of-view limit (docs/model.md §5).
 
     python examples/01_sun_and_camera.py [--quick] [--out out/01_sun_and_camera]
 """

@@ -22,7 +22,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import polins
-from polins.compass.measure import measure_with_maps, yaw_crlb
+from polins.compass.crlb import yaw_crlb
+from polins.compass.measure import measure_with_maps
 from polins.sim import azimuth_band, render_raw
 
 HARBIN = {"lat_deg": 45.6234, "lon_deg": 126.7264, "alt_m": 148.74}

@@ -12,7 +12,7 @@ summary bar chart, go to --out.
     python examples/03_paper_reproduction.py [--quick | --full] [--out out/03_paper_reproduction]
 
 --quick: 1/4 resolution, 20 images (seconds); default: 1/2 resolution, 100 images (about a
-minute); --full: full resolution, 100 images (a few minutes), the AUDIT.md section 3 setting.
+minute); --full: full resolution, 100 images (a few minutes), the setting of docs/errata.md §3.
 """
 
 from __future__ import annotations
@@ -27,13 +27,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from polins.sim.paper import (
+from polins.sim.paper import explain, format_table, plot_reproduction
+from polins.sim.reproduction import (
     PAPER_PROPOSED_RMSE_DEG,
     PAPER_TRADITIONAL_RMSE_DEG,
-    explain,
-    format_table,
     paper_scenarios,
-    plot_reproduction,
     run_scenario,
 )
 

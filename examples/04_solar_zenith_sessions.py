@@ -32,7 +32,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from polins.sim.paper import ESTIMATORS, TABLE3_SESSIONS, run_scenario, session_scenarios
+from polins.sim.reproduction import ESTIMATORS, TABLE3_SESSIONS, run_scenario, session_scenarios
 
 KEYS = ("trad_nogain", "trad", "paper", "compensated")
 COLORS = {"trad_nogain": "C0", "trad": "C1", "paper": "C2", "compensated": "C3"}
@@ -104,8 +104,8 @@ def main() -> None:
         "\ntenths of a degree at any zenith. The paper's outdoor 'proposed' errors are"
         f"\n{ratio.min():.0f}-{ratio.max():.0f}x this bound (at full resolution ~{ratio.min() * downscale:.0f}x or"
         " more) and grow towards noon:\nmodel error (multiple scattering, calibration, IFOV,"
-        " clouds) and the cot(Z) tilt\ncoupling, not noise, limit real skies (AUDIT sections"
-        " 1 and 5)."
+        " clouds) and the cot(Z) tilt\ncoupling, not noise, limit real skies (docs/errata.md"
+        " §1 and §5)."
     )
 
     args.out.mkdir(parents=True, exist_ok=True)

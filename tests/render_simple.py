@@ -1,13 +1,12 @@
 """An independent, deliberately plain DoFP sky renderer for the measurement-chain tests.
 
-It shares no code with ``polins.compass.polarimetry``, ``polins.compass.sunvector`` or ``polins.compass.measure``
-(nor with ``polins.sim``): the rays come from its own Kannala-Brandt Newton inversion, the
+It shares no code with ``polins.compass`` (nor with ``polins.sim``): the rays come from its own Kannala-Brandt Newton inversion, the
 E-vectors from ``s x p`` written out here, the AoP from its own lens-model lines, and the
 four channels from Malus' law. All four channels are sampled at the superpixel centre (no
 mosaic IFOV offset). Only the camera *model* (a ``CameraModel`` with its numbers) and scipy's
 ``Rotation`` are taken from outside.
 
-Sensor model (SPEC 6.2 written in Malus form; channel k with transmission axis alpha_k, gain
+Sensor model (docs/model.md §6.2 written in Malus form; channel k with transmission axis alpha_k, gain
 g_k, efficiency eta_k, dark offset o_k)::
 
     I_k = g_k [ R (1 - d)/2 + R d (eta_k cos^2(zeta - alpha_k) + (1 - eta_k)/2) ]   sky
@@ -47,7 +46,7 @@ def superpixel_rays(cam) -> np.ndarray:
 
 
 def image_aop(evec: np.ndarray, rays: np.ndarray, model: str) -> np.ndarray:
-    """Image-plane AoP [rad] of camera-frame E-vectors (SPEC 6.1, models P and M)."""
+    """Image-plane AoP [rad] of camera-frame E-vectors (docs/model.md §6.1, models P and M)."""
     if model == "projection":
         return np.arctan2(evec[..., 1], evec[..., 0])
     gamma = np.arccos(rays[..., 2])
@@ -81,12 +80,12 @@ def render(
     ----------
     sun_n : (3,) unit ENU sun vector.
     rot_nb : body -> ENU rotation; the camera is ``rot_nb * cam.rot_bc``.
-    epsilon : direct-sunlight coefficient (SPEC 6.2).
+    epsilon : direct-sunlight coefficient (docs/model.md §6.2).
     noise_std : Gaussian per-channel noise [DN] (needs ``rng``).
     occluder_az_deg : world-fixed occluder, compass azimuth range [deg] (clockwise from
         North), below ``occluder_el_deg``; occluded pixels read 0 DN (plus noise).
     polarizer_deg : if given, the scene is a uniform, fully polarized field with this
-        image-plane angle (the rotating-polarizer test of SPEC 3.4) instead of the sky.
+        image-plane angle (the rotating-polarizer test of docs/model.md §3.4) instead of the sky.
     dtype : output dtype; integer dtypes are rounded and clipped to the sensor range.
     """
     rays = superpixel_rays(cam)

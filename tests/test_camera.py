@@ -46,9 +46,9 @@ def test_projection_matches_spec_formula():
 
 
 def test_lens_polynomial_peak_and_90_degree_circle():
-    # AUDIT: d theta_d / d theta = 0.20 at 90 deg, the 90 deg circle has radius ~388.9 px.
+    # docs/errata.md §1 (Sec. 4.1): d theta_d / d theta = 0.20 at 90 deg, the 90 deg circle has radius ~388.9 px.
     # The polynomial peaks where its slope 1 + 3 k1 t^2 + ... + 9 k4 t^8 vanishes: 91.99 deg
-    # (AUDIT rounds this to "about 91.6"; the slope at 91.6 deg is still +0.04).
+    # (docs/errata.md rounds this to "about 91.6"; the slope at 91.6 deg is still +0.04).
     h = 1e-6
     slope = (
         kannala_brandt_theta_d(np.pi / 2 + h, CAM.distortion)
@@ -109,7 +109,7 @@ def test_lens_polarization_inverse(model):
 
 
 def test_lens_models_differ_off_axis_and_agree_on_axis():
-    # AUDIT Eq. 28: at gamma = 60 deg an image AoP 45 deg off the meridian is an E-vector
+    # docs/errata.md §1, Eq. 28: at gamma = 60 deg an image AoP 45 deg off the meridian is an E-vector
     # 26.6 deg off the meridian under P (tan phi = cos gamma tan(zeta - alpha)), 45 deg under M.
     g = np.radians(60.0)
     ray = np.array([np.sin(g), 0.0, np.cos(g)])

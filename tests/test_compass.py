@@ -1,5 +1,5 @@
 """Polarization compass: raw image -> sun vector -> heading, covariance and refusals
-(SPEC 9-10, 12), on images from the independent renderer tests/render_simple.py."""
+(docs/model.md §9-10, 12), on images from the independent renderer tests/render_simple.py."""
 
 import numpy as np
 import pytest
@@ -8,9 +8,19 @@ from scipy.spatial.transform import Rotation
 
 import polins
 from polins.compass.camera import pixel_rays_c
-from polins.compass.measure import MeasureOptions, measure, measure_with_maps, yaw_crlb
-from polins.compass.polarimetry import mosaic_channels, stokes_from_channels
-from polins.compass.sunvector import evectors_from_stokes, lens_basis, sun_eigen, yaw_from_sun_level
+from polins.compass.crlb import yaw_crlb
+from polins.compass.eigen import sun_eigen
+from polins.compass.heading import yaw_from_sun_level
+from polins.compass.lens import evectors_from_stokes, lens_basis
+from polins.compass.measure import (
+    MeasureOptions,
+    check_measure_options,
+    measure,
+    measure_options,
+    measure_with_maps,
+)
+from polins.compass.pixels import mosaic_channels
+from polins.compass.polarimetry import stokes_from_channels
 from polins.frames import wrap_angle, yaw_from_rot_nb
 
 CAM = polins.load_camera("paper-table1")
@@ -29,7 +39,7 @@ def _level(yaw_deg):
 # ----------------------------------------------------------------------------- exactness
 @pytest.mark.parametrize("model", ["projection", "meridian"])
 def test_noise_free_heading_is_exact_for_any_attitude(model):
-    # Issue 3 / SPEC 12.2 and 12.8: noise-free, eps = 0, tilt up to 10 deg, both lens models:
+    # Issue 3 / docs/model.md §12.2 and §12.8: noise-free, eps = 0, tilt up to 10 deg, both lens models:
     # heading error < 1e-6 deg for every method but "paper" (here < 1e-9 deg in float64).
     cam = CAM4.with_changes(polarization_model=model)
     rng = np.random.default_rng(10)
@@ -51,7 +61,7 @@ def test_noise_free_heading_is_exact_for_any_attitude(model):
                 float(polins.heading_deg_from_yaw(yaw_from_rot_nb(rot))), abs=1e-8
             )
             assert m.eigen_gap > 0.99 and m.n_pixels > 15_000
-        # SPEC 8.2: with the scale-consistent Eq. 22 the paper's k_m is exactly 0 without
+        # docs/model.md §8.2: with the scale-consistent Eq. 22 the paper's k_m is exactly 0 without
         # noise, so "paper" is exact here too (it only adds noise).
         m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, method="paper")
         assert abs(_err_deg(m, rot)) < 1e-9 and m.epsilon == 0.0
@@ -67,7 +77,7 @@ def test_integer_mosaic_runs_in_float32_without_bias():
 
 
 def test_noise_free_sunlight_is_compensated_exactly():
-    # SPEC 12.5: eps = 0.0125, noise-free: heading error < 1e-4 deg, eps to 1e-3 relative,
+    # docs/model.md §12.5: eps = 0.0125, noise-free: heading error < 1e-4 deg, eps to 1e-3 relative,
     # with tilt and for both the fixed- and the free-zenith variant.
     rot = Rotation.from_euler("ZYX", [0.4, np.radians(5.0), np.radians(-3.0)])
     raw = render(CAM4, SUN_N, rot, epsilon=0.0125, rayleigh_radiance=True)
@@ -81,7 +91,7 @@ def test_noise_free_sunlight_is_compensated_exactly():
 
 
 def test_world_fixed_occluder_bias():
-    # Issue 3 / SPEC 12.6: occluder at compass azimuth 260-350 deg below 40 deg elevation,
+    # Issue 3 / docs/model.md §12.6: occluder at compass azimuth 260-350 deg below 40 deg elevation,
     # eps = 0.0125, noise-free. The paper's (unweighted) traditional estimator shows the bias
     # of about -0.1 deg; the joint ML stays below 0.005 deg and recovers eps to 1e-3.
     for yaw_deg in (0.0, 73.0, 200.0):
@@ -101,7 +111,7 @@ def test_world_fixed_occluder_bias():
 
 
 def test_tilt_handled_in_the_camera_frame():
-    # SPEC 12.8 regression: E-vectors built with camera-frame ray angles and then rotated are
+    # docs/model.md §12.8 regression: E-vectors built with camera-frame ray angles and then rotated are
     # exact; the paper's Eq. 28 (level-frame ray angles with the camera-frame AoP) is not.
     rot = Rotation.from_euler("ZYX", [0.4, np.radians(5.0), np.radians(-3.0)])
     raw = render(CAM4, SUN_N, rot)
@@ -127,7 +137,7 @@ def test_flipped_stokes_sign_is_90_degrees_off():
     # lie in the scattering plane and the heading is ~90 deg wrong.
     rot = Rotation.from_euler("ZYX", [1.0, np.radians(3.0), 0.0])
     raw = render(CAM4, SUN_N, rot)
-    m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper", paper_eq14="printed")
+    m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper", eq14="printed")
     assert abs(abs(_err_deg(m, rot)) - 90.0) < 5.0
     # Same with the library's own eigen solution on sign-flipped Stokes vectors.
     stokes, _ = stokes_from_channels(mosaic_channels(raw, CAM4), CAM4)
@@ -141,7 +151,7 @@ def test_flipped_stokes_sign_is_90_degrees_off():
 
 
 def test_swapped_45_135_channels_are_detected():
-    # SPEC 3.4: a camera model with the 45 and 135 deg channels swapped mirrors the AoP. The
+    # docs/model.md §3.4: a camera model with the 45 and 135 deg channels swapped mirrors the AoP. The
     # result is not a Rayleigh pattern: residual RMS >> 1 (vs ~1), the heading is wrong, and
     # residual_rms_max refuses the image.
     layout = {int(k): pos for pos, k in np.ndenumerate(CAM4.channel_at)}
@@ -226,13 +236,13 @@ def test_full_resolution_occluder_and_exactness():
             f"yaw {yaw_deg}: traditional {_err_deg(trad, rot):+.4f} deg, compensated "
             f"{_err_deg(comp, rot):+.2e} deg, eps {comp.epsilon:.6f}"
         )
-        assert -0.15 < _err_deg(trad, rot) < -0.07  # SPEC 12.6: about -0.11 deg
+        assert -0.15 < _err_deg(trad, rot) < -0.07  # docs/model.md §12.6: about -0.11 deg
         assert abs(_err_deg(comp, rot)) < 1e-6
         assert comp.epsilon == pytest.approx(0.0125, rel=1e-4)
 
 
 def test_crlb_reference_value_and_scaling():
-    # AUDIT 5: level, full resolution, sigma = 1.5 DN, d_max 0.75, radiance 220:
+    # docs/errata.md §5: level, full resolution, sigma = 1.5 DN, d_max 0.75, radiance 220:
     # CRLB(yaw) = 1.36e-3 deg. It scales with the noise and inversely with the radiance.
     rot = _level(22.9)
     crlb = yaw_crlb(CAM, SUN_N, rot, dop_max=0.75, radiance=220.0, noise_std=1.5)
@@ -254,9 +264,9 @@ def test_crlb_reference_value_and_scaling():
 def test_inflation_terms():
     rot = _level(40.0)
     raw = render(CAM4, SUN_N, rot, noise_std=1.5, rng=np.random.default_rng(15))
-    base = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, sigma_floor_deg=0.0)
+    base = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, sigma_floor=0.0)
     assert base.yaw_std == pytest.approx(base.yaw_std_meas, rel=1e-12)
-    kw = {"kappa": 20.0, "sigma_floor_deg": 0.2, "tilt_std": np.radians(0.1)}
+    kw = {"kappa": 20.0, "sigma_floor": np.radians(0.2), "tilt_std": np.radians(0.1)}
     m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, **kw)
     zen = np.arccos(SUN_N[2])
     expected = np.sqrt(
@@ -291,6 +301,23 @@ def test_refusals_and_input_errors():
         measure(raw.astype(np.int16), CAM4, sun_n=SUN_N, rot_nb_prior=rot)
     with pytest.raises(TypeError, match="valid options: gain_correction"):
         measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, weigthed=False)
+    with pytest.raises(TypeError, match=r"sigma_floor_deg -> sigma_floor \[rad\]"):
+        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, sigma_floor_deg=0.1)
+    with pytest.raises(TypeError, match="eq22"):  # a paper-only switch
+        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="traditional", eq22="printed")
+    with pytest.raises(ValueError, match="eq22"):
+        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper", eq22="as printed")
+    assert measure_options(sun_exclusion=0.3) == MeasureOptions(sun_exclusion=0.3)
+    # The one-time check of a stream: the paper's switches only with method="paper".
+    paper_opts = {"eq22": "printed", "weighted": False}
+    assert check_measure_options("paper", paper_opts) == MeasureOptions(weighted=False)
+    assert paper_opts == {"eq22": "printed", "weighted": False}  # not modified
+    with pytest.raises(TypeError, match="eq22"):
+        check_measure_options("compensated", paper_opts)
+    with pytest.raises(ValueError, match="eq14"):
+        check_measure_options("paper", {"eq14": "flipped"})
+    with pytest.raises(ValueError, match="method"):
+        check_measure_options("svd", {})
     with pytest.raises(ValueError, match="method"):
         measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="svd")
     with pytest.raises(ValueError, match="Rotation"):
@@ -406,7 +433,8 @@ def test_cli_heading_user_errors(tmp_path, capsys):
     text = tmp_path / "notes.png"
     text.write_text("not an image")
     assert main(["heading", str(text), *site]) == 2
-    assert "cannot read" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "notes.png" in err and "Traceback" not in err
 
 
 # ----------------------------------------------------------------------------- cross-check
@@ -454,20 +482,15 @@ def test_pinhole_camera_both_lens_models(tmp_path):
                 assert abs(_err_deg(m, rot)) < 1e-6 and m.epsilon == pytest.approx(0.0125, rel=1e-3)
 
 
-# ----------------------------------------------------------------------------- sunvector API
+# ----------------------------------------------------------------------------- sun-vector API
 @pytest.mark.parametrize("model", ["projection", "meridian"])
 def test_public_sun_vector_functions(model):
     from polins.compass.camera import doubled_aop_from_evector, evector_from_aop
-    from polins.compass.polarimetry import sunlight_direction, sunlight_stokes
-    from polins.compass.sunvector import (
-        eigen_gap,
-        eigen_sun_covariance,
-        lens_forward,
-        ml_residuals,
-        sun_joint_ml,
-        sun_level_from_angles,
-        yaw_variance_from_sun_covariance,
-    )
+    from polins.compass.eigen import eigen_gap, eigen_sun_covariance
+    from polins.compass.heading import sun_level_from_angles, yaw_variance_from_sun_covariance
+    from polins.compass.jointml import ml_residuals, sun_joint_ml
+    from polins.compass.lens import lens_forward
+    from polins.compass.sunlight import stokes_with_sunlight, sunlight_direction
 
     rng = np.random.default_rng(18)
     theta = np.arccos(rng.uniform(np.cos(np.radians(80)), 1.0, 20_000))
@@ -499,7 +522,7 @@ def test_public_sun_vector_functions(model):
     rays, forward, c2s2 = rays[keep], forward[keep], c2s2[keep]
     p = 200 * 0.6 * (1 - (rays @ sun_c) ** 2) / (1 + (rays @ sun_c) ** 2)
     sky = np.concatenate([np.full((len(p), 1), 200.0), p[:, None] * c2s2], -1)
-    stokes = sunlight_stokes(sky, 0.0125, sunlight_direction(sun_c))
+    stokes = stokes_with_sunlight(sky, 0.0125, sunlight_direction(sun_c))
     stokes[:, 1:] += rng.normal(0, 2.0, (len(p), 2))
     r = ml_residuals(stokes, forward, mat_cl, sun_l, 0.0125, sigma_l=2.0)
     assert r.std() == pytest.approx(1.0, rel=0.03) and abs(r.mean()) < 0.05

@@ -1,5 +1,5 @@
 """Polarimetry: mosaic -> channels -> calibrated Stokes, quality masks, sunlight compensation,
-the paper's Algorithm 1 (SPEC 6.2, 7, 8)."""
+the paper's Algorithm 1 (docs/model.md §6.2, 7, 8)."""
 
 import numpy as np
 import pytest
@@ -7,23 +7,19 @@ from render_simple import render
 from scipy.spatial.transform import Rotation
 
 import polins
+from polins.compass.paper import paper_algorithm1
+from polins.compass.pixels import check_raw, mosaic_channels, pixel_set
 from polins.compass.polarimetry import (
     aop,
-    check_raw,
     dop,
-    mosaic_channels,
-    paper_algorithm1,
-    pixel_set,
     polarizer_rotation_slope,
     relative_gradient,
     stokes_calibration,
-    stokes_compensated,
     stokes_from_channels,
-    sunlight_direction,
-    sunlight_stokes,
     unpolarized_intensity,
     validity_mask,
 )
+from polins.compass.sunlight import stokes_compensated, stokes_with_sunlight, sunlight_direction
 
 CAM = polins.load_camera("paper-table1")
 SMALL = CAM.downscaled(8)
@@ -31,7 +27,7 @@ SUN_N = polins.sun_vector_n(np.radians(247.11), np.radians(60.21))
 
 
 def _sensor(stokes, cam, offset=True):
-    """SPEC 6.2 channel model, written out: I_k = g_k/2 [S0 + eta_k (S1 cos2a + S2 sin2a)] + o_k."""
+    """docs/model.md §6.2 channel model, written out: I_k = g_k/2 [S0 + eta_k (S1 cos2a + S2 sin2a)] + o_k."""
     two_a = 2 * cam.transmission_angle
     s0, s1, s2 = (stokes[..., i, None] for i in range(3))
     i = 0.5 * cam.gain * (s0 + cam.efficiency * (s1 * np.cos(two_a) + s2 * np.sin(two_a)))
@@ -66,7 +62,7 @@ def test_check_raw_names_shape_and_dtype():
 
 
 def test_ideal_stokes_is_sum_and_differences():
-    # SPEC 7.2 ideal case: S0 = (I0+I45+I90+I135)/2 after gains, S1 = I0 - I90, S2 = I45 - I135.
+    # docs/model.md §7.2 ideal case: S0 = (I0+I45+I90+I135)/2 after gains, S1 = I0 - I90, S2 = I45 - I135.
     # Arbitrary (not Malus-consistent) channels: for equal gains the least-squares estimate
     # is exactly this formula.
     rng = np.random.default_rng(0)
@@ -126,7 +122,7 @@ def test_stokes_sign_is_pinned_by_a_polarizer():
 
 
 def test_rotating_polarizer_detects_swapped_45_135_channels():
-    # SPEC 3.4: with the correct labels the AoP follows the polarizer (slope +1); a camera
+    # docs/model.md §3.4: with the correct labels the AoP follows the polarizer (slope +1); a camera
     # model with the 45 and 135 deg channels swapped sees it turn backwards (slope -1).
     angles = np.radians([0.0, 20.0, 40.0, 60.0, 80.0])
     raws = [render(SMALL, SUN_N, Rotation.identity(), polarizer_deg=np.degrees(a)) for a in angles]
@@ -139,7 +135,7 @@ def test_rotating_polarizer_detects_swapped_45_135_channels():
 
 
 def test_exact_compensation_inverts_the_sunlight_term():
-    # SPEC 12.4: noise-free, eps = 0.0125, exact compensation with the true angle: AoP error
+    # docs/model.md §12.4: noise-free, eps = 0.0125, exact compensation with the true angle: AoP error
     # < 1e-9 deg; without it the AoP error near the sun (low DoP) is large.
     rng = np.random.default_rng(3)
     n = 50_000
@@ -152,7 +148,7 @@ def test_exact_compensation_inverts_the_sunlight_term():
     assert np.degrees(np.arctan2(-w[1], -w[0]) / 2) == pytest.approx(
         np.degrees(np.arctan2(0.7, -0.3)) - 180.0, abs=1e-9
     )
-    measured = sunlight_stokes(sky, 0.0125, w)
+    measured = stokes_with_sunlight(sky, 0.0125, w)
     np.testing.assert_allclose(measured[:, 0], radiance * (1 - 0.0125 * (1 - d)), rtol=1e-12)
     back = stokes_compensated(measured, 0.0125, w)
     err = np.degrees(np.abs(np.angle(np.exp(2j * (aop(back) - zeta))) / 2))
@@ -171,7 +167,7 @@ def _sky_channels(cam, rot, epsilon, noise=0.0, seed=0):
 
 
 def test_paper_algorithm1_known_behaviour():
-    # SPEC 8.2: with m = 2 the Eq. 22 numerator is identically zero without noise (k_m = 0,
+    # docs/model.md §8.2: with m = 2 the Eq. 22 numerator is identically zero without noise (k_m = 0,
     # nothing compensated, whatever eps); with the printed m = 4, k_m ~ 80/(1 - d);
     # sum_k P_hat_k = -(1 - d)/2 does not depend on the sun azimuth.
     rot = Rotation.from_euler("ZYX", [0.4, 0.0, 0.0])
@@ -203,7 +199,9 @@ def test_paper_k_m_is_amplified_noise():
     _, km = paper_algorithm1(ch[inside], SMALL, rot.inv().apply(SUN_N))
     iqr = np.subtract(*np.percentile(km, [75, 25]))
     assert abs(np.median(km)) < 0.1 * iqr
-    assert 0.7 < iqr < 2.5  # AUDIT: IQR +-0.7 around 0 at sigma = 1.5 DN (true k_m = 0.05)
+    assert (
+        0.7 < iqr < 2.5
+    )  # docs/errata.md §3: IQR +-0.7 around 0 at sigma = 1.5 DN (true k_m = 0.05)
 
 
 def test_validity_mask_criteria():

@@ -1,5 +1,7 @@
 """Scenario runner: a tiny simulated log on disk, read back and checked against its truth."""
 
+import re
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -142,9 +144,9 @@ def test_cli_simulate_writes_a_log(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("extra", "match"),
     [
-        (["--downscale", "3"], "downscale=3"),
+        (["--downscale", "3"], r"downscale[= ]3"),
         (["--imu", "no-such-imu"], "unknown imu model"),
-        (["--image-rate", "0"], "image_rate_hz"),
+        (["--image-rate", "0"], r"image[-_]rate"),
         (["--epoch", "2023-09-05T12:00"], "naive datetime"),
     ],
 )
@@ -152,7 +154,7 @@ def test_cli_simulate_errors_are_one_line(tmp_path, capsys, extra, match):
     args = ["simulate", "--scenario", "turntable", "--out", str(tmp_path), "--duration", "1"]
     assert main([*args, "--quiet", *extra]) == 2
     err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and match in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1 and re.search(match, err) and "Traceback" not in err
 
 
 def test_output_that_is_a_file_is_refused(tmp_path):

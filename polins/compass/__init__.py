@@ -1,1 +1,18 @@
-"""The polarization compass: raw DoFP mosaic -> Stokes -> E-vectors -> sun vector -> heading."""
+"""The polarization compass: raw DoFP mosaic -> Stokes -> E-vectors -> sun vector -> heading.
+
+Modules in the order of the data flow::
+
+    pixels       raw mosaic, polarizer channels, pixel sets
+    camera       camera rays (OpenCV) and the lens polarization models
+    polarimetry  calibrated Stokes vectors and the pixel quality masks
+    sunlight     the direct-sunlight term and its exact compensation
+    lens         per-pixel lens constants of the estimators
+    eigen        the eigen sun vector and its covariance
+    prediction   the AoP a trial sun predicts; selection: which pixels enter the estimate
+    jointml      joint maximum likelihood of the sun and epsilon
+    heading      level frame, yaw, its variance, the 180 deg choice
+    measurement  Measurement and MeasureOptions; chain: one image through all of it
+    measure      ``polins.measure``; paper: the paper's Algorithm 1 (reproduction only)
+    crlb         the Cramer-Rao bound of the yaw
+    kernels      BLAS-free row products used throughout
+"""

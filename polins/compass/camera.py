@@ -1,10 +1,10 @@
-"""Camera geometry (OpenCV) and the lens polarization models of SPEC.md sections 5 and 6.1.
+"""Camera geometry (OpenCV) and the lens polarization models of docs/model.md §5 and §6.1.
 
 Pixel coordinates are superpixel coordinates: superpixel (i, j) sits at (u, v) = (j, i).
 Projection uses OpenCV (``cv2.fisheye`` Kannala-Brandt, or the standard pinhole model with
-distortion). The Kannala-Brandt inverse is the Newton iteration of SPEC 5 in numpy (OpenCV's
-``cv2.fisheye.undistortPoints`` flags a few converged points near 80 deg as failed, and its
-normalised coordinates ``tan(theta)`` break down at 90 deg); the pinhole inverse is
+distortion). The Kannala-Brandt inverse is the Newton iteration of docs/model.md §5 in numpy
+(OpenCV's ``cv2.fisheye.undistortPoints`` flags a few converged points near 80 deg as failed,
+and its normalised coordinates ``tan(theta)`` break down at 90 deg); the pinhole inverse is
 ``cv2.undistortPoints`` with a tight termination criterion.
 """
 
@@ -42,7 +42,7 @@ def kannala_brandt_theta_max(k: ArrayLike) -> float:
 
 
 def kannala_brandt_theta(theta_d: ArrayLike, k: ArrayLike) -> FloatArray:
-    """Invert ``theta_d(theta)`` by Newton's method from ``theta_0 = theta_d`` (SPEC 5).
+    """Invert ``theta_d(theta)`` by Newton's method from ``theta_0 = theta_d`` (docs/model.md §5).
 
     Inputs beyond the invertible range (see :func:`kannala_brandt_theta_max`) give NaN.
     """
@@ -135,7 +135,8 @@ def fov_mask(cam: CameraModel) -> BoolArray:
 # ------------------------------------------------------------------ lens polarization
 def _meridian_basis(rays_c: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Unit ``exp(2i alpha)`` of the ray azimuth as (cos 2alpha, sin 2alpha), and the ray's
-    meridian basis (e_gamma, e_alpha) of SPEC 6.1 (M); the optical axis uses alpha = 0."""
+    meridian basis (e_gamma, e_alpha) of docs/model.md §6.1 (M); the optical axis uses
+    alpha = 0."""
     px, py, pz = rays_c[..., 0], rays_c[..., 1], rays_c[..., 2]
     rho = np.hypot(px, py)
     safe = rho > 1e-15
@@ -156,7 +157,7 @@ def doubled_aop_from_evector(evec_c: ArrayLike, rays_c: ArrayLike, model: str) -
     rays_c : array_like, (..., 3)
         Unit observation rays in the camera frame.
     model : {"projection", "meridian"}
-        SPEC 6.1 lens polarization model (P) or (M).
+        docs/model.md §6.1 lens polarization model (P) or (M).
     """
     e = np.asarray(evec_c, dtype=float)
     if model == "projection":

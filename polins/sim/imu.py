@@ -9,7 +9,7 @@ Inertial and Multisensor Integrated Navigation, 2nd ed., Eq. 5.53-5.54)::
 
 with ``a_n = d(v_n)/dt``, WGS-84 normal gravity ``g_n`` (gravitation plus centrifugal) and the
 Earth and transport rates from ``polins.ins.earth``. Row k holds the instantaneous values at
-``t_k`` (INTERFACES.md: the strapdown integrates assuming they vary linearly between rows).
+``t_k`` (docs/filter.md: the strapdown integrates assuming they vary linearly between rows).
 
 The error model (``polins.models.loader.ImuModel``), per axis and independently::
 

@@ -1,4 +1,4 @@
-"""Raw DoFP sky images: the sensor model of SPEC.md section 6.2 rendered into a mosaic.
+"""Raw DoFP sky images: the sensor model of docs/model.md §6.2 rendered into a mosaic.
 
 :func:`render_raw` turns a sun vector and an attitude into the full-resolution raw mosaic a
 division-of-focal-plane camera (``polins.models.loader.CameraModel``) would deliver:
@@ -11,12 +11,12 @@ division-of-focal-plane camera (``polins.models.loader.CameraModel``) would deli
    occluders (tree lines, buildings) and the ground below the horizon, unpolarized and dark;
    the sky E-vector goes to the image-plane AoP through the camera's lens polarization
    model (``polins.compass.camera.doubled_aop_from_evector``);
-3. the paper's direct-sunlight term in Stokes form (SPEC 6.2), ``dS0 = -eps u``,
+3. the paper's direct-sunlight term in Stokes form (docs/model.md §6.2), ``dS0 = -eps u``,
    ``dL = eps u w``, ``w = -(cos 2 alpha_s^c, sin 2 alpha_s^c)``, with ``alpha_s^c`` the sun's
    camera-frame azimuth and ``u`` the pixel's unpolarized intensity (off when the sun is
    occluded or below the horizon);
 4. the channel response ``I_k = g_k 1/2 [S0 + eta_k (S1 cos 2 alpha_k + S2 sin 2 alpha_k)] + o_k``
-   (SPEC 6.2) with the camera model's gains, efficiencies, transmission angles and dark
+   (docs/model.md §6.2) with the camera model's gains, efficiencies, transmission angles and dark
    offsets, placed at the mosaic positions of ``cam.channel_at``;
 5. Poisson shot noise (optional, ``cam.conversion_gain_e_per_dn``) and Gaussian read noise,
    a saturated sun disc, rounding to integer DN and clipping to ``[0, cam.saturation_dn]``.
@@ -200,7 +200,7 @@ def mosaic_rays_c(cam: CameraModel, row: int, col: int) -> FloatArray:
     ``(row % 2, col % 2) = (row, col)``; cached per camera.
 
     Full-resolution pixel (r, c) sits at superpixel coordinates ``((c - 0.5)/2, (r - 0.5)/2)``
-    (SPEC 5: ``c_full = 2 c + 0.5``), so the four channels of superpixel (i, j) look a
+    (docs/model.md §5: ``c_full = 2 c + 0.5``), so the four channels of superpixel (i, j) look a
     quarter superpixel off its centre in u and v.
     """
     if row not in (0, 1) or col not in (0, 1):
@@ -229,10 +229,10 @@ def sky_stokes(
 ) -> tuple[FloatArray, BoolArray]:
     """Scene Stokes vector ``(..., 3)`` [DN] in the image-plane convention at camera rays.
 
-    Sky pixels: ``S0 = R``, ``(S1, S2) = R d (cos 2 zeta, sin 2 zeta)`` (SPEC 6.1/6.2) with the
-    sky model's E-vector taken to the image plane by the lens polarization model. Occluded
-    pixels and the ground below the horizon: unpolarized ``ground_radiance``. NaN rays
-    (outside the lens' image circle): zero. Returns the Stokes array and the "blocked"
+    Sky pixels: ``S0 = R``, ``(S1, S2) = R d (cos 2 zeta, sin 2 zeta)`` (docs/model.md
+    §6.1/§6.2) with the sky model's E-vector taken to the image plane by the lens polarization
+    model. Occluded pixels and the ground below the horizon: unpolarized ``ground_radiance``.
+    NaN rays (outside the lens' image circle): zero. Returns the Stokes array and the "blocked"
     mask (ground or occluder).
     """
     valid = np.isfinite(rays_c[..., 2])  # unproject gives all-NaN rays outside the lens
@@ -269,12 +269,17 @@ def sky_stokes(
     return stokes, blocked
 
 
-def sunlight_stokes(stokes: FloatArray, sun_c: FloatArray, epsilon: float) -> FloatArray:
-    """Add the direct-sunlight pseudo-polarization of SPEC 6.2 (paper Eqs. 8/12 in Stokes form).
+def add_direct_sunlight(stokes: FloatArray, sun_c: FloatArray, epsilon: float) -> FloatArray:
+    """Add the direct-sunlight pseudo-polarization of docs/model.md §6.2 (paper Eqs. 8/12 in
+    Stokes form) to scene Stokes vectors ``(..., 3)`` [DN].
+
+    Written independently of the estimator's forward model
+    (:func:`polins.compass.sunlight.stokes_with_sunlight`) on purpose: the tests compare
+    the two, so the renderer must not call the code it checks.
 
     ``u = S0 - |L|`` (the unpolarized intensity R (1 - d)), ``S0 -= eps u``,
     ``L += eps u w`` with ``w = -(cos 2 alpha_s^c, sin 2 alpha_s^c)``,
-    ``alpha_s^c = atan2(s^c_y, s^c_x)`` the sun's azimuth in the camera frame (SPEC 3.5).
+    ``alpha_s^c = atan2(s^c_y, s^c_x)`` the sun's azimuth in the camera frame (docs/model.md §3.5).
     """
     if epsilon == 0.0:
         return stokes
@@ -288,7 +293,7 @@ def sunlight_stokes(stokes: FloatArray, sun_c: FloatArray, epsilon: float) -> Fl
 
 
 def channel_intensity(stokes: FloatArray, cam: CameraModel, channel: int) -> FloatArray:
-    """Noise-free response [DN] of polarizer channel ``channel`` (SPEC 6.2):
+    """Noise-free response [DN] of polarizer channel ``channel`` (docs/model.md §6.2):
     ``g_k 1/2 [S0 + eta_k (S1 cos 2 alpha_k + S2 sin 2 alpha_k)] + o_k``."""
     g = cam.gain[channel]
     eta = cam.efficiency[channel]
@@ -324,7 +329,7 @@ def render_raw(
     ifov: bool = False,
     quantize: bool = True,
 ) -> NDArray:
-    """Render the raw DoFP mosaic of a sky image (SPEC 6.2 sensor model).
+    """Render the raw DoFP mosaic of a sky image (docs/model.md §6.2 sensor model).
 
     Parameters
     ----------
@@ -341,7 +346,8 @@ def render_raw(
         Sky radiance R [DN] (the paper's I_in = 220); with ``radiance_model="rayleigh"``
         the radiance 90 deg from the sun.
     epsilon : float
-        Direct-sunlight coefficient of SPEC 6.2 (0.0125 = the paper's k_m = 0.05 in Eq. 12).
+        Direct-sunlight coefficient of docs/model.md §6.2 (0.0125 = the paper's k_m = 0.05 in
+        Eq. 12).
     noise_std : float
         Gaussian read noise per pixel [DN].
     rng : numpy.random.Generator, optional
@@ -353,7 +359,7 @@ def render_raw(
     radiance_model : {"constant", "rayleigh"}
         Sky radiance: constant ``radiance`` or ``radiance (1 + cos^2 Theta)``.
     polarization_model : {"projection", "meridian"}, optional
-        Lens polarization model; default the camera model's (SPEC 6.1).
+        Lens polarization model; default the camera model's (docs/model.md §6.1).
     shot_noise : bool
         Add Poisson photon noise with ``cam.conversion_gain_e_per_dn`` [e-/DN].
     occluders : sequence of (K, 2) arrays
@@ -431,7 +437,7 @@ def render_raw(
                 if sun_visible and sun_disc_deg > 0
                 else None
             )
-        return sunlight_stokes(stokes, sun_c, eps), (
+        return add_direct_sunlight(stokes, sun_c, eps), (
             disc if disc is not None else np.zeros(blocked.shape, dtype=bool)
         )
 

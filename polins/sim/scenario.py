@@ -32,22 +32,16 @@ from polins.io.log import write_log
 from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.render import render_raw
-from polins.sim.trajectory import (
-    HARBIN_ALT_M,
-    HARBIN_LAT_DEG,
-    HARBIN_LON_DEG,
-    Trajectory,
-    turntable,
-    ugv_drive,
-)
-from polins.site import to_utc_index
+from polins.sim.reproduction import PAPER_EPOCH
+from polins.sim.trajectory import Trajectory, turntable, ugv_drive
+from polins.site import PAPER_SITE, to_utc_index
 from polins.sky.ephemeris import sun_position, sun_vector_n
 
 FloatArray = NDArray[np.float64]
 
 SCENARIOS = ("turntable", "ugv")
 DEFAULT_DURATION_S = {"turntable": 100.0, "ugv": 300.0}
-DEFAULT_EPOCH = "2023-09-05T15:06:00+08:00"  # the paper's Sec. 4.1 simulation (Harbin)
+DEFAULT_EPOCH = PAPER_EPOCH  # the paper's Sec. 4.1 simulation (Harbin)
 TURNTABLE_RATE = np.radians(7.2)  # [rad/s]: the paper's 720 deg in 100 s
 
 
@@ -100,9 +94,9 @@ def scenario_trajectory(
     duration_s: float | None = None,
     rate_hz: float = 200.0,
     rng: np.random.Generator,
-    lat_deg: float = HARBIN_LAT_DEG,
-    lon_deg: float = HARBIN_LON_DEG,
-    alt_m: float = HARBIN_ALT_M,
+    lat_deg: float = PAPER_SITE.lat_deg,
+    lon_deg: float = PAPER_SITE.lon_deg,
+    alt_m: float = PAPER_SITE.alt_m,
 ) -> Trajectory:
     """The trajectory of a named scenario.
 
@@ -158,9 +152,9 @@ def simulate_log(
     camera: str | Path | CameraModel = "paper-table1",
     seed: int = 0,
     epoch_utc: Any = DEFAULT_EPOCH,
-    lat_deg: float = HARBIN_LAT_DEG,
-    lon_deg: float = HARBIN_LON_DEG,
-    alt_m: float = HARBIN_ALT_M,
+    lat_deg: float = PAPER_SITE.lat_deg,
+    lon_deg: float = PAPER_SITE.lon_deg,
+    alt_m: float = PAPER_SITE.alt_m,
     imu_rate_hz: float | None = None,
     render_options: Mapping[str, Any] | None = None,
     imu_format: str = "csv",
@@ -191,7 +185,7 @@ def simulate_log(
     epoch_utc : str, datetime or Timestamp
         Timezone-aware time of ``t = 0`` (default the paper's 2023-09-05 15:06 +08:00).
     lat_deg, lon_deg, alt_m : float
-        Site and start position (default the paper's, Harbin).
+        Site and start position (default the paper's, :data:`polins.site.PAPER_SITE`).
     imu_rate_hz : float, optional
         IMU rate [Hz]; default the model's ``sample_rate_hz``.
     render_options : mapping, optional

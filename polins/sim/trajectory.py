@@ -6,7 +6,7 @@ navigation frame ``omega_nb_b`` and the acceleration ``accel_n = d(vel_n)/dt`` a
 ``S(x) = 35 x^4 - 84 x^5 + 70 x^6 - 20 x^7`` (``S' = S'' = S''' = 0`` at both ends), so
 attitude rates and accelerations are continuous and so are their first derivatives.
 
-Frames and angles follow CONVENTIONS.md: ``rot_nb`` maps body FLU to local ENU,
+Frames and angles follow docs/conventions.md: ``rot_nb`` maps body FLU to local ENU,
 ``rot_nb = Rotation.from_euler("ZYX", [yaw, pitch, roll])``, positive pitch is nose down,
 positive roll is right side down. The geodetic position integrates the ENU velocity
 through the WGS-84 radii of curvature (``polins.ins.earth``):
@@ -26,12 +26,9 @@ from scipy.spatial.transform import Rotation
 
 from polins.frames import heading_deg_from_yaw, wrap_angle
 from polins.ins.earth import radii_of_curvature
+from polins.site import PAPER_SITE
 
 FloatArray = NDArray[np.float64]
-
-HARBIN_LAT_DEG = 45.6234  # the paper's site (Harbin), shared default of the scenarios
-HARBIN_LON_DEG = 126.7264
-HARBIN_ALT_M = 148.74
 
 
 # ----------------------------------------------------------------------------- container
@@ -265,9 +262,9 @@ def turntable(
     duration_s: float = 100.0,
     turn_rad: float = 4 * np.pi,
     rate_hz: float = 200.0,
-    lat_deg: float = HARBIN_LAT_DEG,
-    lon_deg: float = HARBIN_LON_DEG,
-    alt_m: float = HARBIN_ALT_M,
+    lat_deg: float = PAPER_SITE.lat_deg,
+    lon_deg: float = PAPER_SITE.lon_deg,
+    alt_m: float = PAPER_SITE.alt_m,
     yaw0: float = 0.0,
     roll: float = 0.0,
     pitch: float = 0.0,
@@ -286,7 +283,7 @@ def turntable(
     rate_hz : float
         Sample rate [Hz].
     lat_deg, lon_deg, alt_m : float
-        Site (default: the paper's, Harbin).
+        Site (default: the paper's, :data:`polins.site.PAPER_SITE`).
     yaw0 : float
         Initial yaw [rad].
     roll, pitch : float
@@ -452,9 +449,9 @@ def ugv_drive(
     duration_s: float = 300.0,
     rate_hz: float = 200.0,
     rng: np.random.Generator,
-    lat_deg: float = HARBIN_LAT_DEG,
-    lon_deg: float = HARBIN_LON_DEG,
-    alt_m: float = HARBIN_ALT_M,
+    lat_deg: float = PAPER_SITE.lat_deg,
+    lon_deg: float = PAPER_SITE.lon_deg,
+    alt_m: float = PAPER_SITE.alt_m,
     speed_mps: float = 5.0,
     yaw0: float = 0.0,
     rest_s: float = 5.0,
@@ -476,7 +473,7 @@ def ugv_drive(
     rng : numpy.random.Generator
         Draws the manoeuvre plan (the same seed gives the same drive at any rate).
     lat_deg, lon_deg, alt_m : float
-        Start position (default: the paper's site).
+        Start position (default: the paper's site, :data:`polins.site.PAPER_SITE`).
     speed_mps : float
         Typical cruise speed [m/s]; each run draws 0.6-1.4 x this, clipped to [1, 10].
     yaw0 : float

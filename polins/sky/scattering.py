@@ -1,4 +1,4 @@
-"""Skylight polarization: single-scattering Rayleigh model (SPEC.md section 6.1) and the
+"""Skylight polarization: single-scattering Rayleigh model (docs/model.md §6.1) and the
 Berry four-neutral-point sky (Berry, Dennis & Lee 2004, New J. Phys. 6:162).
 
 For a unit ray ``p`` and the unit sun vector ``s`` in the same frame, the Rayleigh E-vector

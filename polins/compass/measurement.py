@@ -1,0 +1,269 @@
+"""The measurement: what one image gives (:class:`Measurement`) and the options of the chain.
+
+:class:`MeasureOptions` is the one definition of the options of ``polins.measure``, with
+their units and defaults; :func:`measure_options` builds it from keyword options and
+rejects unknown ones. Angles are in radians, like everything inside polins
+(docs/conventions.md); intensities in DN, as the ``_dn`` names say.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from polins.compass.jointml import LOSSES
+
+FloatArray = NDArray[np.float64]
+
+METHODS = ("compensated", "traditional", "paper")
+"""The methods of ``polins.measure``; ``"paper"`` is the reproduction mode of
+:mod:`polins.compass.paper`."""
+
+__all__ = ["METHODS", "MeasureOptions", "Measurement", "MeasurementMaps", "measure_options"]
+
+
+@dataclass(frozen=True)
+class MeasureOptions:
+    """Options of ``polins.measure`` (pass them as keyword arguments).
+
+    Attributes
+    ----------
+    gain_correction : bool
+        Apply the calibrated channel gains in the Stokes estimate (False: the paper's
+        uncorrected "traditional" baseline).
+    weighted : bool
+        Eigen weights ``p^2/sigma_L^2`` (docs/model.md §9.1); False = the paper's equal
+        weights.
+    fixed_zenith : bool
+        ``method="compensated"``: fix the sun zenith to the ephemeris (needs good roll/pitch).
+    loss : {"linear", "huber", "cauchy"}
+        Loss of the joint ML (IRLS); robust losses down-weight outlier pixels.
+    sun_exclusion : float
+        Pixels closer than this to the sun are not used [rad].
+    dop_min : float
+        Minimum degree of polarization [-].
+    snr_min : float
+        Minimum polarized intensity in units of its noise sigma_L: rejects unpolarized
+        scenery (occluders, ground, clouds) whose noise alone would pass ``dop_min``.
+    kappa : float
+        Correlated-error inflation factor, ``kappa^2 = N/N_eff`` (docs/model.md §10.2).
+    sigma_floor : float
+        Model-error floor of the heading [rad].
+    tilt_std : float
+        1-sigma roll/pitch error about the horizontal axis towards the sun [rad]; adds
+        ``cot(Z) tilt_std`` to the heading sigma.
+    yaw_gate : float or None
+        Refuse if the heading differs from the prior yaw by more than this [rad].
+    gradient_max : float or None
+        Maximum relative intensity gradient ``|grad S0|/S0`` [1/superpixel]; None: no test.
+    redundancy_max_sigma : float
+        Maximum redundancy residual ``|nu|`` in channel-noise sigmas (docs/model.md §7.3).
+    s0_min_dn : float
+        Minimum S0 [DN] (dark / occluded pixels).
+    min_pixels : int
+        Refuse with fewer valid pixels.
+    eigen_gap_min : float
+        Refuse if the normalised eigen-gap is below this (docs/model.md §10.1).
+    residual_rms_max : float or None
+        Refuse if the RMS normalised residual exceeds this (e.g. a wrong channel
+        calibration, clouds); None: no test (real skies have model errors far above the
+        noise, so a threshold must come from field data).
+    zenith_min : float
+        Refuse if the sun is closer than this to the zenith [rad].
+    horizon_fallback : float
+        Below this sun elevation [rad] the prior yaw chooses between yaw and yaw + 180 deg.
+    gn_pixels : int
+        Target number of pixels of the Gauss-Newton subsample (0: all pixels every
+        iteration); the last step always uses all valid pixels.
+    max_iterations : int
+        Gauss-Newton iterations on the subsample.
+    epsilon0 : float
+        Starting epsilon (e.g. the previous image's estimate).
+    """
+
+    gain_correction: bool = True
+    weighted: bool = True
+    fixed_zenith: bool = True
+    loss: str = "linear"
+    sun_exclusion: float = float(np.radians(10.0))
+    dop_min: float = 0.03
+    snr_min: float = 3.0
+    kappa: float = 1.0
+    sigma_floor: float = float(np.radians(0.1))
+    tilt_std: float = 0.0
+    yaw_gate: float | None = None
+    gradient_max: float | None = 0.05
+    redundancy_max_sigma: float = 4.0
+    s0_min_dn: float = 10.0
+    min_pixels: int = 500
+    eigen_gap_min: float = 0.5
+    residual_rms_max: float | None = None
+    zenith_min: float = float(np.radians(5.0))
+    horizon_fallback: float = float(np.radians(5.0))
+    gn_pixels: int = 15_000
+    max_iterations: int = 10
+    epsilon0: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss={self.loss!r}: expected one of {LOSSES}")
+        for name in ("kappa", "sun_exclusion", "sigma_floor", "tilt_std"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name}={getattr(self, name)} must be >= 0")
+        if not 0 <= self.dop_min < 1:
+            raise ValueError(f"dop_min={self.dop_min} outside [0, 1)")
+        if self.min_pixels < 3 or self.max_iterations < 1 or self.gn_pixels < 0:
+            raise ValueError("min_pixels >= 3, max_iterations >= 1 and gn_pixels >= 0 required")
+
+
+_OPTION_NAMES = tuple(f.name for f in dataclasses.fields(MeasureOptions))
+_RENAMED = {
+    "sun_exclusion_deg": "sun_exclusion",
+    "sigma_floor_deg": "sigma_floor",
+    "zenith_min_deg": "zenith_min",
+    "horizon_fallback_deg": "horizon_fallback",
+}
+
+
+def measure_options(**options: Any) -> MeasureOptions:
+    """:class:`MeasureOptions` from keyword options, checked before any work.
+
+    Raises
+    ------
+    TypeError
+        An unknown option (the message lists the valid ones, and the new name of an option
+        that was renamed to radians).
+    ValueError
+        An impossible value.
+    """
+    unknown = sorted(set(options) - set(_OPTION_NAMES))
+    if unknown:
+        renamed = [f"{k} -> {_RENAMED[k]} [rad]" for k in unknown if k in _RENAMED]
+        hint = f" (renamed: {', '.join(renamed)})" if renamed else ""
+        raise TypeError(
+            f"unknown measure option(s) {unknown}{hint}; valid options: {', '.join(_OPTION_NAMES)}"
+        )
+    return MeasureOptions(**options)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One polarization heading measurement (docs/conventions.md).
+
+    Attributes
+    ----------
+    ok : bool
+        False when the image was refused; then every number is NaN.
+    reason : str
+        Why it was refused ("" when ok).
+    method : str
+        The method that produced it.
+    yaw : float
+        ENU yaw of body x [rad], counter-clockwise from East, in (-pi, pi].
+    yaw_std : float
+        1-sigma for a filter [rad]: ``sqrt(kappa^2 yaw_std_meas^2 + floor^2 + cot^2 Z tilt^2)``.
+    yaw_std_meas : float
+        Un-inflated measurement sigma [rad] (Gauss-Newton or eigen-gap sandwich).
+    heading_deg : float
+        Compass heading of body x [deg], clockwise from North, in [0, 360).
+    sun_b, sun_l, sun_c : (3,)
+        Unit sun vector in the body, level and camera frames.
+    sun_std : float
+        1-sigma of the sun direction along the azimuth [rad], inflated like yaw_std (without
+        the tilt term, which belongs in the filter's Jacobian for a vector measurement):
+        ``sqrt(kappa^2 (sin Z yaw_std_meas)^2 + (sin Z floor)^2)``. With ``fixed_zenith`` the
+        elevation of sun_b comes from the ephemeris and the prior tilt, not from the image.
+    epsilon, epsilon_std : float
+        Direct-sunlight coefficient and its sigma ("compensated"; "paper": median per-pixel
+        k_m / 4 without a sigma; "traditional": NaN).
+    n_pixels : int
+        Valid pixels used.
+    eigen_gap : float
+        Normalised eigen-gap of the eigen solution (docs/model.md §10.1).
+    residual_rms : float
+        RMS of the normalised AoP-orthogonal residual ``n_i . L_i / sigma_L`` (about 1 when
+        the sky model and the camera noise model hold; much larger for a wrong calibration).
+    noise_std_est : float
+        Per-channel noise [DN] estimated from the redundancy residual (docs/model.md §7.3).
+    """
+
+    ok: bool
+    reason: str
+    method: str
+    yaw: float
+    yaw_std: float
+    yaw_std_meas: float
+    heading_deg: float
+    sun_b: FloatArray
+    sun_l: FloatArray
+    sun_c: FloatArray
+    sun_std: float
+    epsilon: float
+    epsilon_std: float
+    n_pixels: int
+    eigen_gap: float
+    residual_rms: float
+    noise_std_est: float = float("nan")
+
+    @classmethod
+    def refused(cls, method: str, reason: str, n_pixels: int = 0) -> Measurement:
+        """A refused measurement: ``ok=False``, the reason, every number NaN."""
+        nan3 = np.full(3, np.nan)
+        return cls(
+            ok=False,
+            reason=reason,
+            method=method,
+            yaw=np.nan,
+            yaw_std=np.nan,
+            yaw_std_meas=np.nan,
+            heading_deg=np.nan,
+            sun_b=nan3,
+            sun_l=nan3.copy(),
+            sun_c=nan3.copy(),
+            sun_std=np.nan,
+            epsilon=np.nan,
+            epsilon_std=np.nan,
+            n_pixels=n_pixels,
+            eigen_gap=np.nan,
+            residual_rms=np.nan,
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (vectors as lists, NaN as None)."""
+
+        def clean(v: Any) -> Any:
+            if isinstance(v, np.ndarray):
+                return [clean(x) for x in v.tolist()]
+            if isinstance(v, float | np.floating):
+                return None if not np.isfinite(v) else float(v)
+            if isinstance(v, np.integer | np.bool_):
+                return v.item()
+            return v
+
+        return {f.name: clean(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+
+@dataclass(frozen=True)
+class MeasurementMaps:
+    """Per-superpixel images of one measurement, ``(Hs, Ws)`` (NaN outside the field of view).
+
+    Attributes
+    ----------
+    aop : (Hs, Ws)
+        Angle of polarization [rad].
+    dop : (Hs, Ws)
+        Degree of polarization [-].
+    valid : (Hs, Ws) bool
+        Pixels used.
+    residual : (Hs, Ws)
+        Normalised residual at the estimate, NaN where not used.
+    """
+
+    aop: FloatArray
+    dop: FloatArray
+    valid: NDArray[np.bool_]
+    residual: FloatArray

@@ -1,0 +1,69 @@
+"""Pixel selection: which pixels enter the estimate, decided along the predicted AoP.
+
+The final selection of the per-image chain (docs/measurement.md §4) keeps a pixel when it
+is valid (:func:`polins.compass.polarimetry.validity_rows`), outside the sun circle, and
+its polarized intensity *along the predicted direction* clears both a DoP and a noise
+threshold. That component's noise is independent of the residual's, so the cut selects no
+noise (a cut on |L| would, and bias epsilon near the sun).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from polins.compass.kernels import dot_rows
+from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
+
+__all__ = ["Selection", "select_pixels", "selection_mask"]
+
+
+@dataclass(frozen=True)
+class Selection:
+    """The selection rule, applied inside the full-set evaluation (it shares the predicted
+    AoP).
+
+    Attributes
+    ----------
+    valid : (n,) bool
+        All criteria that do not depend on the sun.
+    rays : (3, n)
+        Camera rays.
+    cos_exclusion : float
+        Cosine of the sun-exclusion radius.
+    dop_min : float
+        Minimum DoP along the predicted direction.
+    p_min : (n,) or float
+        Minimum polarized intensity along it [DN] (``snr_min sigma_L``).
+    """
+
+    valid: NDArray
+    rays: NDArray
+    cos_exclusion: float
+    dop_min: float
+    p_min: NDArray | float = 0.0
+
+
+def select_pixels(
+    data: PixelData, select: Selection, sun_c: NDArray, n1: NDArray, n2: NDArray, e2: NDArray
+) -> NDArray:
+    """Mask ``(n,)`` of the selected pixels for the camera-frame sun ``sun_c`` whose
+    :func:`polins.compass.prediction.doubled_prediction` is ``(n1, n2, e2)``."""
+    along = n1 * data.s1
+    along += n2 * data.s2
+    mask = along >= (select.dop_min * e2) * data.s0
+    if np.any(select.p_min):
+        mask &= along >= e2 * select.p_min
+    mask &= select.valid
+    mask &= dot_rows(sun_c.astype(data.s0.dtype), select.rays) <= select.cos_exclusion
+    return mask
+
+
+def selection_mask(data: PixelData, select: Selection, sun_c: NDArray) -> NDArray:
+    """:func:`select_pixels` for a given camera-frame sun ``(3,)`` (no residuals)."""
+    n = data.s0.size
+    xy = image_plane_evector(data, np.asarray(sun_c, dtype=float)[:, None])
+    n1, n2, e2 = doubled_prediction(xy[0, :n], xy[0, n:])
+    return select_pixels(data, select, sun_c, n1, n2, e2)
