@@ -25,7 +25,7 @@ matplotlib.use("Agg")
 
 from polins.io import read_log
 from polins.io.report import format_summary, summarize, write_report
-from polins.loop.stream import run_log
+from polins.loop import run_log
 from polins.sim.scenario import simulate_log
 
 

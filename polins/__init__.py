@@ -67,6 +67,7 @@ _LAZY = {
     "measure": "polins.compass.measure",
     "Measurement": "polins.compass.measure",
     "fuse": "polins.fusion",
+    "NavigationStream": "polins.loop",
     "sim": "polins.sim",
 }
 
@@ -83,6 +84,7 @@ __all__ = [
     "CameraModel",
     "ImuModel",
     "Measurement",
+    "NavigationStream",
     "SunPosition",
     "fuse",
     "heading_deg_from_yaw",

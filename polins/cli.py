@@ -1,7 +1,10 @@
 """Command line: ``polins sun | demo | simulate | heading | fuse``.
 
-User mistakes (bad arguments, files, units, naive times) print one readable line and exit
-with status 2; ``--debug`` shows the traceback instead.
+The fault policy of docs/faults.md: a user mistake (a bad argument, file, unit, manifest or
+naive time: :class:`polins.errors.UserInputError`, or a file that cannot be opened) prints
+one readable line and exits with status 2, before any work where the check is cheap; a run
+that produced nothing usable exits with status 1; any other exception is a bug in polins and
+keeps its traceback (exit status 1). ``--debug`` shows the traceback of user mistakes too.
 """
 
 from __future__ import annotations
@@ -10,13 +13,34 @@ import argparse
 import json
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
+from polins.errors import UserInputError
+
 Handler = Callable[[argparse.Namespace], int]
 
+
+class ArgumentError(UserInputError):
+    """A command-line argument with an impossible value (named in the message)."""
+
+
 # Exceptions that report a user mistake; anything else is a bug and keeps its traceback.
-USER_ERRORS = (ValueError, FileNotFoundError, KeyError, IsADirectoryError, PermissionError)
+USER_ERRORS = (UserInputError, FileNotFoundError, IsADirectoryError, NotADirectoryError,
+               PermissionError)  # fmt: skip
+
+
+def _check(ok: bool, message: str) -> None:
+    """Raise :class:`ArgumentError` with ``message`` unless ``ok``."""
+    if not ok:
+        raise ArgumentError(message)
+
+
+def _check_out_folder(out: str) -> None:
+    from pathlib import Path
+
+    _check(not Path(out).is_file(), f"--out {out}: is a file, expected a folder")
 
 
 def _add_site_args(p: argparse.ArgumentParser) -> None:
@@ -46,6 +70,9 @@ def sun_report(time: str, lat_deg: float, lon_deg: float, alt_m: float) -> dict[
 
 
 def _cmd_sun(args: argparse.Namespace) -> int:
+    from polins.site import Site
+
+    Site(args.lat, args.lon, args.alt)  # a site out of range is named before any work
     report = sun_report(args.time, args.lat, args.lon, args.alt)
     if args.json:
         print(json.dumps(report, indent=2))
@@ -63,8 +90,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     downscale = 1 if args.full else args.downscale
     n_images = args.images if args.images is not None else (100 if args.full else 20)
+    _check(downscale >= 1, f"--downscale {downscale}: expected an integer >= 1")
+    _check(n_images >= 1, f"--images {n_images}: expected an integer >= 1")
+    if not args.no_plots:
+        _check_out_folder(args.out)
     print(
-        f"polins demo: the paper's Section 4.1 simulation (SPEC 11), {n_images} images at "
+        f"polins demo: the paper's Section 4.1 simulation (docs/model.md §11), {n_images} images at "
         f"1/{downscale} resolution{' (use --full for full resolution)' if downscale > 1 else ''}",
         flush=True,
     )
@@ -85,7 +116,16 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from polins.sim.scenario import simulate_log
+    from polins.site import Site, utc_timestamp
 
+    _check(args.downscale in (1, 2, 4, 8), f"--downscale {args.downscale}: expected 1, 2, 4 or 8")
+    _check(
+        args.duration is None or args.duration > 0, f"--duration {args.duration}: expected > 0 [s]"
+    )
+    _check(args.image_rate > 0, f"--image-rate {args.image_rate}: expected > 0 [Hz]")
+    Site(args.lat, args.lon, args.alt)
+    utc_timestamp(args.epoch, "--epoch")
+    _check_out_folder(args.out)
     start = time.perf_counter()
     sim = simulate_log(
         Path(args.out),
@@ -117,33 +157,49 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rot0(text: str) -> Any:
+    """``--rot0 ROLL,PITCH,HEADING`` [deg] as a Rotation (body -> ENU)."""
+    from polins.frames import rot_nb_from_euler, yaw_from_heading_deg
+
+    try:
+        roll, pitch, heading = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ArgumentError(f"--rot0 {text!r}: expected ROLL,PITCH,HEADING in degrees") from None
+    yaw = float(yaw_from_heading_deg(heading))
+    return rot_nb_from_euler(yaw, np.radians(pitch), np.radians(roll))
+
+
 def _cmd_fuse(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from polins.frames import rot_nb_from_euler, yaw_from_heading_deg
+    from polins.fusion.config import FuseConfig
     from polins.io import read_log
     from polins.io.report import format_summary, summarize, write_report
-    from polins.loop.stream import LoopOptions, run_log
+    from polins.loop import LoopOptions, run_log
 
+    _check(args.workers is None or args.workers >= 1, f"--workers {args.workers}: expected >= 1")
+    _check(args.prior_lag >= 0, f"--prior-lag {args.prior_lag}: expected >= 0 [s]")
+    _check(args.settle >= 0, f"--settle {args.settle}: expected >= 0 [s]")
+    _check(not (args.smooth and args.backend != "eskf"), "--smooth needs --backend eskf")
+    _check_out_folder(args.out)
+    rot_nb0 = None if args.rot0 is None else _rot0(args.rot0)
+    options = LoopOptions(method=args.method, update=args.update, prior_lag_s=args.prior_lag)
     try:
         log = read_log(args.manifest, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
     except ImportError as exc:  # a ROS bag without the optional extra
-        raise ValueError(str(exc)) from None
-    rot_nb0 = None
-    if args.rot0 is not None:
-        roll, pitch, heading = (float(v) for v in args.rot0.split(","))
-        yaw = float(yaw_from_heading_deg(heading))
-        rot_nb0 = rot_nb_from_euler(yaw, np.radians(pitch), np.radians(roll))
-    options = LoopOptions(method=args.method, update=args.update, prior_lag_s=args.prior_lag)
-    fuse_options = {"nhc_std": args.nhc} if args.nhc is not None else {}
+        raise ArgumentError(str(exc)) from None
+    changes: dict[str, Any] = {"smooth": True} if args.smooth else {}
+    if args.nhc is not None:
+        changes["nhc_std"] = args.nhc
+    config = FuseConfig.from_options(log.config, **changes)
+    config.check_backend(args.backend)
     result = run_log(
         log,
         options=options,
+        config=config,
         backend=args.backend,
-        smooth=args.smooth,
         workers=args.workers,
         rot_nb0=rot_nb0,
-        fuse_options=fuse_options,
         progress=not args.quiet,
     )
     summary = summarize(
@@ -167,29 +223,29 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
     )
     print(format_summary(summary))
     print(f"wrote {', '.join(sorted(p.name for p in files.values()))} to {args.out}")
+    if not summary["images"]["accepted_by_filter"]:
+        print("polins fuse: no measurement was accepted by the filter", file=sys.stderr)
+        return 1
     return 0
 
 
 def _cmd_heading(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    import cv2
-
     from polins.compass.measure import measure
     from polins.frames import rot_nb_from_euler
+    from polins.io.images import read_image
     from polins.models.loader import load_camera
-    from polins.site import to_utc_index
+    from polins.site import Site, to_utc_index
     from polins.sky.ephemeris import sun_position, sun_vector_n
 
     path = Path(args.image)
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise ValueError(f"cannot read {path} as an image (a 16-bit PNG or TIFF raw mosaic)")
-    if raw.ndim != 2:
-        raise ValueError(f"{path}: expected a single-channel raw mosaic, got shape {raw.shape}")
     cam = load_camera(args.camera)
+    Site(args.lat, args.lon, args.alt)
+    to_utc_index(args.time)
+    raw = read_image(path, shape=cam.shape)
     sun = sun_position(args.time, args.lat, args.lon, args.alt)
     sun_n = sun_vector_n(sun.azimuth, sun.zenith)
     rot = rot_nb_from_euler(
@@ -333,8 +389,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except USER_ERRORS as exc:
         if args.debug:
             raise
-        print(f"polins {args.command}: error: {exc}", file=sys.stderr)
+        message = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+        print(f"polins {args.command}: error: {message}", file=sys.stderr)
         return 2
 
 
-__all__ = ["build_parser", "main", "sun_report"]
+__all__ = ["USER_ERRORS", "ArgumentError", "build_parser", "main", "sun_report"]

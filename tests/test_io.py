@@ -24,7 +24,8 @@ from polins.io import (
     write_imu,
     write_log,
 )
-from polins.io.log import camera_model_toml, parse_manifest
+from polins.io.log import parse_manifest
+from polins.io.model_files import camera_model_toml
 from polins.io.rosbag import ImageMessage, encoding_dtype, read_bag, write_bag
 
 EPOCH = "2023-09-05T15:06:00+08:00"
@@ -412,3 +413,64 @@ def test_parquet_without_pyarrow_names_the_extra(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "pyarrow.parquet", None)
     with pytest.raises(ImportError, match=r"polins\[parquet\]"):
         read_table(path)
+
+
+def test_manifest_filter_table_and_site(tmp_path, cam):
+    from polins.errors import UserInputError
+    from polins.site import Site
+
+    manifest = write_log(tmp_path / "log", epoch_utc=EPOCH, camera=cam, imu_model="fins-paper",
+                         imu=_imu(), images=_images(cam.shape, n=1), **SITE)  # fmt: skip
+    text = manifest.read_text()
+    log = read_log(manifest)
+    assert log.site == Site(**SITE) and log.config.site == log.site
+    assert log.config.imu.name == "fins-paper" and log.config.nhc_std is None  # defaults
+    manifest.write_text(text + "\n[filter]\nnhc_std = 0.05\ngate_prob = 0.99\nsmooth = true\n")
+    log = read_log(manifest)
+    assert (log.config.nhc_std, log.config.gate_prob, log.config.smooth) == (0.05, 0.99, True)
+    assert log.config.site == Site(**SITE) and log.config.imu.name == "fins-paper"
+    for table, message in [
+        ("nhc_sdt = 0.05", r"unknown key 'filter.nhc_sdt'; did you mean 'filter.nhc_std'"),
+        ("lat_deg = 10.0", r"unknown key 'filter.lat_deg'"),  # the site is [log]'s
+        ("gate_prob = 2.0", r"table \[filter\]: gate_prob must be in \(0, 1\)"),
+        ('att_std0 = "big"', r"table \[filter\]: att_std0 must be 3 numbers"),
+    ]:
+        manifest.write_text(text + f"\n[filter]\n{table}\n")
+        with pytest.raises(ManifestError, match=message) as info:
+            read_log(manifest)
+        assert isinstance(info.value, UserInputError) and "\n" not in str(info.value)
+
+
+def test_atomic_files_get_the_umask_without_touching_it(tmp_path, monkeypatch):
+    import os
+    import stat
+
+    old = os.umask(0o027)
+    try:
+        calls = []
+        monkeypatch.setattr(os, "umask", lambda mask: calls.append(mask) or 0)
+        path = tmp_path / "out" / "a.txt"
+        from polins.io import write_text_atomic
+
+        write_text_atomic(path, "x")
+        write_text_atomic(path, "y")  # replacing keeps the umask's mode
+    finally:
+        monkeypatch.undo()
+        os.umask(old)
+    assert calls == [] and path.read_text() == "y"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o640
+    assert [p.name for p in path.parent.iterdir()] == ["a.txt"]
+
+
+def test_input_errors_are_user_errors():
+    from polins.errors import UserInputError
+
+    assert issubclass(ManifestError, UserInputError) and issubclass(ImageReadError, UserInputError)
+
+
+def test_bad_imu_unit_is_a_user_error(tmp_path):
+    from polins.errors import UserInputError
+
+    path = write_imu(tmp_path / "imu.csv", _imu())
+    with pytest.raises(UserInputError, match="unknown gyro unit 'rpm'"):
+        read_imu(path, gyro_unit="rpm")

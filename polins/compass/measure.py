@@ -36,6 +36,7 @@ from polins.compass.measurement import (
     measure_options,
 )
 from polins.compass.paper import SWITCHES, check_switches, measure_paper
+from polins.errors import UserInputError
 from polins.models.loader import CameraModel
 
 __all__ = [
@@ -123,7 +124,7 @@ def check_measure_options(method: str, options: dict[str, Any]) -> MeasureOption
         Unknown option.
     """
     if method not in METHODS:
-        raise ValueError(f"method={method!r}: expected one of {METHODS}")
+        raise UserInputError(f"method={method!r}: expected one of {METHODS}")
     common = dict(options)
     if method == "paper":
         check_switches(**{k: common.pop(k) for k in SWITCHES if k in common})
@@ -141,7 +142,7 @@ def _dispatch(
     maps: bool,
 ) -> tuple[Measurement, MeasurementMaps | None]:
     if method not in METHODS:
-        raise ValueError(f"method={method!r}: expected one of {METHODS}")
+        raise UserInputError(f"method={method!r}: expected one of {METHODS}")
     if method == "paper":
         return measure_paper(raw, cam, sun_n=sun_n, rot_nb_prior=rot_nb_prior, maps=maps, **options)
     opt: MeasureOptions = measure_options(**options)

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from polins.compass.jointml import LOSSES
+from polins.errors import UnknownOptionError, UserInputError
 
 FloatArray = NDArray[np.float64]
 
@@ -110,14 +111,14 @@ class MeasureOptions:
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
-            raise ValueError(f"loss={self.loss!r}: expected one of {LOSSES}")
+            raise UserInputError(f"loss={self.loss!r}: expected one of {LOSSES}")
         for name in ("kappa", "sun_exclusion", "sigma_floor", "tilt_std"):
             if not getattr(self, name) >= 0:
-                raise ValueError(f"{name}={getattr(self, name)} must be >= 0")
+                raise UserInputError(f"{name}={getattr(self, name)} must be >= 0")
         if not 0 <= self.dop_min < 1:
-            raise ValueError(f"dop_min={self.dop_min} outside [0, 1)")
+            raise UserInputError(f"dop_min={self.dop_min} outside [0, 1)")
         if self.min_pixels < 3 or self.max_iterations < 1 or self.gn_pixels < 0:
-            raise ValueError("min_pixels >= 3, max_iterations >= 1 and gn_pixels >= 0 required")
+            raise UserInputError("min_pixels >= 3, max_iterations >= 1 and gn_pixels >= 0 required")
 
 
 _OPTION_NAMES = tuple(f.name for f in dataclasses.fields(MeasureOptions))
@@ -134,17 +135,17 @@ def measure_options(**options: Any) -> MeasureOptions:
 
     Raises
     ------
-    TypeError
-        An unknown option (the message lists the valid ones, and the new name of an option
+    UnknownOptionError
+        An unknown option, also a ``TypeError`` (the message lists the valid ones, and the new name of an option
         that was renamed to radians).
-    ValueError
-        An impossible value.
+    UserInputError
+        An impossible value, also a ``ValueError``.
     """
     unknown = sorted(set(options) - set(_OPTION_NAMES))
     if unknown:
         renamed = [f"{k} -> {_RENAMED[k]} [rad]" for k in unknown if k in _RENAMED]
         hint = f" (renamed: {', '.join(renamed)})" if renamed else ""
-        raise TypeError(
+        raise UnknownOptionError(
             f"unknown measure option(s) {unknown}{hint}; valid options: {', '.join(_OPTION_NAMES)}"
         )
     return MeasureOptions(**options)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,7 +68,7 @@ def item_model(
 ) -> Linearized:
     """The 15-state measurement model (:mod:`polins.fusion.measurement`) of ``item`` at a
     nominal attitude ``mat_nb`` and ENU velocity ``vel_n`` [m/s] (only zero-velocity and
-    non-holonomic items use it); ``tilt_coupling`` as :class:`EskfOptions`. The ESKF and
+    non-holonomic items use it); ``tilt_coupling`` as ``FuseConfig.tilt_coupling``. The ESKF and
     the GTSAM graph both linearize their items here.
     """
     var = item.std * item.std
@@ -87,23 +87,28 @@ def item_model(
     return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var))
 
 
-def items_from_table(measurements: pd.DataFrame, *, use_sun: bool = True) -> list[MeasurementItem]:
+def items_from_table(
+    measurements: pd.DataFrame | Mapping[str, ArrayLike], *, use_sun: bool = True
+) -> list[MeasurementItem]:
     """The filter's measurement items of a validated measurements table, in row order.
 
-    The rules ( sun vector if complete and ``use_sun``, else yaw, NaN -> invalid item,
-    ``zupt_std`` -> zero-velocity item; yaw items carry the prior attitude of the
-    ``prior_*`` columns).
+    ``measurements`` is a DataFrame or a mapping of column name to values (one row per
+    element). The rules: a sun vector if complete and ``use_sun``, else a yaw; NaN -> an
+    invalid item (logged, not used); ``zupt_std`` -> a zero-velocity item; yaw items carry
+    the prior attitude of the ``prior_*`` columns (docs/filter.md).
     """
     df = measurements
-    n = len(df)
+    n = len(df) if isinstance(df, pd.DataFrame) else len(np.atleast_1d(df["t"]))
 
     def col(name: str) -> FloatArray:
-        return df[name].to_numpy(dtype=float) if name in df.columns else np.full(n, np.nan)
+        if name not in df:
+            return np.full(n, np.nan)
+        return np.atleast_1d(np.asarray(df[name], dtype=float))
 
     t = col("t")
-    has_yaw = "yaw" in df.columns
-    has_sun = "sun_std" in df.columns
-    has_zupt = "zupt_std" in df.columns
+    has_yaw = "yaw" in df
+    has_sun = "sun_std" in df
+    has_zupt = "zupt_std" in df
     yaw, yaw_std = col("yaw"), col("yaw_std")
     sun_b = np.column_stack([col(f"sun_b{c}") for c in "xyz"])
     sun_n = np.column_stack([col(f"sun_n{c}") for c in "xyz"])
@@ -187,7 +192,7 @@ def measurement_items(
     if rot_nb_prior is not None:
         y, p, r = euler_from_rot_nb(rot_nb_prior)
         row.update(prior_yaw=[float(y)], prior_pitch=[float(p)], prior_roll=[float(r)])
-    return items_from_table(pd.DataFrame(row), use_sun=use_sun)
+    return items_from_table(row, use_sun=use_sun)
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Recorded logs: manifest, IMU tables, image folders, ROS bags and atomic outputs.
 
-``write_log`` / ``read_log`` handle the log folder of INTERFACES.md (see ``polins.io.log``
+``write_log`` / ``read_log`` handle the log folder of docs/filter.md (see ``polins.io.log``
 for the manifest format); ``polins.io.tables`` reads IMU CSV/Parquet with unit metadata;
 ``polins.io.images`` reads 16-bit PNG/TIFF raw mosaics and their timestamp index;
 ``polins.io.rosbag`` (optional extra ``ros``) reads and writes ROS 1/2 bags.

@@ -10,15 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import secrets
 from collections.abc import Iterator
 from pathlib import Path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 @contextlib.contextmanager
@@ -38,19 +32,32 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(
-        prefix=f".{final.name}.", suffix=f".tmp{final.suffix}", dir=final.parent
-    )
-    os.close(fd)
-    tmp = Path(tmp_name)
+    tmp = _create_temporary(final)
     try:
         yield tmp
-        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, final)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
+
+
+def _create_temporary(final: Path) -> Path:
+    """A new, empty hidden file next to ``final``, with the permissions the umask allows.
+
+    Created with ``O_CREAT | O_EXCL`` and mode 0o666, so the OS applies the process umask
+    (as for any new file) without reading or changing it.
+    """
+    for _ in range(100):
+        name = f".{final.name}.{secrets.token_hex(4)}.tmp{final.suffix}"
+        tmp = final.parent / name
+        try:
+            fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(f"no free temporary name next to {final}")
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:

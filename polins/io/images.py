@@ -18,7 +18,7 @@ times of a folder of images:
   the unit suffix is required so that frame counters (``000001.png``) are never read as times.
 
 A file that cannot be decoded, is not single-channel, or not unsigned integer raises
-:class:`ImageReadError` (the pipeline skips and reports it; it never aborts a run).
+:class:`ImageReadError` (the navigation loop skips and reports it; it never aborts a run).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from polins.errors import UserInputError
 from polins.io.atomic import atomic_path
 from polins.io.tables import read_table, write_table
 
@@ -43,7 +44,7 @@ TIME_IN_NAME = re.compile(r"^(?:.*[_-])?(?P<t>[0-9]+(?:\.[0-9]*)?)(?P<unit>s|ms|
 _UNIT_S = {"s": Decimal(1), "ms": Decimal("1e-3"), "us": Decimal("1e-6"), "ns": Decimal("1e-9")}
 
 
-class ImageReadError(ValueError):
+class ImageReadError(UserInputError):
     """An image file or message that cannot be used as a raw mosaic."""
 
 
@@ -59,10 +60,10 @@ def write_image(path: str | Path, raw: NDArray[np.unsignedinteger]) -> Path:
     """
     path = Path(path)
     if path.suffix.lower() not in IMAGE_SUFFIXES:
-        raise ValueError(f"{path}: image suffix must be one of {IMAGE_SUFFIXES}")
+        raise UserInputError(f"{path}: image suffix must be one of {IMAGE_SUFFIXES}")
     raw = np.asarray(raw)
     if raw.ndim != 2 or raw.dtype not in (np.uint8, np.uint16):
-        raise ValueError(
+        raise UserInputError(
             f"raw image must be a 2-D uint8 or uint16 mosaic, got shape {raw.shape} {raw.dtype}"
         )
     with atomic_path(path) as tmp:
@@ -180,7 +181,7 @@ def read_image_index(path: str | Path) -> ImageIndex:
             ):
                 found.append((t_name, f))
         if not found:
-            raise ValueError(
+            raise UserInputError(
                 f"{path}: no image named with its time (e.g. '000012.250000s.png' or "
                 "'img_12250ms.tiff'); or give an index CSV with columns t, file"
             )
@@ -191,11 +192,11 @@ def read_image_index(path: str | Path) -> ImageIndex:
     df = read_table(path)
     missing = [c for c in ("t", "file") if c not in df.columns]
     if missing:
-        raise ValueError(f"{path}: image index lacks column(s) {missing}; expected t, file")
+        raise UserInputError(f"{path}: image index lacks column(s) {missing}; expected t, file")
     t = pd.to_numeric(df["t"], errors="coerce").to_numpy(dtype=float)
     if not np.all(np.isfinite(t)):
         row = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise ValueError(f"{path}: row {row}: image time {df['t'].iloc[row]!r} is not a number")
+        raise UserInputError(f"{path}: row {row}: image time {df['t'].iloc[row]!r} is not a number")
     files = tuple(path.parent / str(f) for f in df["file"])
     return ImageIndex(t=t, files=files)
 

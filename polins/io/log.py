@@ -1,6 +1,6 @@
 """A recorded (or simulated) log on disk: ``manifest.toml`` plus IMU table, images and truth.
 
-Folder layout (INTERFACES.md), as written by :func:`write_log`::
+Folder layout (docs/filter.md), as written by :func:`write_log`::
 
     manifest.toml       what is where, site, epoch, sensor models, units
     imu.csv             t, gx, gy, gz, ax, ay, az        (or imu.parquet)
@@ -35,6 +35,9 @@ Folder layout (INTERFACES.md), as written by :func:`write_log`::
     imu_topic = "/imu/data"
     image_topic = "/camera/image_raw"
 
+    [filter]                 # optional; polins.fusion.config.FuseConfig options
+    nhc_std = 0.05           # (an unknown key is an error naming the closest one)
+
 Every file is written atomically and the manifest last, so a folder with a manifest is a
 complete log; an interrupted :func:`write_log` leaves no manifest.
 """
@@ -43,7 +46,6 @@ from __future__ import annotations
 
 import datetime as dt
 import difflib
-import json
 import math
 import re
 import shutil
@@ -57,18 +59,21 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from polins.errors import UserInputError
+from polins.fusion.config import FuseConfig, config_from_mapping, option_names
 from polins.io.atomic import atomic_path, write_text_atomic
 from polins.io.images import IMAGE_SUFFIXES, read_image_index, write_image
 from polins.io.images import write_image_index as _write_index
+from polins.io.model_files import camera_model_toml, imu_model_toml, toml_dumps
 from polins.io.tables import ACCEL_UNITS, GYRO_UNITS, read_imu, read_table, write_imu, write_table
 from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
-from polins.site import utc_timestamp
+from polins.site import Site, utc_timestamp
 from polins.sky.ephemeris import sun_position, sun_vector_n
 
 MANIFEST_NAME = "manifest.toml"
 
 
-class ManifestError(ValueError):
+class ManifestError(UserInputError):
     """A manifest is missing a key, has an unknown key, or a bad value (named in the message)."""
 
 
@@ -83,109 +88,6 @@ class ImageSource(Protocol):
     def __iter__(self) -> Iterator[tuple[float, Any]]: ...
 
 
-# ----------------------------------------------------------------------------- TOML out
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | np.integer):
-        return str(int(v))
-    if isinstance(v, float | np.floating):
-        x = float(v)
-        if math.isnan(x):
-            return "nan"
-        if math.isinf(x):
-            return "inf" if x > 0 else "-inf"
-        return repr(x)
-    if isinstance(v, str):
-        return json.dumps(v)  # a JSON string is a valid TOML basic string
-    if isinstance(v, np.ndarray):
-        return _toml_value(v.tolist())
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def toml_dumps(data: Mapping[str, Any], header: str = "") -> str:
-    """Minimal TOML writer for flat keys and one level of tables (all polins files need)."""
-    lines = [f"# {line}" for line in header.splitlines()]
-    tables = {k: v for k, v in data.items() if isinstance(v, Mapping)}
-    for key, value in data.items():
-        if key not in tables:
-            lines.append(f"{key} = {_toml_value(value)}")
-    for name, table in tables.items():
-        lines.extend(["", f"[{name}]"])
-        lines.extend(f"{k} = {_toml_value(v)}" for k, v in table.items())
-    return "\n".join(lines) + "\n"
-
-
-def camera_model_toml(cam: CameraModel) -> str:
-    """A camera model as TOML text that :func:`polins.load_camera` reads back to ``cam``."""
-    k = cam.camera_matrix
-    data = {
-        "name": cam.name,
-        "description": cam.description,
-        "sensor": {
-            "width_px": cam.width_px,
-            "height_px": cam.height_px,
-            "pixel_pitch_um": cam.pixel_pitch_um,
-            "bit_depth": cam.bit_depth,
-            "saturation_dn": cam.saturation_dn,
-            "mosaic_layout_deg": cam.nominal_angle_deg[cam.channel_at],
-        },
-        "polarizer": {
-            "nominal_angle_deg": cam.nominal_angle_deg,
-            "transmission_angle_deg": np.degrees(cam.transmission_angle),
-            "gain": cam.gain,
-            "efficiency": cam.efficiency,
-            "dark_offset_dn": cam.dark_offset_dn,
-        },
-        "noise": {
-            "read_noise_dn": cam.read_noise_dn,
-            "conversion_gain_e_per_dn": cam.conversion_gain_e_per_dn,
-        },
-        "lens": {
-            "projection": cam.projection,
-            "polarization_model": cam.polarization_model,
-            "fx_superpixel": k[0, 0],
-            "fy_superpixel": k[1, 1],
-            "cx_superpixel": k[0, 2],
-            "cy_superpixel": k[1, 2],
-            "distortion": cam.distortion,
-            "fov_max_deg": math.degrees(cam.fov_max),
-        },
-        "mount": {"mat_bc": cam.mat_bc},
-        "occlusion": {"polygons_superpixel": [p.tolist() for p in cam.occlusion_polygons]},
-    }
-    return toml_dumps(data, header=f"camera model written by polins from {cam.path}")
-
-
-def imu_model_toml(model: ImuModel) -> str:
-    """An IMU model as TOML text that :func:`polins.load_imu` reads back to ``model``."""
-    deg_per_h = math.pi / 180.0 / 3600.0  # [rad/s] per [deg/h]
-    mg = 9.80665e-3  # [m/s^2] per [mg]
-    sqrt_h = 60.0  # sqrt(3600 s)
-    data = {
-        "name": model.name,
-        "description": model.description,
-        "grade": model.grade,
-        "earth_rate": model.earth_rate,
-        "sample_rate_hz": model.sample_rate_hz,
-        "gyro": {
-            "arw_deg_per_sqrt_h": math.degrees(model.gyro_arw) * sqrt_h,
-            "bias_deg_per_h": model.gyro_bias / deg_per_h,
-            "bias_rw_deg_per_h_per_sqrt_h": model.gyro_bias_rw / deg_per_h * sqrt_h,
-            "scale_factor_ppm": model.gyro_scale_factor * 1e6,
-        },
-        "accel": {
-            "vrw_m_per_s_per_sqrt_h": model.accel_vrw * sqrt_h,
-            "bias_mg": model.accel_bias / mg,
-            "bias_rw_mg_per_sqrt_h": model.accel_bias_rw / mg * sqrt_h,
-            "scale_factor_ppm": model.accel_scale_factor * 1e6,
-        },
-    }
-    return toml_dumps(data, header=f"IMU model written by polins from {model.path}")
-
-
 # ----------------------------------------------------------------------------- manifest
 def _str(v: Any) -> str:
     if not isinstance(v, str) or not v:
@@ -198,7 +100,7 @@ def _num(lo: float, hi: float) -> Callable[[Any], float]:
         if isinstance(v, bool) or not isinstance(v, int | float):
             raise TypeError("expected a number")
         if not lo <= float(v) <= hi:
-            raise ValueError(f"expected a number in [{lo}, {hi}] (degrees)")
+            raise UserInputError(f"expected a number in [{lo}, {hi}] (degrees)")
         return float(v)
 
     return check
@@ -219,7 +121,7 @@ def _epoch(v: Any) -> pd.Timestamp:
 def _unit(table: Mapping[str, float]) -> Callable[[Any], str]:
     def check(v: Any) -> str:
         if v not in table:
-            raise ValueError(f"expected one of {', '.join(repr(u) for u in table)}")
+            raise UserInputError(f"expected one of {', '.join(repr(u) for u in table)}")
         return str(v)
 
     return check
@@ -280,8 +182,8 @@ def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
         raise ManifestError(f"{path}: not valid TOML: {exc}") from None
     out: dict[str, dict[str, Any]] = {}
     for section, content in data.items():
-        if section not in _MANIFEST_SCHEMA:
-            raise _unknown(path, section, _MANIFEST_SCHEMA)
+        if section not in _MANIFEST_SCHEMA and section != "filter":
+            raise _unknown(path, section, [*_MANIFEST_SCHEMA, "filter"])
         if not isinstance(content, dict):
             raise ManifestError(f"{path}: '{section}' must be a table [{section}]")
     for section, schema in _MANIFEST_SCHEMA.items():
@@ -324,7 +226,21 @@ def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
                 )
     if out["ros"] and "bag" not in files:
         raise ManifestError(f"{path}: table [ros] is only used with 'files.bag'")
+    out["filter"] = _filter_table(path, data.get("filter", {}))
     return out
+
+
+def _filter_table(path: Path, table: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``[filter]`` table: ``FuseConfig`` options (the site and IMU model are in [log])."""
+    allowed = [n for n in option_names() if n not in ("imu_model", "site")]
+    for key in table:
+        if key not in allowed:
+            raise _unknown(path, f"filter.{key}", allowed)
+    try:
+        config_from_mapping(table)
+    except (UserInputError, TypeError) as exc:  # TypeError: a value of the wrong type
+        raise ManifestError(f"{path}: table [filter]: {exc}") from None
+    return dict(table)
 
 
 # ----------------------------------------------------------------------------- Log
@@ -339,8 +255,8 @@ class Log:
         UTC time of ``t = 0``.
     camera : CameraModel
     imu_model : ImuModel
-    lat_deg, lon_deg, alt_m : float
-        Site (geodetic, WGS-84) [deg, deg, m].
+    site : Site
+        Where the log was recorded (``[log]`` lat_deg, lon_deg, alt_m).
     imu : DataFrame
         ``t, gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2], as recorded (not yet cleaned).
     images : ImageSource
@@ -348,20 +264,39 @@ class Log:
         :func:`polins.io.load_raw`.
     truth : DataFrame or None
         Reference trajectory (``Trajectory.truth_frame()`` columns), if the log has one.
+    description : str
+    manifest : dict
+        The validated manifest (``parse_manifest``).
+    config : FuseConfig
+        The filter configuration of the ``[filter]`` table, with the log's site and IMU model.
     """
 
     manifest_path: Path
     epoch_utc: pd.Timestamp
     camera: CameraModel
     imu_model: ImuModel
-    lat_deg: float
-    lon_deg: float
-    alt_m: float
+    site: Site
     imu: pd.DataFrame
     images: ImageSource
     truth: pd.DataFrame | None = None
     description: str = ""
     manifest: dict[str, dict[str, Any]] = field(default_factory=dict)
+    config: FuseConfig = field(default_factory=FuseConfig)
+
+    @property
+    def lat_deg(self) -> float:
+        """Latitude of the site [deg]."""
+        return self.site.lat_deg
+
+    @property
+    def lon_deg(self) -> float:
+        """Longitude of the site [deg]."""
+        return self.site.lon_deg
+
+    @property
+    def alt_m(self) -> float:
+        """Height of the site above the WGS-84 ellipsoid [m]."""
+        return self.site.alt_m
 
     @property
     def folder(self) -> Path:
@@ -438,19 +373,19 @@ def read_log(
         )
         images = read_image_index(file("images"))
     truth = read_table(file("truth")) if "truth" in files else None
+    site = Site(log["lat_deg"], log["lon_deg"], log["alt_m"])
     return Log(
         manifest_path=path,
         epoch_utc=log["epoch_utc"],
         camera=camera,
         imu_model=imu_model,
-        lat_deg=log["lat_deg"],
-        lon_deg=log["lon_deg"],
-        alt_m=log["alt_m"],
+        site=site,
         imu=imu,
         images=images,
         truth=truth,
         description=log["description"],
         manifest=m,
+        config=config_from_mapping(m["filter"], FuseConfig(imu_model=imu_model, site=site)),
     )
 
 
@@ -524,9 +459,9 @@ def write_log(
     folder = Path(folder)
     epoch = utc_timestamp(epoch_utc)
     if image_format not in ("png", "tiff", "tif"):
-        raise ValueError(f"image_format {image_format!r}: expected 'png' or 'tiff'")
+        raise UserInputError(f"image_format {image_format!r}: expected 'png' or 'tiff'")
     if imu_format not in ("csv", "parquet"):
-        raise ValueError(f"imu_format {imu_format!r}: expected 'csv' or 'parquet'")
+        raise UserInputError(f"imu_format {imu_format!r}: expected 'csv' or 'parquet'")
     _num(-90.0, 90.0)(lat_deg)
     _num(-180.0, 360.0)(lon_deg)
     folder.mkdir(parents=True, exist_ok=True)
@@ -581,11 +516,7 @@ __all__ = [
     "ImageSource",
     "Log",
     "ManifestError",
-    "camera_model_toml",
-    "imu_model_toml",
     "parse_manifest",
     "read_log",
-    "toml_dumps",
-    "utc_timestamp",
     "write_log",
 ]

@@ -30,6 +30,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from polins.errors import UserInputError
 from polins.io.images import ImageReadError, decode_image
 
 _ENCODING = re.compile(
@@ -152,13 +153,13 @@ def _pick_topic(reader: Any, msgtype: str, topic: str | None, what: str, path: P
     topics = {c.topic: c.msgtype for c in reader.connections}
     if topic is not None:
         if topic not in topics:
-            raise ValueError(f"{path}: no topic {topic!r}; topics: {topics}")
+            raise UserInputError(f"{path}: no topic {topic!r}; topics: {topics}")
         if topics[topic] != msgtype:
-            raise ValueError(f"{path}: topic {topic!r} is {topics[topic]}, expected {msgtype}")
+            raise UserInputError(f"{path}: topic {topic!r} is {topics[topic]}, expected {msgtype}")
         return topic
     found = sorted(t for t, typ in topics.items() if typ == msgtype)
     if len(found) != 1:
-        raise ValueError(
+        raise UserInputError(
             f"{path}: {'no' if not found else 'several'} {msgtype} topic(s) {found}; "
             f"name the {what} topic (manifest [ros] {what}_topic)"
         )
@@ -215,9 +216,9 @@ def read_bag(
                 else:
                     image_ns.append(ns)
     except rb.highlevel.AnyReaderError as exc:
-        raise ValueError(f"{path}: not a readable ROS bag: {exc}") from None
+        raise UserInputError(f"{path}: not a readable ROS bag: {exc}") from None
     if not rows:
-        raise ValueError(f"{path}: topic {imu_topic!r} has no messages")
+        raise UserInputError(f"{path}: topic {imu_topic!r} has no messages")
     if epoch_utc is None:
         first = min([rows[0][0], *image_ns[:1]])
         epoch = pd.Timestamp(first // 1_000_000_000 * 1_000_000_000, unit="ns", tz="UTC")
@@ -314,10 +315,12 @@ def write_bag(
         for t, raw in images:
             raw = np.asarray(raw)
             if raw.ndim != 2 or raw.dtype not in (np.uint8, np.uint16):
-                raise ValueError(f"raw image must be 2-D uint8/uint16, got {raw.shape} {raw.dtype}")
+                raise UserInputError(
+                    f"raw image must be 2-D uint8/uint16, got {raw.shape} {raw.dtype}"
+                )
             enc = encoding or ("mono8" if raw.dtype == np.uint8 else "mono16")
             if encoding_dtype(enc) != raw.dtype:
-                raise ValueError(f"encoding {enc!r} does not match image dtype {raw.dtype}")
+                raise UserInputError(f"encoding {enc!r} does not match image dtype {raw.dtype}")
             flush_imu(float(t))
             ns = to_ns(float(t))
             data = np.ascontiguousarray(raw.astype(raw.dtype.newbyteorder("<"), copy=False))

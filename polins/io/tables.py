@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from polins.errors import UserInputError
 from polins.io.atomic import atomic_path
 
 IMU_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
@@ -37,7 +38,7 @@ _UNITS_LINE = re.compile(r"^#\s*units\s*:\s*(?P<body>.*)$", re.IGNORECASE)
 def _check_unit(kind: str, unit: str | None) -> str | None:
     table = GYRO_UNITS if kind == "gyro" else ACCEL_UNITS
     if unit is not None and unit not in table:
-        raise ValueError(f"unknown {kind} unit {unit!r}: expected one of {', '.join(table)}")
+        raise UserInputError(f"unknown {kind} unit {unit!r}: expected one of {', '.join(table)}")
     return unit
 
 
@@ -47,7 +48,7 @@ def _table_format(path: Path) -> str:
         return "csv"
     if suffix in (".parquet", ".pq"):
         return "parquet"
-    raise ValueError(f"{path}: unknown table format {suffix!r}: expected .csv or .parquet")
+    raise UserInputError(f"{path}: unknown table format {suffix!r}: expected .csv or .parquet")
 
 
 def write_table(
@@ -108,7 +109,7 @@ def _csv_units(path: Path) -> tuple[dict[str, str], int]:
                         continue
                     key, sep, value = item.partition("=")
                     if not sep or key not in ("gyro", "accel"):
-                        raise ValueError(
+                        raise UserInputError(
                             f"{path}: bad units comment {line.strip()!r}: expected "
                             "'# units: gyro=<rad/s|deg/s>, accel=<m/s^2|g>'"
                         )
@@ -140,10 +141,10 @@ def imu_file_units(path: str | Path) -> dict[str, str]:
         try:
             units = dict(json.loads(raw)) if raw else {}
         except (ValueError, TypeError):
-            raise ValueError(f"{path}: bad {_PARQUET_KEY.decode()} metadata {raw!r}") from None
+            raise UserInputError(f"{path}: bad {_PARQUET_KEY.decode()} metadata {raw!r}") from None
     for kind, unit in units.items():
         if kind not in ("gyro", "accel"):
-            raise ValueError(f"{path}: unknown unit key {kind!r} (expected gyro, accel)")
+            raise UserInputError(f"{path}: unknown unit key {kind!r} (expected gyro, accel)")
         _check_unit(kind, unit)
     return units
 
@@ -165,7 +166,7 @@ def read_imu(
     -------
     DataFrame
         Columns ``t`` [s], ``gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2], float64, in file
-        order (sample-order policies are the pipeline's, see ``polins.loop.stream``).
+        order (sample-order policies are the navigation loop's, see ``polins.loop.stream``).
 
     Raises
     ------
@@ -181,7 +182,7 @@ def read_imu(
     ):
         own = declared.get(kind)
         if flag is not None and own is not None and flag != own:
-            raise ValueError(
+            raise UserInputError(
                 f"{path}: the file declares {kind} in {own!r} but {flag!r} was requested; "
                 "remove one of the two declarations"
             )
@@ -189,7 +190,7 @@ def read_imu(
     df = read_table(path)
     missing = [c for c in IMU_COLUMNS if c not in df.columns]
     if missing:
-        raise ValueError(
+        raise UserInputError(
             f"{path}: IMU table lacks column(s) {missing}; expected {list(IMU_COLUMNS)} "
             f"(found {list(df.columns)})"
         )
@@ -199,7 +200,7 @@ def read_imu(
         bad = values.isna() & df[col].notna()
         if bad.any():
             row = int(np.flatnonzero(bad.to_numpy())[0])
-            raise ValueError(
+            raise UserInputError(
                 f"{path}: column {col!r} row {row}: not a number: {df[col].iloc[row]!r}"
             )
         out[col] = values.to_numpy(dtype=float)
@@ -220,7 +221,9 @@ def write_imu(
     _check_unit("accel", accel_unit)
     missing = [c for c in IMU_COLUMNS if c not in imu.columns]
     if missing:
-        raise ValueError(f"IMU DataFrame lacks column(s) {missing}; expected {list(IMU_COLUMNS)}")
+        raise UserInputError(
+            f"IMU DataFrame lacks column(s) {missing}; expected {list(IMU_COLUMNS)}"
+        )
     out = imu.loc[:, list(IMU_COLUMNS)].astype(float).reset_index(drop=True)
     out[["gx", "gy", "gz"]] /= GYRO_UNITS[gyro_unit]
     out[["ax", "ay", "az"]] /= ACCEL_UNITS[accel_unit]

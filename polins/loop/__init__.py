@@ -1,1 +1,14 @@
-"""The navigation loop: images measured with the INS attitude as prior, streaming and offline."""
+"""The navigation loop: images measured with the INS attitude as prior, streaming and offline.
+
+:mod:`polins.loop.options` (what the loop does), :mod:`polins.loop.measurer` (the image
+stage and its executors), :mod:`polins.loop.prior` (the prior and the sun vector of an
+image), :mod:`polins.loop.stream` (:class:`NavigationStream`, the streaming state machine),
+:mod:`polins.loop.tables` (measurement rows and events), :mod:`polins.loop.offline`
+(:func:`run_log` over a recorded log).
+"""
+
+from polins.loop.offline import RunResult, run_log
+from polins.loop.options import LoopOptions
+from polins.loop.stream import NavigationStream, StreamState
+
+__all__ = ["LoopOptions", "NavigationStream", "RunResult", "StreamState", "run_log"]

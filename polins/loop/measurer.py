@@ -1,0 +1,179 @@
+"""The image stage of the loop: ``polins.measure`` on one image, in this process, threads or processes.
+
+:class:`ImageMeasurer` turns one image item (a raw mosaic, a path or a bag message) and its
+prior into a measurement row. A data fault of the image (it cannot be read or decoded:
+:class:`polins.io.ImageReadError`; OpenCV failing on its pixels: ``cv2.error``) gives a row
+with ``ok=False`` and the event to report (docs/faults.md); any other exception is a bug and
+propagates to the caller (through the executor's future).
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from polins.compass.measure import check_measure_options, measure
+from polins.io.images import ImageReadError, load_raw
+from polins.models.loader import CameraModel
+
+FloatArray = NDArray[np.float64]
+EXECUTORS = ("inline", "thread", "process")
+
+
+class ImageMeasurer:
+    """``polins.measure`` on one image item (picklable; one per worker).
+
+    Parameters
+    ----------
+    camera : CameraModel
+    method : str
+        ``polins.measure`` method.
+    options : mapping
+        ``polins.measure`` keyword options (checked here, not in every image).
+    """
+
+    def __init__(self, camera: CameraModel, method: str, options: Mapping[str, Any]) -> None:
+        check_measure_options(method, dict(options))  # a bad method or option fails here, once
+        self.camera = camera
+        self.method = method
+        self.options = dict(options)
+
+    def __call__(self, item: Any, sun_n: FloatArray, quat_prior: FloatArray) -> dict[str, Any]:
+        """Measure one image; a measurement row (``ok=False``, reason and event on a data fault).
+
+        Parameters
+        ----------
+        item : array, path or bag message
+            What :func:`polins.io.load_raw` loads.
+        sun_n : (3,) ndarray
+            ENU sun vector at the image time.
+        quat_prior : (4,) ndarray
+            Prior attitude body -> ENU, scipy quaternion order (x, y, z, w).
+        """
+        start = time.perf_counter()
+        row: dict[str, Any] = {"ok": False, "reason": "", "event": ""}
+        try:
+            raw = load_raw(item, shape=self.camera.shape)
+        except ImageReadError as exc:
+            row.update(reason=f"unreadable image: {exc}", event="image-unreadable")
+        else:
+            try:
+                m = measure(raw, self.camera, sun_n=sun_n,
+                            rot_nb_prior=Rotation.from_quat(quat_prior), method=self.method,
+                            **self.options)  # fmt: skip
+            except cv2.error as exc:
+                row.update(reason=f"measurement failed: OpenCV: {exc}", event="image-error")
+            else:
+                row.update(
+                    ok=bool(m.ok),
+                    reason=m.reason,
+                    yaw=m.yaw,
+                    yaw_std=m.yaw_std,
+                    yaw_std_meas=m.yaw_std_meas,
+                    heading_deg=m.heading_deg,
+                    heading_std_deg=math.degrees(m.yaw_std),
+                    epsilon=m.epsilon,
+                    epsilon_std=m.epsilon_std,
+                    n_pixels=int(m.n_pixels),
+                    sun_bx=m.sun_b[0],
+                    sun_by=m.sun_b[1],
+                    sun_bz=m.sun_b[2],
+                    sun_std=m.sun_std,
+                    eigen_gap=m.eigen_gap,
+                    residual_rms=m.residual_rms,
+                )
+        row["measure_s"] = time.perf_counter() - start
+        return row
+
+
+# The measurer of a worker process, set once by the pool's initializer (so the camera and
+# its per-camera caches are built once per process, not sent with every image).
+_WORKER: ImageMeasurer | None = None
+
+
+def _worker_init(measurer: ImageMeasurer) -> None:
+    global _WORKER
+    _WORKER = measurer
+
+
+def _worker_call(item: Any, sun_n: FloatArray, quat_prior: FloatArray) -> dict[str, Any]:
+    if _WORKER is None:
+        raise RuntimeError("image worker used before its initializer ran")
+    return _WORKER(item, sun_n, quat_prior)
+
+
+class InlineExecutor(Executor):
+    """Runs each job at submission, in the caller (no parallelism; the deterministic reference)."""
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        """Run ``fn(*args, **kwargs)`` now; its result or exception is in the returned future."""
+        fut: Future[Any] = Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # the future carries it to the caller's result()
+            fut.set_exception(exc)
+        return fut
+
+
+def make_executor(
+    kind: str, workers: int, measurer: ImageMeasurer
+) -> tuple[Executor, Callable[..., dict[str, Any]]]:
+    """An executor for the image stage and the function to submit to it.
+
+    Parameters
+    ----------
+    kind : {"inline", "thread", "process"}
+        In the caller, in ``workers`` threads, or in ``workers`` processes (each initialised
+        once with the measurer).
+    workers : int
+        Threads or processes.
+    measurer : ImageMeasurer
+    """
+    if kind == "inline":
+        return InlineExecutor(), measurer
+    if kind == "thread":
+        return ThreadPoolExecutor(max_workers=workers), measurer
+    if kind == "process":
+        method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+        pool = ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=mp.get_context(method),
+            initializer=_worker_init,
+            initargs=(measurer,),
+        )
+        return pool, _worker_call
+    raise ValueError(f"executor={kind!r}: expected one of {EXECUTORS}")
+
+
+@dataclass
+class PendingImage:
+    """An image between ``NavigationStream.add_image`` and its hand-over to the filter."""
+
+    index: int
+    t: float
+    item: Any  # raw mosaic, path or bag message; None once dispatched
+    sun_n: FloatArray
+    future: Future[dict[str, Any]] | None = None
+    prior: dict[str, float] = field(default_factory=dict)
+    row: dict[str, Any] | None = None  # the measurement, once known
+
+    @property
+    def dispatched(self) -> bool:
+        return self.future is not None or self.row is not None
+
+    @property
+    def resolved(self) -> bool:
+        return self.row is not None or (self.future is not None and self.future.done())
+
+
+__all__ = ["EXECUTORS", "ImageMeasurer", "InlineExecutor", "PendingImage", "make_executor"]

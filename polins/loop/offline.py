@@ -1,0 +1,210 @@
+"""The navigation loop over a recorded log: :func:`run_log` measures every image and fuses it once.
+
+The filter runs once. :func:`run_log` feeds the log to a
+:class:`~polins.loop.stream.NavigationStream` in time order (images measured by a pool of
+processes); the stream's filter is the one the Eq. 13 loop needs for the image priors, and
+with ``record_solution`` it also keeps its estimate at every accepted IMU sample, which *is*
+the final ESKF solution (a second pass through ``polins.fuse`` would only repeat it). The
+other backends are other estimators, run once on the stream's measurement table
+(:func:`fuse_measurements`): the RTS smoother (a forward pass that stores what the backward
+pass needs) and the GTSAM graph.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
+
+from polins.errors import UserInputError
+from polins.fusion.api import run_fusion
+from polins.fusion.config import FuseConfig
+from polins.fusion.result import FusionResult
+from polins.io.log import Log
+from polins.loop.options import LoopOptions
+from polins.loop.stream import NavigationStream
+
+MEASUREMENT_INPUTS = ("t", "yaw", "yaw_std", "sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny",
+                      "sun_nz", "sun_std", "prior_roll", "prior_pitch", "prior_yaw")  # fmt: skip
+
+
+@dataclass(frozen=True, eq=False)
+class RunResult:
+    """What :func:`run_log` produced.
+
+    Attributes
+    ----------
+    solution : DataFrame
+        The solution table at every accepted IMU sample (docs/filter.md lists its columns).
+    measurements : DataFrame
+        One row per image (``polins.loop.tables.MEASUREMENT_COLUMNS``).
+    events : DataFrame
+        ``t, kind, detail`` of skipped data and gaps.
+    imu : DataFrame
+        The IMU samples used (after the sample policy).
+    timing : dict
+        ``run_s, loop_s, fuse_s, images, imu_samples, workers, measure_s_mean`` [s, counts];
+        ``fuse_s`` is the time of the final solution after the loop.
+    settings : dict
+        Options of the run (for the summary).
+    """
+
+    solution: pd.DataFrame
+    measurements: pd.DataFrame
+    events: pd.DataFrame
+    imu: pd.DataFrame
+    timing: dict[str, float]
+    settings: dict[str, Any]
+
+
+def fuse_measurements(
+    imu: pd.DataFrame,
+    measurements: pd.DataFrame,
+    config: FuseConfig,
+    *,
+    rot_nb0: Rotation | None = None,
+    backend: str = "eskf",
+) -> FusionResult:
+    """A solution from the loop's measurement table (its rows with ``ok``): ``run_fusion``.
+
+    ``config`` is the stream's filter configuration (:attr:`NavigationStream.config`). IMU
+    gaps were reported by the loop and are bridged here (``max_gap_s`` above the longest one).
+    """
+    ok = measurements["ok"].to_numpy(dtype=bool)
+    table = measurements.loc[ok, list(MEASUREMENT_INPUTS)].reset_index(drop=True).astype(float)
+    t = imu["t"].to_numpy(dtype=float)
+    longest = float(np.max(np.diff(t))) if len(t) > 1 else 0.0
+    config = dataclasses.replace(config, max_gap_s=max(longest * 1.001, 1e-3))
+    return run_fusion(imu, table, backend, rot_nb0, config)
+
+
+def run_log(
+    log: Log,
+    *,
+    options: LoopOptions | None = None,
+    config: FuseConfig | None = None,
+    backend: str = "eskf",
+    workers: int | None = None,
+    rot_nb0: Rotation | None = None,
+    progress: bool = True,
+) -> RunResult:
+    """Measurement and fusion of a recorded log: the Eq. 13 loop, its filter run once.
+
+    Parameters
+    ----------
+    log : Log
+        From ``polins.io.read_log``; its site and IMU model replace those of ``config``.
+    options : LoopOptions
+    config : FuseConfig, optional
+        The filter's configuration (default: the log's ``[filter]`` table, else defaults).
+        ``smooth=True`` gives the Rauch-Tung-Striebel smoothed solution.
+    backend : {"eskf", "graph"}
+        Backend of the final solution (the loop itself always runs the ESKF).
+    workers : int, optional
+        Image processes; default all cores; 1 measures in this process.
+    rot_nb0 : Rotation, optional
+        Initial attitude; default self-alignment.
+    progress : bool
+        tqdm progress bar over the images.
+    """
+    from tqdm import tqdm
+
+    opts = options if options is not None else LoopOptions()
+    base = config if config is not None else log.config
+    base.check_backend(backend)
+    if workers is not None and (isinstance(workers, bool) or workers < 1):
+        raise UserInputError(f"workers={workers!r} must be an integer >= 1")
+    n_workers = int(workers) if workers else (os.cpu_count() or 1)
+    own_solution = backend == "eskf" and not base.smooth
+    start = time.perf_counter()
+    imu = log.imu
+    t_imu = imu["t"].to_numpy(dtype=float)
+    gyro = imu[["gx", "gy", "gz"]].to_numpy(dtype=float)
+    accel = imu[["ax", "ay", "az"]].to_numpy(dtype=float)
+    t_img = np.asarray(log.images.t, dtype=float)
+    dt_imu = np.diff(t_imu[np.isfinite(t_imu)])
+    dt_med = float(np.median(dt_imu[dt_imu > 0])) if np.any(dt_imu > 0) else None
+    used = np.zeros(len(t_imu), dtype=bool)
+    stream = NavigationStream(
+        log.camera,
+        log.imu_model,
+        site=log.site,
+        epoch_utc=log.epoch_utc,
+        rot_nb0=rot_nb0,
+        options=dataclasses.replace(opts, record_solution=own_solution),
+        config=dataclasses.replace(base, smooth=False),
+        imu_dt=dt_med,
+        executor="process" if n_workers > 1 else "inline",
+        workers=n_workers,
+    )
+    k = 0
+
+    def feed(stop: int) -> None:
+        nonlocal k
+        if stop > k:
+            used[k:stop] = stream.add_imu_many(t_imu[k:stop], gyro[k:stop], accel[k:stop])
+        k = max(k, stop)
+
+    with stream:
+        bar = tqdm(total=len(t_img), desc="images", unit="img", disable=not progress)
+        for t, item in log.images:
+            stop = k
+            while stop < len(t_imu) and not t_imu[stop] > t:  # samples up to the image
+                stop += 1  # (a NaN time is fed and reported by the stream)
+            feed(min(stop + 1, len(t_imu)))  # ... and the one after it
+            stream.add_image(t, item)
+            bar.update(1)
+        feed(len(t_imu))
+        stream.flush()
+        bar.close()
+    loop_s = time.perf_counter() - start
+    measurements = stream.drain_measurements()
+    events = stream.drain_events()
+    imu_used = imu.loc[used].reset_index(drop=True)
+    t_fuse = time.perf_counter()
+    if own_solution:
+        solution = stream.drain_solution()
+    else:
+        config = dataclasses.replace(stream.config, smooth=base.smooth)
+        solution = fuse_measurements(
+            imu_used, measurements, config, rot_nb0=rot_nb0, backend=backend
+        ).solution
+    end = time.perf_counter()
+    measure_s = measurements["measure_s"].to_numpy(dtype=float)
+    settings = {
+        "manifest": str(log.manifest_path),
+        "backend": backend,
+        "smooth": base.smooth,
+        "workers": n_workers,
+        "method": opts.method,
+        "update": opts.update,
+        "prior_lag_s": opts.prior_lag_s,
+        "measure_options": opts.measure_kwargs(),
+        "fuse_options": {k: v for k, v in base.changes().items() if k not in ("imu_model", "site")},
+        "camera": log.camera.name,
+        "camera_shape": list(log.camera.shape),
+        "imu_model": log.imu_model.name,
+        "rot_nb0_given": rot_nb0 is not None,
+    }
+    timing = {
+        "run_s": end - start,
+        "loop_s": loop_s,
+        "fuse_s": end - t_fuse,
+        "images": float(len(t_img)),
+        "imu_samples": float(len(t_imu)),
+        "workers": float(n_workers),
+        "measure_s_mean": float(np.nanmean(measure_s))
+        if np.isfinite(measure_s).any()
+        else math.nan,
+    }
+    return RunResult(solution, measurements, events, imu_used, timing, settings)
+
+
+__all__ = ["MEASUREMENT_INPUTS", "RunResult", "fuse_measurements", "run_log"]

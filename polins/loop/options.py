@@ -1,0 +1,98 @@
+"""Options of the navigation loop: how images are measured and when, what the loop keeps in memory.
+
+The filter itself is configured by one :class:`polins.fusion.config.FuseConfig`; the loop's
+``update`` choice sets its ``use_sun`` (and, unless given, ``tilt_coupling``) through
+:meth:`LoopOptions.filter_config`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from polins.errors import UserInputError
+from polins.fusion.config import FuseConfig
+
+UPDATES = ("yaw", "sun")
+
+
+@dataclass(frozen=True)
+class LoopOptions:
+    """Options of the Eq. 13 loop (docs/model.md; SI units, radians).
+
+    Attributes
+    ----------
+    method : str
+        ``polins.measure`` method ("compensated", "traditional", "paper").
+    measure_options : mapping
+        Keyword options of ``polins.measure`` (``polins.compass.MeasureOptions`` fields).
+    update : {"yaw", "sun"}
+        Filter update per image: the yaw with the tilt coupling in ``H`` (default), or the
+        2-DOF sun vector. Either way the sun zenith is measured from the image
+        (``fixed_zenith=False`` unless ``measure_options`` says otherwise): the filter's
+        yaw model is then exact in the prior's tilt (docs/measurement.md, "The yaw in a
+        filter"), and the free zenith costs no precision.
+    prior_lag_s : float
+        Age of the filter snapshot the image priors are propagated from [s]
+        (``polins.loop.stream``).
+    snapshot_every_s : float
+        Grid of the filter snapshots [s].
+    max_image_delay_s : float
+        How long the filter waits for an image that is older than the newest IMU sample [s]
+        (streaming: the camera's delivery latency).
+    max_imu_gap_s : float
+        IMU intervals longer than this are reported as gaps [s].
+    max_in_flight : int or None
+        Images being measured at once; default ``2 * workers + 1``.
+    record_solution : bool
+        Keep the filter's state at every IMU sample (drain with ``drain_solution``).
+    max_table_rows : int
+        Bound of the in-memory measurement, event and solution buffers.
+    """
+
+    method: str = "compensated"
+    measure_options: Mapping[str, Any] = field(default_factory=dict)
+    update: str = "yaw"
+    prior_lag_s: float = 1.0
+    snapshot_every_s: float = 0.1
+    max_image_delay_s: float = 0.5
+    max_imu_gap_s: float = 0.1
+    max_in_flight: int | None = None
+    record_solution: bool = False
+    max_table_rows: int = 1_000_000
+
+    def __post_init__(self) -> None:
+        if self.update not in UPDATES:
+            raise UserInputError(f"update={self.update!r}: expected one of {UPDATES}")
+        for name in ("prior_lag_s", "max_image_delay_s"):
+            if not getattr(self, name) >= 0.0:
+                raise UserInputError(f"{name}={getattr(self, name)} must be >= 0 [s]")
+        for name in ("snapshot_every_s", "max_imu_gap_s"):
+            if not getattr(self, name) > 0.0:
+                raise UserInputError(f"{name}={getattr(self, name)} must be > 0 [s]")
+        if self.max_in_flight is not None and self.max_in_flight < 1:
+            raise UserInputError(f"max_in_flight={self.max_in_flight} must be >= 1")
+        if self.max_table_rows < 1:
+            raise UserInputError(f"max_table_rows={self.max_table_rows} must be >= 1")
+        if self.update == "sun" and self.measure_options.get("fixed_zenith", False):
+            raise UserInputError(
+                "update='sun' needs the sun zenith measured from the image: "
+                "measure_options fixed_zenith=False"
+            )
+
+    def measure_kwargs(self) -> dict[str, Any]:
+        """The ``polins.measure`` options actually used."""
+        opts = dict(self.measure_options)
+        opts.setdefault("fixed_zenith", False)
+        return opts
+
+    def filter_config(self, config: FuseConfig) -> FuseConfig:
+        """The filter configuration of this loop: ``config`` with ``use_sun`` set by
+        ``update``, and ``tilt_coupling`` on for ``update="yaw"`` unless ``config`` sets it."""
+        tilt = self.update == "yaw" if config.tilt_coupling is None else config.tilt_coupling
+        return dataclasses.replace(config, use_sun=self.update == "sun", tilt_coupling=tilt)
+
+
+__all__ = ["UPDATES", "LoopOptions"]
