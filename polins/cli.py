@@ -286,6 +286,30 @@ def _cmd_heading(args: argparse.Namespace) -> int:
     return 0 if m.ok else 1
 
 
+def _cmd_imu_model(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from polins.io import read_imu, write_text_atomic
+    from polins.io.model_files import imu_model_toml
+    from polins.tuning import imu_model_from_static, plot_allan
+
+    out = Path(args.out)
+    _check(out.suffix == ".toml", f"--out {out}: the IMU model file must end in .toml")
+    _check(not out.is_dir(), f"--out {out} is a folder; give a .toml file name")
+    imu = read_imu(args.static, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
+    model, fit = imu_model_from_static(
+        imu, name=args.name or out.stem, grade=args.grade, source=args.static
+    )
+    write_text_atomic(out, imu_model_toml(model, comments=fit.comment_lines()))
+    written = [str(out)]
+    if args.plot:
+        plot_allan(fit, args.plot)
+        written.append(str(args.plot))
+    print("\n".join(fit.notes))
+    print(f"wrote {', '.join(written)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``polins`` argument parser with all subcommands."""
     parser = argparse.ArgumentParser(
@@ -376,6 +400,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true", help="write tables and JSON only")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_fuse)
+    p = sub.add_parser(
+        "imu-model", help="IMU noise model (TOML) from a static recording (Allan deviation)"
+    )
+    p.add_argument("static", help="CSV/Parquet of the IMU at rest: t, gx, gy, gz, ax, ay, az")
+    p.add_argument("--out", required=True, help="IMU model TOML to write")
+    p.add_argument("--plot", default=None, help="Allan deviation plot (PNG) to write")
+    p.add_argument("--grade", choices=["navigation", "tactical", "mems"], default="mems",
+                   help="IMU grade: sets the plausible ranges and the terms a static "
+                   "recording cannot show (default: %(default)s)")  # fmt: skip
+    p.add_argument("--name", default=None, help="model name (default: the --out file's stem)")
+    p.add_argument("--gyro-unit", choices=["rad/s", "deg/s"], default=None,
+                   help="unit of gx, gy, gz if the file does not declare it")  # fmt: skip
+    p.add_argument("--accel-unit", choices=["m/s^2", "g"], default=None,
+                   help="unit of ax, ay, az if the file does not declare it")  # fmt: skip
+    p.set_defaults(handler=_cmd_imu_model)
     return parser
 
 

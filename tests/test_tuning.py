@@ -40,18 +40,32 @@ def truth_model():
 
 
 @pytest.fixture(scope="module")
-def static_fit(truth_model):
+def static_recording(truth_model):
     """1.5 h at 100 Hz from the simulator's error model (independent of the estimator)."""
     measured, _ = imu_errors(_static_ideal(RATE_HZ, 5400.0), truth_model, np.random.default_rng(16))
-    return imu_model_from_static(measured, name="sim-static", grade="mems")
+    return measured
 
 
-def test_static_recording_recovers_the_noise_model(static_fit, truth_model, tmp_path):
+@pytest.fixture(scope="module")
+def static_fit(static_recording):
+    return imu_model_from_static(static_recording, name="sim-static", grade="mems")
+
+
+def test_static_recording_recovers_the_noise_model(
+    static_recording, static_fit, truth_model, tmp_path, capsys
+):
+    """The issue's done-when: ``polins imu-model`` on a static recording, then load_imu."""
+    from polins.cli import main
+    from polins.io import write_imu
+
     model, fit = static_fit
-    # through the TOML file the CLI writes, back with the loader
-    path = tmp_path / "my-imu.toml"
-    path.write_text(imu_model_toml(model))
+    csv = write_imu(tmp_path / "static.csv", static_recording)
+    path, png = tmp_path / "my-imu.toml", tmp_path / "allan.png"
+    assert main(["imu-model", str(csv), "--out", str(path), "--plot", str(png)]) == 0
+    assert "wrote" in capsys.readouterr().out and png.is_file()
     loaded = polins.load_imu(path)
+    assert loaded.gyro_arw == pytest.approx(model.gyro_arw, rel=1e-6)  # the CLI is the function
+    assert imu_model_toml(loaded).count("[gyro]") == 1
     assert loaded.gyro_arw / truth_model.gyro_arw == pytest.approx(1.0, abs=0.10)
     assert loaded.accel_vrw / truth_model.accel_vrw == pytest.approx(1.0, abs=0.10)
     assert 0.5 < loaded.gyro_bias_rw / truth_model.gyro_bias_rw < 2.0

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -93,31 +93,22 @@ def camera_model_toml(cam: CameraModel) -> str:
     return toml_dumps(data, header=f"camera model written by polins from {cam.path}")
 
 
-def imu_model_toml(model: ImuModel) -> str:
-    """An IMU model as TOML text that :func:`polins.load_imu` reads back to ``model``."""
-    deg_per_h = math.pi / 180.0 / 3600.0  # [rad/s] per [deg/h]
-    mg = 9.80665e-3  # [m/s^2] per [mg]
-    sqrt_h = 60.0  # sqrt(3600 s)
-    data = {
+def imu_model_toml(model: ImuModel, comments: Sequence[str] = ()) -> str:
+    """An IMU model as TOML text that :func:`polins.load_imu` reads back to ``model``.
+
+    ``comments`` become the file's header comment lines (for example the Allan fit that
+    produced the model, ``polins.tuning.AllanFit.comment_lines()``).
+    """
+    data: dict[str, Any] = {
         "name": model.name,
         "description": model.description,
         "grade": model.grade,
         "earth_rate": model.earth_rate,
         "sample_rate_hz": model.sample_rate_hz,
-        "gyro": {
-            "arw_deg_per_sqrt_h": math.degrees(model.gyro_arw) * sqrt_h,
-            "bias_deg_per_h": model.gyro_bias / deg_per_h,
-            "bias_rw_deg_per_h_per_sqrt_h": model.gyro_bias_rw / deg_per_h * sqrt_h,
-            "scale_factor_ppm": model.gyro_scale_factor * 1e6,
-        },
-        "accel": {
-            "vrw_m_per_s_per_sqrt_h": model.accel_vrw * sqrt_h,
-            "bias_mg": model.accel_bias / mg,
-            "bias_rw_mg_per_sqrt_h": model.accel_bias_rw / mg * sqrt_h,
-            "scale_factor_ppm": model.accel_scale_factor * 1e6,
-        },
+        **model.toml_values(),
     }
-    return toml_dumps(data, header=f"IMU model written by polins from {model.path}")
+    header = "\n".join(comments) if comments else f"IMU model written by polins from {model.path}"
+    return toml_dumps(data, header=header)
 
 
 __all__ = ["camera_model_toml", "imu_model_toml", "toml_dumps"]
