@@ -4,19 +4,25 @@ A division-of-focal-plane (DoFP) polarization camera looks at the sky; polins tu
 images into a sun vector and a heading and fuses them with a gyro/accelerometer in an
 error-state Kalman filter (filterpy) or a GTSAM factor graph.
 
-Data flow (one module per physical concept)::
+The package reads in the order of the data flow (one subpackage per stage; the import
+contract in pyproject.toml lets each stage import only the stages before it)::
 
-    raw DoFP mosaic                     polins.compass.polarimetry   (mosaic -> channels -> Stokes)
-      -> four polarizer channels        polins.compass.camera        (per-pixel rays, lens polarization)
-      -> Stokes (traditional / paper / compensated)
-      -> per-pixel E-vectors, camera    polins.sky.scattering           (Rayleigh single scattering)
-      -> sun vector (eigen / joint ML)  polins.compass.measure       (polins.measure)
-      -> heading, 180 deg resolved      polins.sky.ephemeris     (sun position, pvlib NREL SPA)
-      -> ESKF or GTSAM graph            polins.ins.strapdown, polins.fusion (polins.fuse)
-      -> INS attitude back into the next image's compensation and tilt handling
+    models/   camera and IMU model files (TOML)          polins.load_camera, polins.load_imu
+    sky/      sun position (pvlib NREL SPA), sky models   polins.sun_position, polins.sun_vector_n
+    compass/  one image -> heading                        polins.measure
+              raw DoFP mosaic -> channels                 compass.pixels
+              -> Stokes (S0, S1, S2), masks               compass.polarimetry, compass.sunlight
+              -> per-pixel E-vectors (lens constants)     compass.camera, compass.lens
+              -> sun vector: eigen / joint ML             compass.eigen, compass.jointml
+              -> heading, 180 deg resolved, sigma         compass.heading, compass.measure
+    ins/      Earth model, strapdown, static alignment
+    fusion/   IMU + headings -> attitude: ESKF or graph   polins.fuse (fusion.config.FuseConfig)
+    loop/     the INS attitude back into the next image   polins.NavigationStream, loop.run_log
+    io/, tuning/, calibration/, sim/, cli: files, noise models, camera calibration,
+              the simulator and the ``polins`` command
 
-Conventions (the contract is ``CONVENTIONS.md``; ``docs/conventions.md`` explains it)
-------------------------------------------------------------------------------------
+Conventions (docs/conventions.md has the full contract)
+-------------------------------------------------------
 Frames
     ``n`` local navigation frame ENU (x East, y North, z Up); ``b`` body/IMU frame FLU
     (x forward, y left, z up, ROS REP-103); ``c`` camera frame, OpenCV (x along image
@@ -56,7 +62,7 @@ from polins.frames import (
     wrap_angle,
     yaw_from_heading_deg,
 )
-from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
+from polins.models import CameraModel, ImuModel, load_camera, load_imu
 from polins.sky.ephemeris import SunPosition, sun_position, sun_vector_n
 
 __version__ = "0.1.0"

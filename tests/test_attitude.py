@@ -1,4 +1,4 @@
-"""Rotation and angle conventions (CONVENTIONS.md, SPEC.md section 2)."""
+"""Rotation and angle conventions (docs/conventions.md, docs/model.md §2)."""
 
 import numpy as np
 from hypothesis import given
@@ -64,7 +64,7 @@ def test_euler_round_trip_and_spec_matrix(yaw, pitch, roll):
     rot = rot_nb_from_euler(yaw, pitch, roll)
     y, p, r = euler_from_rot_nb(rot)
     np.testing.assert_allclose([np.cos(y - yaw), p, r], [1.0, pitch, roll], atol=1e-9)
-    # SPEC 2: C_n^b = R1(roll) R2(pitch) R3(yaw) (passive) is the transpose of mat_nb.
+    # docs/model.md §2: C_n^b = R1(roll) R2(pitch) R3(yaw) (passive) is the transpose of mat_nb.
     c_nb = _r1(roll) @ _r2(pitch) @ _r3(yaw)
     np.testing.assert_allclose(rot.inv().as_matrix(), c_nb, atol=1e-12)
     assert np.isclose(np.cos(yaw_from_rot_nb(rot) - yaw), 1.0, atol=1e-12)

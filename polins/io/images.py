@@ -1,7 +1,7 @@
 """Raw polarization images on disk: 16-bit PNG/TIFF mosaics and their timestamp index.
 
 An image is the full-resolution DoFP mosaic exactly as the camera delivered it: one channel,
-unsigned 8- or 16-bit, shape ``(H, W)`` = ``cam.shape`` (CONVENTIONS.md). Two ways to give the
+unsigned 8- or 16-bit, shape ``(H, W)`` = ``cam.shape`` (docs/conventions.md). Two ways to give the
 times of a folder of images:
 
 * an index CSV with columns ``t, file`` (``file`` relative to the CSV's folder), e.g.

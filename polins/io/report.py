@@ -2,7 +2,7 @@
 
 Outputs (all written atomically into the output folder):
 
-* ``solution.csv``: the fused solution (``polins.fuse`` columns, CONVENTIONS.md).
+* ``solution.csv``: the fused solution (``polins.fuse`` columns, docs/conventions.md).
 * ``measurements.csv``: one row per image: ``t, ok, reason, yaw, yaw_std, heading_deg,
   heading_std_deg, epsilon, n_pixels``, the sun vectors, the prior and the filter's verdict
   (``accepted, innovation, nis, update_reason``); with a reference also ``yaw_error``.

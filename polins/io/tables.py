@@ -2,7 +2,7 @@
 
 IMU table format
 ----------------
-Columns ``t, gx, gy, gz, ax, ay, az`` (CONVENTIONS.md): time [s] on the log's clock, body
+Columns ``t, gx, gy, gz, ax, ay, az`` (docs/conventions.md): time [s] on the log's clock, body
 (FLU) angular rate and specific force. Extra columns are ignored. Units are SI by default;
 a file may declare other units, and the reader converts to SI:
 

@@ -222,7 +222,7 @@ _CAMERA_SCHEMA: Schema = {
 class CameraModel:
     """A DoFP polarization camera with its lens, as read from ``models/cameras/*.toml``.
 
-    Intrinsics are in 2x2 superpixel units (SPEC.md section 5): superpixel (i, j) covers
+    Intrinsics are in 2x2 superpixel units (docs/model.md §5): superpixel (i, j) covers
     full-resolution rows 2i..2i+1 and columns 2j..2j+1 and sits at (u, v) = (j, i).
     Channel arrays are ordered by ``nominal_angle_deg`` (0, 45, 90, 135 deg for the IMX250MZR).
     Equality is identity, so a loaded model can key per-camera caches (e.g. pixel rays).
@@ -245,7 +245,7 @@ class CameraModel:
     read_noise_dn: float
     conversion_gain_e_per_dn: float  # inf: no shot noise
     projection: str  # "kannala-brandt" | "pinhole"
-    polarization_model: str  # "projection" (SPEC 6.1 P) | "meridian" (M)
+    polarization_model: str  # "projection" (docs/model.md §6.1 P) | "meridian" (M)
     camera_matrix: FloatArray  # (3, 3) K in superpixel units
     distortion: FloatArray  # KB: k1..k4; pinhole: OpenCV (k1, k2, p1, p2[, k3 ...])
     fov_max: float  # [rad] largest ray angle from the optical axis that is used
