@@ -1,0 +1,110 @@
+"""Calibration images: stacks of raw DoFP mosaics split into their four polarizer channels.
+
+Every estimator of :mod:`polins.calibration` starts here. A stack of ``m`` raw mosaics
+``(m, H, W)`` becomes a channel stack ``(m, Hs, Ws, 4)`` [DN]: channel ``k`` (ordered by the
+camera's nominal labels) of superpixel (i, j) is the raw pixel at row ``2i + r``, column
+``2j + c`` with ``cam.channel_at[r, c] == k`` (docs/conventions.md, "Images and sensor").
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from polins.errors import UserInputError
+from polins.models.loader import CameraModel
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+__all__ = ["ChannelStack", "channel_stack", "provenance", "zero_sum_basis"]
+
+
+@dataclass(frozen=True)
+class ChannelStack:
+    """Raw mosaics split into channels, with the masks every estimator needs.
+
+    Attributes
+    ----------
+    channels : ndarray, (m, Hs, Ws, 4)
+        Channel intensities [DN], dark offset included.
+    saturated : ndarray of bool, (m, Hs, Ws)
+        A channel of the superpixel is at or above ``cam.saturation_dn``.
+    integer : bool
+        The input was integer (quantised to 1 DN: a variance carries 1/12 DN^2 of rounding).
+    """
+
+    channels: FloatArray
+    saturated: BoolArray
+    integer: bool
+
+    @property
+    def n_images(self) -> int:
+        """Number of images ``m``."""
+        return int(self.channels.shape[0])
+
+
+def channel_stack(
+    raws: Sequence[ArrayLike] | ArrayLike, cam: CameraModel, *, min_images: int = 1, what: str = ""
+) -> ChannelStack:
+    """Split raw mosaics ``(m, H, W)`` (or a sequence of ``(H, W)``) into channels.
+
+    Raises
+    ------
+    UserInputError
+        Fewer than ``min_images`` images, a wrong shape or dtype (one line).
+    """
+    label = f"{what} " if what else ""
+    try:
+        arr = np.asarray(raws)
+    except ValueError:
+        raise UserInputError(f"{label}images differ in shape; camera expects {cam.shape}") from None
+    if arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[1:] != cam.shape:
+        raise UserInputError(
+            f"{label}images have shape {arr.shape[1:] if arr.ndim == 3 else arr.shape}; camera "
+            f"{cam.name!r} expects full-resolution mosaics {cam.shape} (H, W)"
+        )
+    if arr.shape[0] < min_images:
+        raise UserInputError(
+            f"{label}calibration needs at least {min_images} images, got {arr.shape[0]}"
+        )
+    integer = bool(np.issubdtype(arr.dtype, np.integer))
+    if not (integer or np.issubdtype(arr.dtype, np.floating)):
+        raise UserInputError(f"{label}images have dtype {arr.dtype}; expected integer or float DN")
+    m, (hs, ws) = arr.shape[0], cam.superpixel_shape
+    # (m, H, W) -> (m, Hs, r, Ws, c) -> (m, Hs, Ws, r, c) -> (m, Hs, Ws, mosaic position r*2+c)
+    by_position = arr.reshape(m, hs, 2, ws, 2).transpose(0, 1, 3, 2, 4).reshape(m, hs, ws, 4)
+    channels = np.empty((m, hs, ws, 4))
+    channels[..., np.asarray(cam.channel_at).ravel()] = by_position
+    if not np.all(np.isfinite(channels)):
+        raise UserInputError(f"{label}images hold non-finite values")
+    saturated = np.any(channels >= cam.saturation_dn, axis=-1)
+    return ChannelStack(channels, saturated, integer)
+
+
+def zero_sum_basis(n: int) -> FloatArray:
+    """Orthonormal basis ``(n, n - 1)`` of the vectors whose entries sum to zero.
+
+    Relative quantities (channel gains, angle offsets) are fitted in this basis, so the
+    unidentifiable common part stays fixed by construction.
+    """
+    q, _ = np.linalg.qr(np.vstack([np.ones(n), np.eye(n)[: n - 1]]).T)
+    return q[:, 1:]
+
+
+def provenance(kind: str, method: str, n_images: int, **figures: Any) -> dict[str, Any]:
+    """The provenance record of a calibration: kind, UTC date, method, images, fit figures."""
+    return {
+        "kind": kind,
+        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "method": method,
+        "n_images": int(n_images),
+        **figures,
+    }

@@ -1,0 +1,146 @@
+"""Round trip of the sky-rotation calibration (docs/calibrate.md#sky-rotation), scored split-half on held-out images."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from test_calibration_scenes import dark_mosaic_of, perturbed_camera, sensor, small_camera
+
+import polins
+from polins.calibration import (
+    SkyRotationResult,
+    apply_to_camera,
+    calibrate_dark,
+    calibrate_sky_rotation,
+    check,
+    fit_sky_rotation,
+)
+from polins.errors import UserInputError
+from polins.sim.render import direction_n
+
+SUN_N = direction_n(30.0, 50.0)  # compass azimuth 30 deg, elevation 50 deg
+
+
+def _sequence(cam, turns_deg, rng, radiance=None):
+    """Clear-sky images of a zenith-looking camera turned about the vertical (= optical) axis."""
+    radiance = np.full(len(turns_deg), 220.0) if radiance is None else radiance
+    return np.stack(
+        [
+            polins.sim.render_raw(
+                cam, SUN_N, Rotation.from_euler("z", a, degrees=True), radiance=r, rng=rng
+            )
+            for a, r in zip(turns_deg, radiance, strict=True)
+        ]
+    )
+
+
+def _relative_heading_rms_deg(raws, turns_deg, cam):
+    """RMS heading error [deg] after removing the mean (the unidentifiable common offset)."""
+    err = []
+    for raw, a in zip(raws, turns_deg, strict=True):
+        rot = Rotation.from_euler("z", a, degrees=True)
+        m = polins.measure(raw, cam, sun_n=SUN_N, rot_nb_prior=rot)
+        assert m.ok, m.reason
+        err.append(np.angle(np.exp(1j * (m.yaw - np.radians(a)))))
+    e = np.degrees(np.array(err))
+    return float(np.sqrt(np.mean((e - e.mean()) ** 2)))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(21)
+    true = perturbed_camera(small_camera(8), rng)  # gains +-3%, angles +-1 deg, dark 10-40 DN
+    turns = np.concatenate([[0.0], np.sort(rng.uniform(0.0, 360.0, 23))])  # unknown to the fit
+    radiance = 220.0 * rng.uniform(0.9, 1.1, 24)  # exposure changes between images
+    raws = _sequence(true, turns, rng, radiance)
+    # The dark offsets come from dark frames (rendered with the independent forward model).
+    dark = dark_mosaic_of(true)
+    darks = np.stack([sensor(dark, dark, true, rng, read_noise_dn=1.5) for _ in range(4)])
+    base = apply_to_camera(small_camera(8), calibrate_dark(darks, small_camera(8)))
+    return true, base, turns, radiance, raws
+
+
+def test_sky_rotation_recovers_relative_gains_and_angles_split_half(scene):
+    true, base, turns, radiance, raws = scene
+    fit, held_out = slice(0, None, 2), slice(1, None, 2)  # 12 images each
+    res = fit_sky_rotation(raws[fit], base)
+    assert isinstance(res, SkyRotationResult)
+
+    def rel_gain(g):
+        return g / g.mean()
+
+    def rel_angle_deg(a):
+        d = a - np.radians(true.nominal_angle_deg)
+        return np.degrees(d - d.mean())
+
+    assert np.abs(rel_gain(res.gain) / rel_gain(true.gain) - 1).max() <= 3e-3
+    assert (
+        np.abs(rel_angle_deg(res.transmission_angle) - rel_angle_deg(true.transmission_angle)).max()
+        <= 0.2
+    )
+    # Conventions: the base camera's mean gain, mean angle offset and largest efficiency.
+    assert res.gain.mean() == pytest.approx(base.gain.mean())
+    assert rel_angle_deg(res.transmission_angle).mean() == pytest.approx(0.0, abs=1e-9)
+    assert res.efficiency.max() == pytest.approx(base.efficiency.max())
+    # The turns (modulo 180 deg) and the exposure changes are recovered on the way.
+    dturn = np.angle(np.exp(2j * (res.turn - np.radians(turns[fit] - turns[0])))) / 2
+    assert np.degrees(np.abs(dturn)).max() < 1.5  # up to the unidentifiable common offset
+    aligned = fit_sky_rotation(raws[fit], base, tilt_terms=False)  # the axis is aligned here
+    assert aligned.scale == pytest.approx(radiance[fit] / radiance[0], rel=2e-3)
+    assert res.scale == pytest.approx(radiance[fit] / radiance[0], rel=0.03)  # up to a wobble
+    assert res.noise_ratio < 1.5
+    assert res.provenance["kind"] == "sky-rotation" and res.provenance["n_images"] == 12
+    assert all(type(v) in (str, int, float) for v in res.provenance.values())  # TOML-ready
+
+    # Headings on the held-out images: calibrated as good as perfect, uncalibrated far worse.
+    calibrated = apply_to_camera(base, res)
+    perfect = _relative_heading_rms_deg(raws[held_out], turns[held_out], true)
+    after = _relative_heading_rms_deg(raws[held_out], turns[held_out], calibrated)
+    before = _relative_heading_rms_deg(raws[held_out], turns[held_out], base)
+    assert after <= 1.5 * perfect
+    assert before > 5 * after
+
+
+def test_calibrate_sky_rotation_returns_a_camera_that_explains_the_images(scene):
+    true, base, _, _, raws = scene
+    cam = calibrate_sky_rotation(raws[::2], base)
+    assert isinstance(cam, polins.CameraModel)
+    assert cam.shape == base.shape and cam.dark_offset_dn is base.dark_offset_dn
+    held_out = raws[1:8:2]
+    good, bad = check(cam, held_out), check(base, held_out)
+    assert good.noise_ratio == pytest.approx(check(true, held_out).noise_ratio, rel=0.05)
+    assert bad.noise_ratio > 1.5 * good.noise_ratio
+
+
+def test_sky_rotation_with_a_tilted_turn_axis(scene):
+    true, base, turns, _, _ = scene
+    tilted = replace(true, mat_bc=Rotation.from_euler("x", 1.0, degrees=True).as_matrix())
+    raws = _sequence(tilted, turns[::2], np.random.default_rng(23))
+    res = fit_sky_rotation(raws, base)  # the tilt terms absorb the precession of the view
+    d = res.transmission_angle - true.transmission_angle
+    assert np.degrees(np.abs(d - d.mean())).max() <= 0.2
+    assert np.abs(res.gain / res.gain.mean() / (true.gain / true.gain.mean()) - 1).max() <= 3e-3
+    assert res.noise_ratio < 1.5
+    naive = fit_sky_rotation(raws, base, tilt_terms=False)  # without: biased, and it shows
+    d = naive.transmission_angle - true.transmission_angle
+    assert np.degrees(np.abs(d - d.mean())).max() > 0.2
+    assert naive.noise_ratio > 2.0
+
+
+def test_sky_rotation_refuses_a_small_turn(scene):
+    true, base, *_ = scene
+    raws = _sequence(true, [0.0, 15.0, 30.0, 45.0, 60.0], np.random.default_rng(22))
+    with pytest.raises(UserInputError, match="span only 60 deg"):
+        fit_sky_rotation(raws, base, tilt_terms=False)
+    with pytest.raises(UserInputError, match="at least 4 images"):
+        fit_sky_rotation(raws[:3], base)
+    raws = _sequence(true, [0.0, 22.0, 45.0, 67.0, 90.0], np.random.default_rng(24))
+    with pytest.raises(UserInputError, match="a tilt of the turn axis included"):
+        fit_sky_rotation(raws, base)  # too few turns to tell a tilt from the channels
+    res = fit_sky_rotation(raws, base, tilt_terms=False)  # an aligned axis needs less
+    d = res.transmission_angle - true.transmission_angle
+    assert np.degrees(np.abs(d - d.mean())).max() <= 0.2
+    raws = _sequence(true, [0.0, 45.0, 90.0, 135.0], np.random.default_rng(25))
+    with pytest.raises(UserInputError, match="cannot fix the channel angles"):
+        fit_sky_rotation(raws, base, tilt_terms=False)  # 4 evenly spaced turns: degenerate
