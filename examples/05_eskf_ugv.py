@@ -36,11 +36,12 @@ from scipy.spatial.transform import Rotation
 import polins
 from polins.frames import wrap_angle
 from polins.sim.imu import ideal_imu, imu_errors
-from polins.sim.trajectory import HARBIN_ALT_M, HARBIN_LAT_DEG, HARBIN_LON_DEG, ugv_drive
+from polins.sim.trajectory import ugv_drive
+from polins.site import PAPER_SITE
 
 YAW_STD = np.radians(0.3)
 RATE_HZ = 5.0
-SITE = {"lat_deg": HARBIN_LAT_DEG, "lon_deg": HARBIN_LON_DEG, "alt_m": HARBIN_ALT_M}
+SITE = {"lat_deg": PAPER_SITE.lat_deg, "lon_deg": PAPER_SITE.lon_deg, "alt_m": PAPER_SITE.alt_m}
 
 
 def simulate(model: polins.ImuModel, duration: float, seed: int):

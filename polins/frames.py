@@ -2,7 +2,7 @@
 
 ``rot_nb = Rotation.from_euler("ZYX", [yaw, pitch, roll])`` maps body (FLU) to navigation
 (ENU) vectors. Positive pitch is nose down, positive roll is right side down (ROS REP-103).
-This equals SPEC.md section 2: ``C_n^b = R1(roll) R2(pitch) R3(yaw)`` with passive
+This equals docs/model.md §2: ``C_n^b = R1(roll) R2(pitch) R3(yaw)`` with passive
 elementary rotations, i.e. ``mat_bn = rot_nb.inv().as_matrix()``.
 """
 
@@ -45,13 +45,24 @@ def rot_nb_from_euler(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> Rota
 
 
 def euler_from_rot_nb(rot_nb: Rotation) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Yaw, pitch, roll [rad] of a body-to-ENU rotation; yaw wrapped to (-pi, pi]."""
-    ypr = rot_nb.as_euler("ZYX")
-    return wrap_angle(ypr[..., 0]), ypr[..., 1], ypr[..., 2]
+    """Yaw, pitch, roll [rad] of a body-to-ENU rotation; yaw wrapped to (-pi, pi].
+
+    From the matrix (``mat_nb = Rz(yaw) Ry(pitch) Rx(roll)``: ``yaw = atan2(m10, m00)``,
+    ``pitch = -asin(m20)``, ``roll = atan2(m21, m22)``); within ~1e-6 rad of the gimbal lock
+    (pitch +-90 deg) scipy's ``as_euler`` convention applies.
+    """
+    mat = rot_nb.as_matrix()
+    m20 = mat[..., 2, 0]
+    if np.any(np.abs(m20) > 1.0 - 1e-12):
+        ypr = rot_nb.as_euler("ZYX")
+        return wrap_angle(ypr[..., 0]), ypr[..., 1], ypr[..., 2]
+    yaw = np.arctan2(mat[..., 1, 0], mat[..., 0, 0])
+    roll = np.arctan2(mat[..., 2, 1], mat[..., 2, 2])
+    return wrap_angle(yaw), -np.arcsin(m20), roll
 
 
 def yaw_from_rot_nb(rot_nb: Rotation) -> FloatArray:
-    """ENU yaw [rad] of the horizontal projection of body x (SPEC 2: atan2(C[0,1], C[0,0]))."""
+    """ENU yaw [rad] of the horizontal projection of body x (docs/model.md §2: atan2(C[0,1], C[0,0]))."""
     x_n = rot_nb.apply(np.array([1.0, 0.0, 0.0]))
     return wrap_angle(np.arctan2(x_n[..., 1], x_n[..., 0]))
 

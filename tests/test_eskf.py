@@ -1,4 +1,5 @@
-"""ESKF: measurement Jacobians, discretisation, streaming = batch, consistency Monte-Carlo."""
+"""ESKF: measurement Jacobians, error-state blocks, discretisation, fast path and streaming
+against a fine-step reference, consistency Monte-Carlo."""
 
 import functools
 import logging
@@ -13,9 +14,14 @@ from numerics import numjac
 from scipy.spatial.transform import Rotation
 
 import polins
+from polins.errors import UserInputError
 from polins.frames import rot_nb_from_euler, wrap_angle, yaw_from_rot_nb
-from polins.fusion import eskf as E
-from polins.fusion.items import items_from_table
+from polins.fusion import build_filter
+from polins.fusion.config import FuseConfig
+from polins.fusion.eskf import ESKF, Block, Layout, discretize, error_blocks, rts_smooth
+from polins.fusion.eskf.dynamics import StepNominal, step_nominal
+from polins.fusion.eskf.propagate import advance, interpolate
+from polins.fusion.items import MeasurementItem, items_from_table
 from polins.fusion.measurement import (
     non_holonomic,
     sun_basis_b,
@@ -28,8 +34,10 @@ from polins.ins.earth import radii_of_curvature
 from polins.ins.strapdown import Mechanization, NavState, strapdown
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import turntable, ugv_drive
+from polins.site import Site
 
 SITE = {"lat_deg": 45.6234, "lon_deg": 126.7264, "alt_m": 148.74}
+CFG = FuseConfig(site=Site(**SITE))
 YAW_STD = np.radians(0.3)
 
 
@@ -103,7 +111,7 @@ def test_measurement_jacobians_match_numerical(seed):
     np.testing.assert_allclose(lin.H, J, atol=1e-7)
     assert lin.R[0, 0] == pytest.approx(1e-4)
 
-    # polarization yaw measured with the nominal tilt as prior (SPEC 10.2 coupling)
+    # polarization yaw measured with the nominal tilt as prior (docs/model.md §10.2 coupling)
     lin = yaw_measurement(rot, 0.4, 0.01, sun_n=sun_n)
 
     def yaw_via_sun(d):
@@ -151,26 +159,31 @@ def test_measurement_input_errors():
         yaw_measurement(rot_nb_from_euler(0.0, np.pi / 2, 0.0), 0.1, 0.01)
 
 
-# ----------------------------------------------------------------------------- discretisation
+# ----------------------------------------------------------------------------- blocks, discretisation
+def _step(mat, force_n, vel_n, lat, alt_m, mech, scale=None, mat_omega=None, mat_force=None):
+    """A StepNominal of one step from the step means."""
+    div = np.ones(3) if scale is None else 1.0 / (1.0 + scale)
+    return StepNominal(
+        np.array([1.0]), np.asarray(mat)[None], np.asarray(force_n)[None],
+        np.asarray(vel_n)[None], np.array([lat]), np.array([alt_m]), mech, div, div,
+        None if mat_omega is None else mat_omega[None],
+        None if mat_force is None else mat_force[None],
+    )  # fmt: skip
+
+
 @pytest.mark.parametrize("scale_factors", [False, True])
 @pytest.mark.parametrize("dt", [0.005, 0.1])
 def test_discretisation_matches_van_loan(scale_factors, dt):
     model = polins.load_imu("fins-paper")
-    qc = E.process_noise_density(model, scale_factors)
+    layout = Layout(error_blocks(FuseConfig(imu_model=model, scale_factors=scale_factors)))
+    qc = layout.noise_density(model)
     mat = Rotation.from_euler("ZYX", [0.7, 0.05, -0.1]).as_matrix()
-    F = E.error_dynamics(
-        mat,
-        [0.3, -0.2, 9.8],
-        [5.0, 1.0, 0.2],
-        0.8,
-        100.0,
-        Mechanization(),
-        gyro_scale=np.full(3, 1e-4) if scale_factors else None,
-        accel_scale=np.full(3, 1e-4) if scale_factors else None,
-        mat_omega=mat * [0.1, 0.2, 0.5] if scale_factors else None,
-        mat_force=mat * [0.3, -0.2, 9.8] if scale_factors else None,
-    )
-    Phi, Q = E.discretize(F, np.array(dt), qc)
+    sf = np.full(3, 1e-4) if scale_factors else None
+    step = _step(mat, [0.3, -0.2, 9.8], [5.0, 1.0, 0.2], 0.8, 100.0, Mechanization(), sf,
+                 mat * [0.1, 0.2, 0.5], mat * [0.3, -0.2, 9.8])  # fmt: skip
+    F = layout.dynamics(step)[0]
+    assert F.shape == (layout.n, layout.n) == ((21, 21) if scale_factors else (15, 15))
+    Phi, Q = (m[0] for m in discretize(F[None], np.array([dt]), qc))
     n = F.shape[0]
     # Van Loan (1978): expm([[-F, Qc], [0, F^T]] dt) = [[., Phi^-1 Q], [0, Phi^T]]
     M = np.zeros((2 * n, 2 * n))
@@ -183,29 +196,45 @@ def test_discretisation_matches_van_loan(scale_factors, dt):
     assert np.all(np.linalg.eigvalsh(Q) > -1e-20)
 
 
-@pytest.mark.parametrize("scale_factors", [False, True])
-def test_partial_step_polynomials_equal_the_partial_step(scale_factors):
-    # The batch path's rows inside a covariance step come from polynomials in the step
-    # length tau; they must equal filterpy's predict with van_loan(F tau) for any tau.
-    from filterpy.kalman import predict
+def _gauss_markov(tau, sigma):
+    """A first-order Gauss-Markov block (a capability's block: own dynamics, noise, and a
+    column in the yaw Jacobian: a yaw-measurement bias)."""
+    return Block(
+        "yb", 1, lambda step: {"yb": np.full((step.dt.shape[0], 1, 1), -1.0 / tau)},
+        lambda m, c: sigma, lambda m: 2.0 * sigma**2 / tau,
+        lambda item, lin: np.ones((lin.H.shape[0], 1)) if item.kind == "yaw" else
+        np.zeros((lin.H.shape[0], 1)),
+    )  # fmt: skip
 
-    rng = np.random.default_rng(3)
-    n = E.n_states(scale_factors)
-    F = rng.normal(0.0, 3.0, (4, E.N_DYNAMIC, n))
-    L = rng.normal(size=(4, n, n))
-    P0 = L @ np.swapaxes(L, -1, -2) * 1e-4
-    x0 = rng.normal(size=(4, n))
-    qc = rng.uniform(1e-6, 1e-3, n)
-    cx, cv, ca = E.partial_step_polynomials(F, P0, x0, qc)
-    for tau in (0.005, 0.05, 0.1):
-        p = tau ** np.arange(8)
-        for s in range(4):
-            Phi, Q = E.van_loan(F[s] * tau, tau, qc)
-            x, P = predict(x0[s], P0[s], Phi, Q)
-            np.testing.assert_allclose(p[:4] @ cx[s], x, rtol=1e-12, atol=1e-14)
-            np.testing.assert_allclose(p @ cv[s], np.diag(P), rtol=1e-12)
-            att = np.einsum("p,pij->ij", p, ca[s])
-            np.testing.assert_allclose(att, P[:3, :3], rtol=0, atol=1e-13 * np.abs(P).max())
+
+def test_a_new_block_enters_without_touching_the_core():
+    # A block declares its dynamics, noise, initial sigma and Jacobian columns; the layout
+    # assembles F, Qc, P0, H, and the filter (streaming and fast path) carries it along.
+    tau, sig = 30.0, 0.01
+    blocks = (*error_blocks(CFG), _gauss_markov(tau, sig))
+    layout = Layout(blocks)
+    assert layout["yb"] == slice(15, 16) and layout.n == 16
+    step = _step(np.eye(3), [0, 0, 9.8], [1.0, 0, 0], 0.8, 10.0, Mechanization())
+    F = layout.dynamics(step)[0]
+    assert F[15, 15] == -1.0 / tau and not F[15, :15].any() and not F[:15, 15].any()
+    np.testing.assert_allclose(Layout(error_blocks(CFG)).dynamics(step)[0], F[:15, :15])
+    assert layout.noise_density(CFG.imu)[15] == pytest.approx(2 * sig**2 / tau)
+    assert layout.initial_covariance(CFG.imu, CFG)[15, 15] == pytest.approx(sig**2)
+    with pytest.raises(ValueError, match="two error-state blocks"):
+        Layout((*blocks, _gauss_markov(1.0, 1.0)))
+    # unobserved, the Gauss-Markov variance stays at its steady state sigma^2
+    filt = ESKF(CFG, 0.0, 0.01, Rotation.identity(), blocks=blocks)
+    for k in range(1001):
+        filt.propagate(k * 0.01, [0.0, 0.0, 0.0], [0.0, 0.0, 9.80])
+    st = filt.state()
+    assert st.sigma["yb"][0] == pytest.approx(sig, rel=1e-3)
+    # a yaw measurement sees the block through its Jacobian column: it takes a share of
+    # the innovation in proportion to its variance
+    share = sig**2 / (sig**2 + st.att_cov[2, 2] + 1e-6)
+    filt.add_measurement(10.0, yaw=0.02, yaw_std=1e-3)  # applied now
+    st = filt.state()
+    assert st.errors["yb"][0] == pytest.approx(0.02 * share, rel=1e-3)
+    assert list(polins.fusion.solution_table(st)[["yb", "yb_std"]].columns) == ["yb", "yb_std"]
 
 
 def test_transition_matches_mechanization_jacobian():
@@ -258,15 +287,11 @@ def test_transition_matches_mechanization_jacobian():
         axis=-1,
     )
     dt = np.diff(t)
-    F = E.error_dynamics(
-        nom.mat_nb_mid,
-        nom.dv_force_n / dt[:, None],
-        nom.vel_n[:-1],
-        nom.lat[:-1],
-        nom.height[:-1],
-        mech,
-    )
-    Phi, _ = E.discretize(F, dt, np.zeros(15))
+    step = step_nominal(
+        dt, nom.mat_nb_mid * dt[:, None, None], nom.dv_force_n, nom.vel_n[:-1], nom.lat[:-1],
+        nom.height[:-1], mech, (np.ones(3), np.ones(3)),
+    )  # fmt: skip
+    Phi, _ = discretize(Layout(error_blocks(CFG)).dynamics(step), dt, np.zeros(15))
     prod = np.eye(15)
     for k in range(n):
         prod = Phi[k] @ prod
@@ -279,20 +304,7 @@ def test_transition_matches_mechanization_jacobian():
                 assert np.abs(prod[rows, cols] - J[rows, cols]).max() < tol * scale, (rows, cols)
 
 
-# ----------------------------------------------------------------------------- filter mechanics
-def _streaming(model, imu, items, options, lat, lon, h, rot_nb0=None):
-    filt = E.ESKF(model, float(imu["t"].iloc[0]), lat, lon, h, rot_nb0=rot_nb0, options=options)
-    states = []
-    filt.sample_hook = lambda f_, k: states.append(f_.state())
-    filt.add_items(items)
-    t = imu["t"].to_numpy()
-    w = imu[["gx", "gy", "gz"]].to_numpy()
-    a = imu[["ax", "ay", "az"]].to_numpy()
-    for k in range(len(t)):
-        filt.propagate(t[k], w[k], a[k])
-    return filt, states
-
-
+# ----------------------------------------------------------------------------- fast path, streaming
 def _rich_case(model_name, scale_factors, seed=7, gap=True):
     """A 14 s drive whose measurement items exercise every path of the filter: yaw between
     IMU samples (virtual samples), an invalid row, an outlier, sun vectors, zero-velocity
@@ -314,19 +326,14 @@ def _rich_case(model_name, scale_factors, seed=7, gap=True):
         meas[f"sun_n{c}"] = sun_n[i]
     meas["sun_std"] = np.where(use, 1e-3, np.nan)
     items = items_from_table(meas)
-    items += [E.MeasurementItem(tz, "zupt", 0.02) for tz in (1.3, 2.1, 2.6, 9.0)]
+    items += [MeasurementItem(tz, "zupt", 0.02) for tz in (1.3, 2.1, 2.6, 9.0)]
     if gap:  # drop 0.1 s of IMU samples
         t = imu["t"].to_numpy()
         imu = imu[(t < 6.0) | (t >= 6.1)].reset_index(drop=True)
-    options = E.EskfOptions(
-        mech=Mechanization.from_imu_model(model),
-        scale_factors=scale_factors,
-        nhc_std=0.05,
-        nhc_every=20,
-        reset_interval_s=2.0,
-    )
-    start = (float(traj.lat[0]), float(traj.lon[0]), float(traj.height[0]))
-    return model, imu, items, options, start
+    site = Site(np.degrees(traj.lat[0]), np.degrees(traj.lon[0]), float(traj.height[0]))
+    config = FuseConfig(imu_model=model, site=site, scale_factors=scale_factors, nhc_std=0.05,
+                        reset_interval_s=2.0)  # fmt: skip
+    return imu, items, config
 
 
 def _arrays(imu):
@@ -337,78 +344,93 @@ def _arrays(imu):
     )
 
 
-@pytest.mark.parametrize(
-    ("model_name", "scale_factors", "max_segment", "full_cov", "row_chunk"),
-    [
-        ("mems-typical", True, 4096, True, None),
-        ("mems-typical", False, 37, False, None),
-        ("mems-typical", True, 4096, False, 50),
-        ("fins-paper", True, 4096, False, None),
-        ("fins-paper", False, 100, True, 30),
-    ],
-)
-def test_streaming_equals_batch(
-    model_name, scale_factors, max_segment, full_cov, row_chunk, monkeypatch
-):
-    # The batch path (vectorised between resets, block transitions, only the table's
-    # covariance parts per row unless full_cov; rows in chunks of row_chunk) against one
-    # propagate() per sample.
-    if row_chunk is not None:
-        monkeypatch.setattr("polins.fusion.batch._ROW_CHUNK", row_chunk)
-    model, imu, items, options, start = _rich_case(model_name, scale_factors)
+def _fast(config, imu, items, rot_nb0=None):
+    """The fast path over a log: the filter and its rows (NavState), one per sample."""
     t, W, A = _arrays(imu)
-    fast = E.ESKF(model, t[0], *start, options=options)
-    out = E.run_batch(fast, t, W, A, items, max_segment=max_segment, full_cov=full_cov)
-    slow, states = _streaming(model, imu, items, options, *start)
-    assert len(states) == len(out.t) == len(imu)
-    rot_slow = Rotation.concatenate([s.rot_nb for s in states])
-    aligned = np.array([s.yaw_aligned for s in states])
-    np.testing.assert_array_equal(aligned, out.yaw_aligned)
-    assert (out.rot_nb * rot_slow.inv()).magnitude()[aligned].max() < 1e-9
-    assert np.abs(out.bg - np.array([s.bg for s in states])).max() < 1e-12
-    P_slow = np.array([s.P for s in states])
-    sd = np.sqrt(np.diagonal(P_slow, axis1=1, axis2=2))
-    assert np.abs(out.sigma / sd - 1.0).max() < 1e-9
-    att = sd[:, :3, None] * sd[:, None, :3]
-    assert (np.abs(out.P_att - P_slow[:, :3, :3]) / att).max() < 1e-9
-    if full_cov:
-        assert (np.abs(out.P - P_slow) / (sd[:, :, None] * sd[:, None, :])).max() < 1e-9
-    else:
-        assert out.P is None
-    assert [(r.name, r.accepted, r.reason[:8]) for r in fast.records] == [
-        (r.name, r.accepted, r.reason[:8]) for r in slow.records
-    ]
-    assert fast.n_resets == slow.n_resets > 3
-    assert fast._sums.n == slow._sums.n and fast._count == slow._count == len(imu)
-    names = {(r.name, r.accepted) for r in fast.records}
+    filt = ESKF(config, t[0], 0.005, rot_nb0)
+    filt.add_items(items)
+    if not filt.ready:
+        filt.level([(t[k], W[k], A[k]) for k in range(int(config.align_s / 0.005) + 1)])
+    nodes, rows = advance(filt, t, W, A, np.ones(len(t), dtype=bool))
+    return filt, interpolate(nodes, rows, filt.layout.index)
+
+
+def _streaming(config, imu, items, rot_nb0=None):
+    """One propagate() per sample: the filter and its state after every sample."""
+    t, W, A = _arrays(imu)
+    filt = ESKF(config, t[0], 0.005, rot_nb0)
+    filt.add_items(items)
+    states = []
+    for k in range(len(t)):
+        filt.propagate(t[k], W[k], A[k])
+        if filt.ready:
+            states.append(filt.state())
+    return filt, polins.fusion.state.concatenate(states)
+
+
+def _compare(a, b):
+    """Largest attitude difference [rad] and relative differences of the attitude and
+    gyro-bias sigmas between two batched NavStates (aligned rows only)."""
+    al = np.asarray(a.yaw_aligned) & np.asarray(b.yaw_aligned)
+    d_att = (a.rot_nb * b.rot_nb.inv()).magnitude()[al].max()
+    r_att = np.abs(a.sigma["att"] / b.sigma["att"] - 1.0)[al].max()
+    r_bg = np.abs(a.sigma["bg"] / b.sigma["bg"] - 1.0)[al].max()
+    return d_att, r_att, r_bg
+
+
+@pytest.mark.parametrize(
+    ("model_name", "scale_factors"),
+    [("mems-typical", True), ("mems-typical", False), ("fins-paper", True)],
+)
+def test_fast_path_and_streaming_agree_with_a_fine_step_reference(model_name, scale_factors):
+    # The default covariance step (0.1 s, rows interpolated between steps) and the
+    # streaming filter (one propagate per sample) against the exact filter of the model:
+    # one covariance step per IMU interval. They differ by the discretisation error only.
+    imu, items, config = _rich_case(model_name, scale_factors)
+    fine = FuseConfig.from_options(config, cov_step_s=0.005)
+    f_ref, ref = _fast(fine, imu, items)
+    f_fast, fast = _fast(config, imu, items)
+    f_str, stream = _streaming(config, imu, items)
+    s_ref, stream_ref = _streaming(fine, imu, items)
+    assert len(fast) == len(ref) == len(imu) and len(stream) == len(stream_ref)
+    # the fine-step fast path is the fine-step streaming filter (same steps, exact rows)
+    k0 = len(ref) - len(stream_ref)  # samples of the levelling window
+    tail = polins.fusion.state.concatenate([ref.at(i) for i in range(k0, len(ref))])
+    d, r_att, r_bg = _compare(tail, stream_ref)
+    assert d < 1e-9 and r_att < 1e-6 and r_bg < 1e-6
+    for est in (fast, stream):
+        cmp = ref if len(est) == len(ref) else tail
+        d, r_att, r_bg = _compare(est, cmp)
+        # measured: 2.1e-9 rad, 5.8e-5 (the rows' linear interpolation), 4.6e-7
+        assert d < 1e-8 and r_att < 3e-4 and r_bg < 1e-5, (d, r_att, r_bg)
+    # the same decisions: gate, alignment, resets
+    key = [(r.name, r.accepted, r.reason[:8]) for r in f_ref.records]
+    for filt in (f_fast, f_str, s_ref):
+        assert [(r.name, r.accepted, r.reason[:8]) for r in filt.records] == key
+        assert filt.n_resets == f_ref.n_resets > 3 and filt.count == len(imu)
+    names = {(r.name, r.accepted) for r in f_ref.records}
     assert {("yaw", True), ("sun", True), ("zupt", True), ("nhc", True)} <= names
-    reasons = [r.reason for r in fast.records if not r.accepted]
+    reasons = [r.reason for r in f_ref.records if not r.accepted]
     assert any(r.startswith("invalid measurement") for r in reasons)
     assert any(r.startswith("NIS") and "gate" in r for r in reasons)
 
 
 @pytest.mark.parametrize(
     ("model_name", "scale_factors", "given_attitude", "seed"),
-    [
-        ("mems-typical", False, False, 0),
-        ("mems-typical", True, True, 1),
-        ("fins-paper", True, False, 2),
-        ("fins-paper", False, True, 3),
-    ],
+    [("mems-typical", False, False, 0), ("fins-paper", True, True, 1)],
 )
-def test_propagate_many_equals_propagate(model_name, scale_factors, given_attitude, seed):
-    # Runs of random length (1 .. 400 samples, so runs start and end inside covariance
-    # steps, inside the levelling window and around virtual samples) leave the filter
-    # exactly where one propagate() per sample does.
-    model, imu, items, options, start = _rich_case(model_name, scale_factors)
+def test_propagate_many_agrees_with_propagate(model_name, scale_factors, given_attitude, seed):
+    # Runs of random length (1 .. 400 samples: runs start and end inside covariance steps,
+    # inside the levelling window and around virtual samples) leave the filter where one
+    # propagate() per sample does, within the discretisation error (a run ends a step).
+    imu, items, config = _rich_case(model_name, scale_factors)
     t, W, A = _arrays(imu)
     rot0 = rot_nb_from_euler(0.3, 0.01, -0.02) if given_attitude else None
-    one = E.ESKF(model, t[0], *start, rot_nb0=rot0, options=options)
-    many = E.ESKF(model, t[0], *start, rot_nb0=rot0, options=options)
+    one, many = ESKF(config, t[0], 0.005, rot0), ESKF(config, t[0], 0.005, rot0)
     one.add_items(items)
     many.add_items(items)
     rng = np.random.default_rng(seed)
-    k = worst_att = worst_p = 0.0
+    worst = np.zeros(3)
     k = 0
     while k < len(t):
         m = int(rng.choice([1, 2, 7, 19, 20, 21, 60, 150, 400]))
@@ -422,15 +444,10 @@ def test_propagate_many_equals_propagate(model_name, scale_factors, given_attitu
         if one.ready:
             a, b = one.state(), many.state()
             assert a.t == b.t and a.yaw_aligned == b.yaw_aligned
-            worst_att = max(worst_att, (a.rot_nb * b.rot_nb.inv()).magnitude())
-            sd = np.sqrt(np.diag(a.P))
-            worst_p = max(worst_p, (np.abs(a.P - b.P) / np.outer(sd, sd)).max())
-            assert (one._sums.n, one._count, one.n_resets) == (
-                many._sums.n,
-                many._count,
-                many.n_resets,
-            )
-    assert worst_att < 1e-9 and worst_p < 1e-9
+            assert (one.count, one.n_resets) == (many.count, many.n_resets)
+            if a.yaw_aligned:
+                worst = np.maximum(worst, _compare(a.batched(), b.batched()))
+    assert worst[0] < 1e-8 and worst[1] < 3e-4 and worst[2] < 1e-5, worst
     assert len(one.records) == len(many.records) > 100
     with pytest.raises(ValueError, match="not after"):
         many.propagate_many(t[-3:], W[-3:], A[-3:])
@@ -438,23 +455,27 @@ def test_propagate_many_equals_propagate(model_name, scale_factors, given_attitu
         many.propagate_many([t[-1] + 1.0] * 2, [[np.nan, 0, 0]] * 2, A[-2:])
 
 
-def test_fuse_fast_equals_per_sample_filter():
-    model, _, imu, _, _, meas = scenario("mems-typical", 8, 12.0)
-    kw = dict(imu_model=model, **SITE, nhc_std=0.05, output_rate_hz=20.0)
-    a = polins.fuse(imu, meas, **kw)
-    b = polins.fuse(imu, meas, fast=False, **kw)
-    assert len(a) == len(b) == 12 * 20 + 1
-    for col in ("roll", "pitch", "yaw"):
-        assert np.nanmax(np.abs(wrap_angle(a[col] - b[col]))) < 1e-9
-    for col in ("yaw_std", "bgz", "ve", "pn_std"):
-        np.testing.assert_allclose(a[col], b[col], rtol=1e-7, atol=1e-12)
-    pd.testing.assert_frame_equal(a.attrs["updates"], b.attrs["updates"], atol=1e-6)
+def test_copy_is_independent():
+    imu, items, config = _rich_case("mems-typical", False, gap=False)
+    t, W, A = _arrays(imu)
+    filt = ESKF(config, t[0], 0.005)
+    filt.add_items(items)
+    filt.propagate_many(t[:700], W[:700], A[:700])
+    twin = filt.copy()
+    assert twin.records == [] and twin.config is filt.config
+    a = filt.state()
+    twin.propagate_many(t[700:900], W[700:900], A[700:900])
+    b = filt.state()  # the original did not move
+    assert b.t == a.t and (a.rot_nb * b.rot_nb.inv()).magnitude() == 0.0
+    np.testing.assert_array_equal(a.sigma["att"], b.sigma["att"])
+    filt.propagate_many(t[700:900], W[700:900], A[700:900])
+    c, d = filt.state(), twin.state()
+    assert c.t == d.t and (c.rot_nb * d.rot_nb.inv()).magnitude() < 1e-12
 
 
 def test_build_filter_streaming_reproduces_fuse():
-    # The streaming use (polins.io / pipeline): build_filter, queue rows, feed samples.
-    from polins.fusion import build_filter
-
+    # The streaming use (polins.loop): build_filter, queue rows, feed samples: fuse's rows
+    # within the discretisation error.
     model, _, imu, _, _, meas = scenario("mems-typical", 8, 6.0)
     kw = dict(imu_model=model, **SITE, nhc_std=0.05)
     sol = polins.fuse(imu, meas, output_rate_hz=5.0, **kw)
@@ -470,9 +491,31 @@ def test_build_filter_streaming_reproduces_fuse():
     tail = sol.iloc[-len(stream) :].reset_index(drop=True)
     assert len(stream) >= 25
     for col in ("roll", "pitch", "yaw"):
-        assert np.nanmax(np.abs(wrap_angle(stream[col] - tail[col]))) < 1e-9
-    np.testing.assert_allclose(stream["yaw_std"], tail["yaw_std"], rtol=1e-9)
+        assert np.nanmax(np.abs(wrap_angle(stream[col] - tail[col]))) < 2e-6
+    np.testing.assert_allclose(stream["yaw_std"], tail["yaw_std"], rtol=2e-2)
     assert list(stream.columns) == list(sol.columns)
+
+
+def test_fuse_options_site_and_result():
+    model, _, imu, _, _, meas = scenario("mems-typical", 8, 4.0)
+    with pytest.warns(UserWarning, match="no site given") as warned:
+        sol = polins.fuse(imu, meas, imu_model=model)
+    assert len(warned) == 1 and str(polins.site.PAPER_SITE) in str(warned[0].message)
+    with pytest.warns(UserWarning, match="no site given") as warned:
+        build_filter(0.0, 0.005)
+    assert len(warned) == 1
+    cfg = FuseConfig.from_options(imu_model=model, **SITE)
+    res = polins.fusion.run_fusion(imu, meas, config=cfg)
+    pd.testing.assert_frame_equal(res.solution, sol)  # the paper site is the default
+    pd.testing.assert_frame_equal(res.updates, sol.attrs["updates"])
+    assert res.backend == "eskf" and res.filtered is None and res.info["imu_model"] == model.name
+    with pytest.raises(UserInputError, match="did you mean 'nhc_std'"):
+        polins.fuse(imu, meas, nhc_sd=0.1, **SITE)
+    with pytest.raises(UserInputError, match="applies to the graph backend only"):
+        polins.fuse(imu, meas, solver="isam2", **SITE)
+    # a config and options: the options win
+    a = polins.fuse(imu, meas, config=cfg, output_rate_hz=2.0)
+    assert len(a) == 9 and a["t"].iloc[-1] == pytest.approx(imu["t"].iloc[-1])
 
 
 def test_gating_logs_rejections(caplog):
@@ -496,7 +539,7 @@ def test_self_alignment_and_solution_columns():
     sol = polins.fuse(imu, meas, imu_model=model, **SITE, output_rate_hz=10.0)
     for col in (
         "t roll pitch yaw heading_deg roll_std pitch_std yaw_std bgx bgy bgz bax bay baz "
-        "ve vn vu lat_deg lon_deg height_m pe_std pn_std pu_std qw qx qy qz bgx_std baz_std"
+        "ve vn vu lat_deg lon_deg alt_m pe_std pn_std pu_std qw qx qy qz bgx_std baz_std"
     ).split():
         assert col in sol.columns, col
     # yaw unknown until the first measurement (t = 0.2 s), then aligned
@@ -571,7 +614,7 @@ def test_rts_smoother_matches_textbook_on_linear_system():
     Q = np.diag(rng.uniform(0.01, 0.1, n))
     H, R = rng.normal(size=(2, n)), 0.1 * np.eye(2)
     x, P, xt = np.zeros(n), np.eye(n), rng.normal(size=n)
-    P_prior, P_post, Phis, dxs, x_post, x_prior = [P], [P], [None], [np.zeros(n)], [x], [x]
+    P_prior, P_post, Phis, dxs, x_post, x_prior = [P], [P], [np.eye(n)], [np.zeros(n)], [x], [x]
     for _ in range(30):
         xt = Phi @ xt + rng.multivariate_normal(np.zeros(n), Q)
         x, P = predict(x, P, Phi, Q)
@@ -583,7 +626,10 @@ def test_rts_smoother_matches_textbook_on_linear_system():
         dxs.append(x - xp)
         x_post.append(x)
         x_prior.append(xp)
-    delta, P_s = E.rts_smooth(P_prior, P_post, Phis, dxs)
+    linked = np.ones(len(P_post), dtype=bool)
+    linked[0] = False
+    delta, P_s = rts_smooth(np.array(P_prior), np.array(P_post), np.array(Phis), np.array(dxs),
+                            linked)  # fmt: skip
     xs = x_post[-1]
     for i in range(len(x_post) - 2, -1, -1):
         C = P_post[i] @ Phis[i + 1].T @ np.linalg.inv(P_prior[i + 1])
@@ -596,8 +642,7 @@ def test_rts_smoother_matches_textbook_on_linear_system():
 
 
 def test_streaming_api_errors_and_queueing():
-    model = polins.load_imu("mems-typical")
-    filt = E.ESKF(model, 0.0, 0.8, 2.2, 100.0, rot_nb0=Rotation.identity())
+    filt = ESKF(CFG, 0.0, 0.01, Rotation.identity())
     assert filt.ready
     filt.propagate(0.0, [0, 0, 0], [0, 0, 9.8])
     assert filt.add_measurement(0.0, yaw=0.01, yaw_std=0.01)[0].accepted  # applied now
@@ -612,12 +657,12 @@ def test_streaming_api_errors_and_queueing():
         filt.propagate(0.02, [0, 0, 0], [0, 0, 9.8])
     with pytest.raises(ValueError, match="finite"):
         filt.propagate(0.03, [np.nan, 0, 0], [0, 0, 9.8])
-    aligning = E.ESKF(model, 0.0, 0.8, 2.2, 100.0)
+    aligning = ESKF(CFG, 0.0, 0.01)
     aligning.propagate(0.0, [0, 0, 0], [0, 0, 9.8])
     with pytest.raises(RuntimeError, match="levelling"):
         aligning.state()
-    with pytest.raises(ValueError, match="ImuModel"):
-        E.ESKF("mems-typical", 0.0, 0.8, 2.2, 100.0)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="FuseConfig"):
+        ESKF("mems-typical", 0.0, 0.01)  # type: ignore[arg-type]
 
 
 def test_graph_backend_is_lazy():

@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 
 import polins
+from polins.errors import UserInputError
 from polins.fusion.inputs import validate_imu, validate_measurements
 from polins.fusion.items import items_from_table
 
@@ -147,8 +148,8 @@ def test_fuse_reports_input_errors():
     imu = _imu()
     imu.loc[3, "gx"] = np.nan
     with pytest.raises(ValueError, match="NaN/inf sample"):
-        polins.fuse(imu, None, rot_nb0=polins.rot_nb_from_euler(0, 0, 0), lat_deg=45.0)
-    with pytest.raises(TypeError, match=r"unknown fuse option.*nhc_sdt"):
-        polins.fuse(_imu(), None, lat_deg=45.0, nhc_sdt=0.1)
+        polins.fuse(imu, None, rot_nb0=polins.rot_nb_from_euler(0, 0, 0), lat_deg=45.0, lon_deg=0)
+    with pytest.raises(UserInputError, match=r"unknown fuse option.*nhc_sdt"):
+        polins.fuse(_imu(), None, lat_deg=45.0, lon_deg=0.0, nhc_sdt=0.1)
     with pytest.raises(ValueError, match="backend='kalman'"):
         polins.fuse(_imu(), None, backend="kalman")

@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import importlib
 import sys
 
 # The README's test command installs the graph extra: a missing gtsam is an error here, not a skip.
@@ -16,7 +17,9 @@ import polins
 import polins.fusion
 import polins.fusion.graph as G
 from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.fusion.config import FuseConfig
 from polins.fusion.measurement import sun_measurement
+from polins.fusion.state import NavState, solution_table
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import turntable, ugv_drive
 from polins.sky.ephemeris import sun_vector_n
@@ -28,6 +31,11 @@ AZIMUTH = np.radians(200.0)
 SUN_N = sun_vector_n(AZIMUTH, ZENITH)
 ROT_NB = Rotation.from_euler("ZYX", [0.3, 0.05, -0.02])
 ANGLES = ("roll", "pitch", "yaw")
+
+
+def graph(imu, meas, rot_nb0=None, **options):
+    """The graph backend's solution table (``fuse_graph`` with ``FuseConfig`` options)."""
+    return G.fuse_graph(imu, meas, rot_nb0, FuseConfig.from_options(**options)).solution
 
 
 def pose_values(rot_nb, pos=(1.0, 2.0, 3.0), vel=None, bias=None):
@@ -174,7 +182,7 @@ def test_preintegration_params_from_imu_model():
 
 
 def test_keyframes_and_imu_segments():
-    t_key = G.keyframe_times(0.0, 3.0, [0.55, 0.5500000001, 2.0, 5.0], max_keyframe_dt=0.8)
+    t_key = G.keyframe_times(0.0, 3.0, [0.55, 0.5500000001, 2.0, 5.0], max_keyframe_dt_s=0.8)
     assert t_key[0] == 0.0 and t_key[-1] == 3.0
     assert np.max(np.diff(t_key)) <= 0.8 + 1e-12
     assert np.sum(np.abs(t_key - 0.55) < 1e-6) == 1 and np.any(np.abs(t_key - 2.0) < 1e-12)
@@ -216,9 +224,7 @@ def test_graph_equals_eskf_on_linear_gaussian_case(aligned):
     rts = polins.fuse(imu, meas, rot_nb0=rot0, smooth=True, **opts)
     tol_est, tol_sig = (0.01, 1e-3) if aligned else (0.1, 0.02)
     for solver, ref in (("isam2", eskf), ("batch", rts)):
-        g = polins.fuse(
-            imu, meas, backend="graph", rot_nb0=rot0, solver=solver, output="keyframes", **opts
-        )
+        g = graph(imu, meas, rot0, solver=solver, graph_output="keyframes", **opts)
         assert g.attrs["backend"] == "graph" and g.attrs["solver"] == solver
         r = ref.set_index("t").reindex(g["t"].to_numpy(), method="nearest")
         if solver == "isam2":  # causal: no yaw before the first measurement, like the ESKF
@@ -237,7 +243,7 @@ def test_gating_rejects_an_outlier_and_logs_it():
     bad = meas.copy()
     bad.loc[4, "yaw"] += np.radians(8.0)  # 16 sigma
     for solver in ("batch", "isam2"):
-        g = polins.fuse(imu, bad, backend="graph", rot_nb0=traj.rot_nb[0], solver=solver, **opts)
+        g = graph(imu, bad, traj.rot_nb[0], solver=solver, **opts)
         log = g.attrs["updates"]
         assert len(log) == len(meas) and log["name"].eq("yaw").all()
         assert not log["accepted"][4] and log["accepted"].drop(index=4).all(), solver
@@ -249,11 +255,11 @@ def test_gating_rejects_an_outlier_and_logs_it():
 def test_fixed_lag_with_long_window_equals_batch_and_short_window_is_between():
     imu, meas, traj, opts = static_case()
     rot0 = traj.rot_nb[0]
-    kw = {"rot_nb0": rot0, "output": "keyframes", **opts}
-    batch = polins.fuse(imu, meas, backend="graph", solver="batch", **kw)
-    long = polins.fuse(imu, meas, backend="graph", solver="fixed_lag", lag_s=100.0, **kw)
-    short = polins.fuse(imu, meas, backend="graph", solver="fixed_lag", lag_s=2.0, **kw)
-    causal = polins.fuse(imu, meas, backend="graph", solver="isam2", **kw)
+    kw = {"rot_nb0": rot0, "graph_output": "keyframes", **opts}
+    batch = graph(imu, meas, solver="batch", **kw)
+    long = graph(imu, meas, solver="fixed_lag", lag_s=100.0, **kw)
+    short = graph(imu, meas, solver="fixed_lag", lag_s=2.0, **kw)
+    causal = graph(imu, meas, solver="isam2", **kw)
     for c in ANGLES:
         d = wrap_angle(long[c].to_numpy() - batch[c].to_numpy())
         assert np.max(np.abs(d) / batch[f"{c}_std"].to_numpy()) < 0.01
@@ -275,11 +281,10 @@ def test_noise_free_navigation_grade_drive_is_reproduced():
     meas = pd.DataFrame(
         {"t": traj.t[idx], "yaw": yaw_from_rot_nb(traj.rot_nb[idx]), "yaw_std": 1e-4}
     )
-    sol = polins.fuse(
+    sol = graph(
         imu,
         meas,
-        backend="graph",
-        rot_nb0=traj.rot_nb[0],
+        traj.rot_nb[0],
         imu_model=model,
         lat_deg=np.degrees(traj.lat[0]),
         lon_deg=np.degrees(traj.lon[0]),
@@ -340,7 +345,7 @@ def ugv_monte_carlo(runs, duration, *, aiding, seed0=100, model_name="mems-typic
         truth = traj.truth_frame().set_index("t")
         sols = {
             "rts": polins.fuse(imu, meas, rot_nb0=rot0, smooth=True, **opts),
-            "graph": polins.fuse(imu, meas, backend="graph", rot_nb0=rot0, **opts),
+            "graph": graph(imu, meas, rot0, **opts),
         }
         for name, sol in sols.items():
             tr = truth.reindex(sol["t"].to_numpy(), method="nearest")
@@ -392,7 +397,7 @@ def test_self_alignment_on_a_drive():
     opts = {"imu_model": model, "lat_deg": 45.6, "lon_deg": 126.7, "alt_m": 150.0}
     truth = res_imu.truth_frame().set_index("t")
     for solver in ("batch", "isam2"):
-        sol = polins.fuse(imu, meas, backend="graph", solver=solver, output_rate_hz=5.0, **opts)
+        sol = graph(imu, meas, solver=solver, output_rate_hz=5.0, **opts)
         tr = truth.reindex(sol["t"].to_numpy(), method="nearest")
         yaw_ok = np.isfinite(sol["yaw"].to_numpy())
         assert yaw_ok.all() if solver == "batch" else (~yaw_ok[sol["t"] < 0.99]).all()
@@ -402,41 +407,86 @@ def test_self_alignment_on_a_drive():
 
 
 # ----------------------------------------------------------------------------- interface
-def test_solution_has_the_eskf_columns():
+def test_result_is_the_shared_solution_table():
     imu, meas, traj, opts = static_case()
-    g = polins.fuse(imu, meas, backend="graph", rot_nb0=traj.rot_nb[0], **opts)
-    e = polins.fuse(imu, meas, rot_nb0=traj.rot_nb[0], **opts)
-    assert list(g.columns) == list(e.columns)
-    np.testing.assert_allclose(g["t"], e["t"])  # every IMU sample by default
-    info = g.attrs["info"]
-    assert info["n_keyframes"] == 11 and info["n_measurement_factors"] == 10
+    res = G.fuse_graph(imu, meas, traj.rot_nb[0], FuseConfig.from_options(**opts))
+    one = NavState(
+        t=0.0, rot_nb=traj.rot_nb[0], vel_n=np.zeros(3), lat=0.0, lon=0.0, alt_m=0.0,
+        errors={"bg": np.zeros(3), "ba": np.zeros(3)},
+        sigma={k: np.ones(3) for k in ("att", "vel", "pos", "bg", "ba")},
+        att_cov=np.eye(3),
+    )  # fmt: skip
+    g = res.solution
+    assert list(g.columns) == list(solution_table(one).columns)
+    # polins.fuse(backend="graph") runs fuse_graph; the ESKF writes the same table.
+    pd.testing.assert_frame_equal(polins.fuse(imu, meas, "graph", traj.rot_nb[0], **opts), g)
+    assert list(polins.fuse(imu, meas, rot_nb0=traj.rot_nb[0], **opts).columns) == list(g.columns)
+    np.testing.assert_allclose(g["t"], imu["t"])  # every IMU sample by default
+    assert res.backend == g.attrs["backend"] == "graph" and g.attrs["solver"] == "batch"
+    assert res.updates is g.attrs["updates"] and len(res.updates) == len(meas)
+    assert res.info["n_keyframes"] == 11 and res.info["n_measurement_factors"] == 10
+    # Keyframe output: the same states at the keyframe times (interpolation is exact there).
+    k = graph(imu, meas, traj.rot_nb[0], graph_output="keyframes", **opts)
+    at_k = g.set_index("t").loc[k["t"].to_numpy()]
+    for c in (*ANGLES, "yaw_std", "bgz", "ve", "lat_deg", "alt_m", "pu_std"):
+        np.testing.assert_allclose(at_k[c].to_numpy(), k[c].to_numpy(), rtol=1e-9, atol=1e-12)
+
+
+def test_measurement_times_within_time_tol_use_the_imu_sample():
+    """As the ESKF: a measurement within time_tol_s of an IMU sample is applied there."""
+    imu, meas, traj, opts = static_case()
+    late = meas.assign(t=meas["t"] + 2e-4)  # IMU at 100 Hz
+    kw = {"graph_output": "keyframes", **opts}
+    ref = graph(imu, meas, traj.rot_nb[0], **kw)
+    snapped = graph(imu, late, traj.rot_nb[0], time_tol_s=1e-3, **kw)
+    apart = graph(imu, late, traj.rot_nb[0], **kw)
+    np.testing.assert_array_equal(snapped["t"], ref["t"])
+    np.testing.assert_allclose(snapped["yaw"], ref["yaw"], rtol=0, atol=1e-12)
+    assert np.all(np.isin(late["t"][:-1].round(9), apart["t"].round(9)))  # own keyframes
+    assert apart.attrs["updates"]["reason"].iloc[-1] == "outside the IMU time span"
+    assert snapped.attrs["updates"]["accepted"].all()
+
+
+def test_without_a_site_the_paper_site_is_assumed_with_one_warning():
+    imu, meas, traj, opts = static_case()
+    opts = {k: v for k, v in opts.items() if k not in ("lat_deg", "lon_deg", "alt_m")}
+    with pytest.warns(UserWarning, match="paper's site") as caught:
+        sol = graph(imu, meas, traj.rot_nb[0], output_rate_hz=1.0, **opts)
+    assert len(caught) == 1
+    site = polins.site.PAPER_SITE
+    ref = graph(imu, meas, traj.rot_nb[0], output_rate_hz=1.0, site=site, **opts)
+    assert sol["lat_deg"][0] == pytest.approx(site.lat_deg, abs=1e-7)
+    np.testing.assert_array_equal(sol["yaw"], ref["yaw"])
 
 
 def test_bad_options_raise_clear_errors():
     imu, meas, _traj, opts = static_case()
-    with pytest.raises(TypeError, match="smoother"):
-        polins.fuse(imu, meas, backend="graph", smooth=True, **opts)
-    with pytest.raises(TypeError, match="bogus"):
-        polins.fuse(imu, meas, backend="graph", bogus=1, **opts)
-    with pytest.raises(ValueError, match="scale factors"):
-        polins.fuse(imu, meas, backend="graph", scale_factors=True, **opts)
+    with pytest.raises(ValueError, match="smooth applies to the eskf backend only"):
+        graph(imu, meas, smooth=True, **opts)
+    with pytest.raises(ValueError, match="bogus"):
+        graph(imu, meas, bogus=1, **opts)
+    with pytest.raises(ValueError, match="no scale factors"):
+        graph(imu, meas, scale_factors=True, **opts)
     with pytest.raises(ValueError, match="solver"):
-        polins.fuse(imu, meas, backend="graph", solver="lm", **opts)
+        graph(imu, meas, solver="lm", **opts)
     with pytest.raises(ValueError, match="self-alignment"):
-        polins.fuse(imu, meas.iloc[:0], backend="graph", **opts)
+        graph(imu, meas.iloc[:0], **opts)
     with pytest.raises(ValueError, match="zupt_std"):
-        polins.fuse(imu, meas, backend="graph", stationary=[1.0], **opts)
+        graph(imu, meas, stationary=[1.0], **opts)
     with pytest.raises(ValueError, match="imu"):
-        polins.fuse(imu.iloc[::-1], meas, backend="graph", **opts)
+        graph(imu.iloc[::-1], meas, **opts)
+    with pytest.raises(ValueError, match="rot_nb0"):
+        graph(imu, meas, Rotation.identity(2), **opts)
 
 
 def test_graph_backend_without_gtsam_says_which_extra_to_install(monkeypatch):
     imu, meas, traj, opts = static_case()
     monkeypatch.setitem(sys.modules, "gtsam", None)
     monkeypatch.setitem(sys.modules, "gtsam.symbol_shorthand", None)
-    monkeypatch.delitem(sys.modules, "polins.fusion.graph")
+    for name in [m for m in sys.modules if m.startswith("polins.fusion.graph")]:
+        monkeypatch.delitem(sys.modules, name)
     monkeypatch.delattr(polins.fusion, "graph")
     sol = polins.fuse(imu, meas, rot_nb0=traj.rot_nb[0], **opts)  # the ESKF still runs
     assert np.isfinite(sol["yaw"]).all()
     with pytest.raises(ImportError, match=r'pip install "polins\[graph\]"'):
-        polins.fuse(imu, meas, backend="graph", rot_nb0=traj.rot_nb[0], **opts)
+        importlib.import_module("polins.fusion.graph")

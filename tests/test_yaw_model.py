@@ -1,4 +1,4 @@
-"""The tilt-coupled yaw model with the prior polins.measure used (SPEC 10.2, "put the
+"""The tilt-coupled yaw model with the prior polins.measure used (docs/model.md §10.2, "put the
 coupling in H"): exactness, Jacobian, agreement with polins.measure, ESKF and graph use."""
 
 import gtsam

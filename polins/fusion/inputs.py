@@ -1,4 +1,4 @@
-"""Validation of the fusion inputs: the IMU table and the measurements table (CONVENTIONS.md).
+"""Validation of the fusion inputs: the IMU table and the measurements table (docs/conventions.md).
 
 Every problem raises ``ValueError`` with a message naming the column, the row and what was
 expected. Gaps in the IMU stream are reported, never bridged silently; unit mistakes that
@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
+
+from polins.errors import UserInputError
 
 FloatArray = NDArray[np.float64]
 
@@ -40,7 +42,7 @@ class ImuArrays:
 
 def _require_frame(df: object, what: str) -> pd.DataFrame:
     if not isinstance(df, pd.DataFrame):
-        raise ValueError(f"{what} must be a pandas DataFrame, got {type(df).__name__}")
+        raise UserInputError(f"{what} must be a pandas DataFrame, got {type(df).__name__}")
     return df
 
 
@@ -48,25 +50,25 @@ def _numeric(df: pd.DataFrame, cols: tuple[str, ...], what: str) -> FloatArray:
     try:
         return df[list(cols)].to_numpy(dtype=float)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{what} columns {list(cols)} must be numeric: {exc}") from exc
+        raise UserInputError(f"{what} columns {list(cols)} must be numeric: {exc}") from exc
 
 
 def _check_times(t: FloatArray, what: str) -> None:
     bad = np.flatnonzero(~np.isfinite(t))
     if bad.size:
-        raise ValueError(f"{what}: t is NaN/inf at row {bad[0]} ({bad.size} rows)")
+        raise UserInputError(f"{what}: t is NaN/inf at row {bad[0]} ({bad.size} rows)")
     d = np.diff(t)
     dup = np.flatnonzero(d == 0)
     if dup.size:
         i = int(dup[0])
-        raise ValueError(
+        raise UserInputError(
             f"{what}: duplicated timestamp t={t[i]!r} at rows {i} and {i + 1} "
             f"({dup.size} duplicates); timestamps must be strictly increasing"
         )
     back = np.flatnonzero(d < 0)
     if back.size:
         i = int(back[0])
-        raise ValueError(
+        raise UserInputError(
             f"{what}: timestamps are not monotonic: t={t[i + 1]!r} at row {i + 1} follows "
             f"t={t[i]!r} at row {i} ({back.size} backward steps); sort the table by t"
         )
@@ -97,16 +99,16 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
     df = _require_frame(imu, "imu")
     missing = [c for c in IMU_COLUMNS if c not in df.columns]
     if missing:
-        raise ValueError(f"imu table lacks columns {missing}; expected {list(IMU_COLUMNS)}")
+        raise UserInputError(f"imu table lacks columns {missing}; expected {list(IMU_COLUMNS)}")
     if len(df) < 2:
-        raise ValueError(f"imu table needs at least 2 samples, got {len(df)}")
+        raise UserInputError(f"imu table needs at least 2 samples, got {len(df)}")
     data = _numeric(df, IMU_COLUMNS, "imu")
     t = data[:, 0]
     _check_times(t, "imu")
     bad = np.argwhere(~np.isfinite(data[:, 1:]))
     if bad.size:
         r, c = bad[0]
-        raise ValueError(
+        raise UserInputError(
             f"imu: NaN/inf sample in column {IMU_COLUMNS[c + 1]!r} at row {r} (t={t[r]}); "
             f"{len(bad)} bad values. Drop or repair those rows (gaps are then reported)"
         )
@@ -116,7 +118,7 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
     gaps = np.flatnonzero(d > limit)
     if gaps.size:
         listing = ", ".join(f"{d[i]:.4g} s after t={t[i]:.6g}" for i in gaps[:5])
-        raise ValueError(
+        raise UserInputError(
             f"imu: {gaps.size} gap(s) longer than {limit:.4g} s (median interval {dt:.4g} s): "
             f"{listing}{' ...' if gaps.size > 5 else ''}. Gaps are not bridged; split the log "
             "or pass a larger max_gap_s if the interpolation over them is acceptable"
@@ -125,7 +127,7 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
     accel = data[:, 4:7]
     w = np.linalg.norm(gyro, axis=1)
     if w.max() > GYRO_MAX_RAD_S or np.percentile(w, 99) > GYRO_P99_RAD_S:
-        raise ValueError(
+        raise UserInputError(
             f"imu: gyro magnitudes up to {w.max():.3g} (99th percentile "
             f"{np.percentile(w, 99):.3g}) are implausible in rad/s; the gyro looks like "
             "deg/s: multiply by pi/180"
@@ -138,7 +140,7 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
             hint = " It looks like g: multiply by 9.80665."
         elif 600.0 <= f_med <= 1400.0:
             hint = " It looks like mg: multiply by 9.80665e-3."
-        raise ValueError(
+        raise UserInputError(
             f"imu: median specific force |f| = {f_med:.4g} is not ~9.8 m/s^2 (expected "
             f"{lo}-{hi} m/s^2 near the Earth's surface).{hint}"
         )
@@ -146,7 +148,7 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
 
 
 def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
-    """Check a measurements table (CONVENTIONS.md) and return it (an empty table for None).
+    """Check a measurements table (docs/conventions.md) and return it (an empty table for None).
 
     Columns: ``t`` [s] and at least one complete group: ``yaw, yaw_std`` [rad]; or
     ``sun_bx, sun_by, sun_bz`` (measured, body), ``sun_nx, sun_ny, sun_nz`` (reference,
@@ -167,16 +169,16 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
         return pd.DataFrame({"t": np.zeros(0)})
     df = _require_frame(measurements, "measurements")
     if "t" not in df.columns:
-        raise ValueError("measurements table lacks column 't'")
+        raise UserInputError("measurements table lacks column 't'")
     groups = {"yaw": YAW_COLUMNS, "sun": SUN_COLUMNS, "zupt": ZUPT_COLUMNS}
     present = {g: [c for c in cols if c in df.columns] for g, cols in groups.items()}
     present["prior"] = [c for c in PRIOR_COLUMNS if c in df.columns]  # not a measurement
     for g, cols in {**groups, "prior": PRIOR_COLUMNS}.items():
         if present[g] and len(present[g]) != len(cols):
             missing = [c for c in cols if c not in df.columns]
-            raise ValueError(f"measurements: incomplete {g} columns, missing {missing}")
+            raise UserInputError(f"measurements: incomplete {g} columns, missing {missing}")
     if len(df) and not any(present[g] for g in groups):
-        raise ValueError(
+        raise UserInputError(
             "measurements table has no measurement columns; expected yaw, yaw_std and/or "
             f"{list(SUN_COLUMNS)} and/or zupt_std"
         )
@@ -186,7 +188,7 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
         yaw, std = _numeric(df, YAW_COLUMNS, "measurements").T
         big = np.flatnonzero(np.abs(yaw) > 2.0 * np.pi)
         if big.size:
-            raise ValueError(
+            raise UserInputError(
                 f"measurements: yaw={yaw[big[0]]:.4g} at row {big[0]} is outside "
                 "[-2 pi, 2 pi]; yaw must be in radians (ENU, counter-clockwise from East)"
             )
@@ -197,7 +199,7 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
             norm = np.linalg.norm(vec, axis=1)
             bad = np.flatnonzero(np.isfinite(norm) & (np.abs(norm - 1.0) > 0.01))
             if bad.size:
-                raise ValueError(
+                raise UserInputError(
                     f"measurements: {name} at row {bad[0]} has norm {norm[bad[0]]:.4g}; "
                     "sun vectors must be unit vectors"
                 )
@@ -208,7 +210,7 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
         angles = _numeric(df, PRIOR_COLUMNS, "measurements")
         big = np.flatnonzero(np.any(np.abs(angles) > 2.0 * np.pi, axis=1))
         if big.size:
-            raise ValueError(
+            raise UserInputError(
                 f"measurements: prior angles at row {big[0]} are outside [-2 pi, 2 pi]; "
                 "prior_roll, prior_pitch, prior_yaw must be in radians"
             )
@@ -218,7 +220,20 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
 def _check_std(std: FloatArray, name: str, upper: float) -> None:
     bad = np.flatnonzero(np.isfinite(std) & ((std <= 0) | (std > upper)))
     if bad.size:
-        raise ValueError(
+        raise UserInputError(
             f"measurements: {name}={std[bad[0]]:.4g} at row {bad[0]} must be > 0"
             + (f" and <= {upper:.4g} (radians expected)" if np.isfinite(upper) else "")
         )
+
+
+def output_mask(t: FloatArray, rate_hz: float | None) -> NDArray[np.bool_]:
+    """IMU samples reported at ``rate_hz`` [Hz]: the first sample at or after each grid time
+    ``t[0] + k / rate_hz``, and the last sample (all samples for None)."""
+    if rate_hz is None:
+        return np.ones(len(t), dtype=bool)
+    if not rate_hz > 0:
+        raise UserInputError(f"output_rate_hz must be > 0 or None, got {rate_hz}")
+    cell = np.floor((t - t[0]) * rate_hz + 1e-9)
+    mask = np.concatenate([[True], np.diff(cell) > 0])
+    mask[-1] = True
+    return mask

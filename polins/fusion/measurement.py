@@ -1,7 +1,7 @@
 """Measurement models shared by the ESKF and the GTSAM graph: residual, Jacobian, covariance.
 
 Every model returns a :class:`Linearized` evaluated at a nominal state. The error state is
-the 15-vector of INTERFACES.md::
+the 15-vector of docs/filter.md::
 
     dx = [dtheta (0:3), dv_n (3:6), dp (6:9), dbg (9:12), dba (12:15)]
 
@@ -100,6 +100,12 @@ def _variance(std: ArrayLike, m: int, name: str) -> FloatArray:
     return s * s
 
 
+def _wrap(angle: float) -> float:
+    """:func:`polins.frames.wrap_angle` of one float [rad] (cheaper per call)."""
+    out = math.remainder(angle, 2.0 * math.pi)
+    return math.pi if out == -math.pi else out
+
+
 # ----------------------------------------------------------------------------- kernels
 # The kernels take validated inputs (mat_nb a rotation matrix, unit vectors, variances);
 # the public functions below validate and call them. The ESKF calls the kernels directly.
@@ -119,9 +125,7 @@ def yaw_kernel(
         H = np.zeros((1, N_ERROR))
         H[0, :3] = (-ax * az / horiz2, -ay * az / horiz2, 1.0)
         predicted = math.atan2(ay, ax)
-        return Linearized(
-            np.array([float(wrap_angle(yaw - predicted))]), H, np.array([[var]]), "yaw"
-        )
+        return Linearized(np.array([_wrap(yaw - predicted)]), H, np.array([[var]]), "yaw")
     # The yaw polins.measure computes from the sun seen in the body frame, levelled with the
     # prior's tilt: h = alpha_s + yaw_P - azimuth(M sun_n), M = mat_nb_P mat_bn (module doc).
     prior = mat_nb if mat_nb_prior is None else mat_nb_prior
@@ -138,7 +142,7 @@ def yaw_kernel(
         + math.atan2(float(prior[1, 0]), float(prior[0, 0]))
         - math.atan2(float(b[1]), float(b[0]))
     )
-    return Linearized(np.array([float(wrap_angle(yaw - predicted))]), H, np.array([[var]]), "yaw")
+    return Linearized(np.array([_wrap(yaw - predicted)]), H, np.array([[var]]), "yaw")
 
 
 def sun_kernel(
@@ -187,10 +191,10 @@ def yaw_measurement(
     sun_n: ArrayLike | None = None,
     rot_nb_prior: Rotation | ArrayLike | None = None,
 ) -> Linearized:
-    """Polarization (or any absolute) yaw measurement, SPEC.md 10.2 "Filter update".
+    """Polarization (or any absolute) yaw measurement, docs/model.md §10.2 "Filter update".
 
     Without ``sun_n``, ``h(x)`` is the yaw of body x of the attitude. With ``sun_n`` the
-    model is the yaw as :func:`polins.measure` computes it, including the SPEC 10.2 tilt
+    model is the yaw as :func:`polins.measure` computes it, including the docs/model.md §10.2 tilt
     coupling in ``H`` (instead of the cot(Z) inflation of ``R``): the camera sees the sun
     in the body frame, ``sun_b = mat_bn(x) sun_n``, and ``polins.measure`` levels it with
     the tilt of its prior ``P`` (``rot_nb_prior``), so::
@@ -217,9 +221,9 @@ def yaw_measurement(
     rot_nb : Rotation or (3, 3) array_like
         Nominal attitude, body FLU -> ENU (a Rotation, or the matrix ``mat_nb``).
     yaw : float
-        Measured ENU yaw of body x [rad] (CONVENTIONS.md).
+        Measured ENU yaw of body x [rad] (docs/conventions.md).
     yaw_std : float
-        Its 1-sigma [rad], e.g. ``Measurement.yaw_std`` (already inflated per SPEC 10.2).
+        Its 1-sigma [rad], e.g. ``Measurement.yaw_std`` (already inflated per docs/model.md §10.2).
     sun_n : (3,) array_like, optional
         ENU sun vector: the yaw was computed by ``polins.measure`` (tilt-coupled model).
     rot_nb_prior : Rotation or (3, 3) array_like, optional
@@ -332,7 +336,7 @@ def non_holonomic(rot_nb: Rotation | ArrayLike, vel_n: ArrayLike, std: ArrayLike
 
 
 def yaw_from_sun(rot_nb: Rotation | ArrayLike, sun_b: ArrayLike, sun_n: ArrayLike) -> float:
-    """Yaw [rad] from a measured body sun vector using the tilt of ``rot_nb`` (SPEC 10.1).
+    """Yaw [rad] from a measured body sun vector using the tilt of ``rot_nb`` (docs/model.md §10.1).
 
     ``yaw = wrap(alpha_s^n - atan2(s^l_y, s^l_x))`` with ``s^l = mat_lb s^b`` and
     ``alpha_s^n = atan2(sun_n_y, sun_n_x)``. Used for self-alignment from a sun vector.

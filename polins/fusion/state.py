@@ -107,9 +107,7 @@ class NavState:
         if self.att_cov is None:
             raise ValueError("this NavState carries no attitude covariance")
         yaw, pitch, _ = euler_from_rot_nb(self.rot_nb)
-        jac = euler_jacobian(yaw, pitch)
-        var = (jac @ np.asarray(self.att_cov) * jac).sum(axis=-1)  # diag(J P J^T)
-        return np.sqrt(np.clip(var, 0.0, None))
+        return _euler_std(yaw, pitch, np.asarray(self.att_cov))
 
     def row(self) -> dict[str, float]:
         """A single state as one row of the solution table."""
@@ -159,6 +157,13 @@ def concatenate(states: Sequence[NavState]) -> NavState:
     )
 
 
+def _euler_std(yaw: FloatArray, pitch: FloatArray, att_cov: FloatArray) -> FloatArray:
+    """1-sigma of (yaw, pitch, roll) from the attitude-error covariance: sqrt diag(J P J^T)."""
+    jac = euler_jacobian(yaw, pitch)
+    var = (jac @ att_cov * jac).sum(axis=-1)
+    return np.sqrt(np.clip(var, 0.0, None))
+
+
 def euler_jacobian(yaw: ArrayLike, pitch: ArrayLike) -> FloatArray:
     """``d(yaw, pitch, roll) / d(dtheta)`` for ``rot_true = exp(dtheta) rot_nb`` (ENU,
     ZYX Euler angles), ``(..., 3, 3)``; singular at pitch = +-90 deg."""
@@ -189,8 +194,12 @@ def solution_table(state: NavState) -> pd.DataFrame:
     n = len(state)
     yaw, pitch, roll = euler_from_rot_nb(state.rot_nb)
     nan_yaw = ~np.broadcast_to(np.asarray(state.yaw_aligned, dtype=bool), (n,))
+    std = (
+        np.full((n, 3), np.nan)
+        if state.att_cov is None
+        else _euler_std(yaw, pitch, np.asarray(state.att_cov).reshape(n, 3, 3))
+    )
     yaw = np.where(nan_yaw, np.nan, yaw)
-    std = state.euler_std() if state.att_cov is not None else np.full((n, 3), np.nan)
     cols: dict[str, Any] = {
         "t": np.asarray(state.t, dtype=float),
         "roll": roll,

@@ -6,6 +6,8 @@ ellipsoid and its second-order height expansion (TR8350.2 Eq. 4-1 and 4-3).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -23,12 +25,25 @@ _K = B * GAMMA_P / (A * GAMMA_E) - 1.0
 _M = OMEGA_IE**2 * A**2 * B / GM
 
 
+def somigliana(sin2_lat: Any, height: Any) -> Any:
+    """:func:`normal_gravity` from ``sin(lat)^2`` (plain arithmetic on floats or arrays: the
+    compiled strapdown calls it too)."""
+    gamma0 = GAMMA_E * (1.0 + _K * sin2_lat) / np.sqrt(1.0 - E2 * sin2_lat)
+    return gamma0 * (
+        1.0 - 2.0 / A * (1.0 + F + _M - 2.0 * F * sin2_lat) * height + 3.0 * height * height / A**2
+    )
+
+
+def radii_from_sin2(sin2_lat: Any) -> tuple[Any, Any]:
+    """:func:`radii_of_curvature` from ``sin(lat)^2`` (plain arithmetic, as :func:`somigliana`)."""
+    w = np.sqrt(1.0 - E2 * sin2_lat)
+    return A * (1.0 - E2) / w**3, A / w
+
+
 def normal_gravity(lat: ArrayLike, height: ArrayLike = 0.0) -> FloatArray:
     """Magnitude of WGS-84 normal gravity [m/s^2] at geodetic latitude [rad] and height [m]."""
     s2 = np.sin(np.asarray(lat, dtype=float)) ** 2
-    h = np.asarray(height, dtype=float)
-    gamma0 = GAMMA_E * (1.0 + _K * s2) / np.sqrt(1.0 - E2 * s2)
-    return gamma0 * (1.0 - 2.0 / A * (1.0 + F + _M - 2.0 * F * s2) * h + 3.0 * h * h / A**2)
+    return somigliana(s2, np.asarray(height, dtype=float))
 
 
 def normal_gravity_gradient(lat: ArrayLike, height: ArrayLike = 0.0) -> FloatArray:
@@ -54,9 +69,7 @@ def earth_rate_n(lat: ArrayLike) -> FloatArray:
 
 def radii_of_curvature(lat: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Meridian and prime-vertical radii of curvature ``(R_M, R_N)`` [m]."""
-    s2 = np.sin(np.asarray(lat, dtype=float)) ** 2
-    w = np.sqrt(1.0 - E2 * s2)
-    return A * (1.0 - E2) / w**3, A / w
+    return radii_from_sin2(np.sin(np.asarray(lat, dtype=float)) ** 2)
 
 
 def transport_rate_n(lat: ArrayLike, height: ArrayLike, vel_n: ArrayLike) -> FloatArray:

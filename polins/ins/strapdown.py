@@ -11,7 +11,7 @@ Groves 2013, Eq. 5.53-5.56) are::
     d(lat)/dt = v_N / (R_M + h),  d(lon)/dt = v_E / ((R_N + h) cos lat),  dh/dt = v_U
 
 IMU samples are instantaneous rates ``omega_ib_b(t_k)`` and specific forces ``f_b(t_k)``
-that vary linearly in time between samples (INTERFACES.md). One step from ``t_k`` to
+that vary linearly in time between samples (docs/filter.md). One step from ``t_k`` to
 ``t_{k+1} = t_k + T`` (:func:`strapdown_step`):
 
 * body rotation vector with the coning term of linear rates (Bortz equation, to second
@@ -24,25 +24,28 @@ that vary linearly in time between samples (INTERFACES.md). One step from ``t_k`
   plus gravity and Coriolis at ``t_k``;
 * position: trapezoid on the velocity, radii of curvature at ``t_k``.
 
-:func:`strapdown` does the same steps for a whole block of samples with vectorised numpy
-(prefix products of the rotation increments and a fixed-point iteration for the weak
-coupling through gravity, Coriolis and transport rate); it matches repeated
-:func:`strapdown_step` to rounding error (tests/test_ins.py).
+:func:`strapdown` does the same steps for a whole block of samples in a loop compiled with
+numba (the one compiled kernel of polins: the strapdown is sequential, and a step costs
+about 30 ns there against 10 us in Python); it matches repeated :func:`strapdown_step` to
+rounding error (tests/test_ins.py).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.ins.earth import (
+    OMEGA_IE,
     earth_rate_n,
-    normal_gravity,
-    radii_of_curvature,
+    radii_from_sin2,
+    somigliana,
     transport_rate_n,
 )
 from polins.models.loader import ImuModel
@@ -203,9 +206,8 @@ def strapdown_increment(
 ) -> tuple[FloatArray, FloatArray, float, float, float, FloatArray, FloatArray]:
     """One strapdown interval (the module docstring's step) on plain arrays.
 
-    The same step as :func:`strapdown_step_detail` with the attitude as a rotation matrix
-    (no ``Rotation`` objects per sample: the streaming filter calls this once per IMU
-    sample). The rotation increments come from ``Rotation.from_rotvec``.
+    The step of :func:`strapdown` (the same compiled loop, over one interval) with the
+    attitude as a rotation matrix: the streaming filter calls this once per IMU sample.
 
     Parameters
     ----------
@@ -231,41 +233,16 @@ def strapdown_increment(
     dv_force_n : (3,) ndarray
         Velocity increment of the specific force alone [m/s].
     """
-    # rotation vectors of rotation_vectors() on Python floats (single sample: cheaper)
-    a0, a1, a2 = omega0_b.tolist()
-    b0, b1, b2 = omega1_b.tolist()
-    dt = float(dt)
-    k = dt * dt
-    c0, c1, c2 = (a1 * b2 - a2 * b1) * k, (a2 * b0 - a0 * b2) * k, (a0 * b1 - a1 * b0) * k
-    h, q = 0.5 * dt, 0.125 * dt
-    rv = [
-        [(a0 + b0) * h + c0 / 12.0, (a1 + b1) * h + c1 / 12.0, (a2 + b2) * h + c2 / 12.0],
-        [(3.0 * a0 + b0) * q + c0 / 96.0, (3.0 * a1 + b1) * q + c1 / 96.0,
-         (3.0 * a2 + b2) * q + c2 / 96.0],
-    ]  # fmt: skip
-    if mech.earth_rotation or mech.transport_rate:
-        w_ie, w_en = nav_rates_n(lat, height, vel_n, mech)
-        z0, z1, z2 = (w_ie + w_en).tolist()
-        rv += [[-z0 * dt, -z1 * dt, -z2 * dt], [-0.5 * z0 * dt, -0.5 * z1 * dt, -0.5 * z2 * dt]]
-        incr = Rotation.from_rotvec(rv).as_matrix()
-        mat1 = incr[2] @ mat_nb @ incr[0]
-        mat_h = incr[3] @ mat_nb @ incr[1]
-        e0, e1, e2 = (2.0 * w_ie + w_en).tolist()
-        u0, u1, u2 = vel_n.tolist()
-        dv_other = np.array([e1 * u2 - e2 * u1, e2 * u0 - e0 * u2, e0 * u1 - e1 * u0]) * -dt
-    else:
-        incr = Rotation.from_rotvec(rv).as_matrix()
-        mat1 = mat_nb @ incr[0]
-        mat_h = mat_nb @ incr[1]
-        dv_other = np.zeros(3)
-    dv_f = (dt / 6.0) * (mat_nb @ f0_b + mat_h @ (2.0 * (f0_b + f1_b)) + mat1 @ f1_b)
-    dv_other[2] -= float(normal_gravity(lat, height)) * dt
-    v1 = vel_n + (dv_f + dv_other)
-    r_m, r_n = radii_of_curvature(lat)
-    v_mid = ((0.5 * dt) * (vel_n + v1)).tolist()
-    lat1 = lat + v_mid[1] / float(r_m + height)
-    lon1 = lon + v_mid[0] / (float(r_n + height) * math.cos(lat))
-    return mat1, v1, lat1, lon1, height + v_mid[2], mat_h, dv_f
+    mat, vel, pos = np.empty((2, 3, 3)), np.empty((2, 3)), np.empty((2, 3))
+    mat_mid, dv_force = np.empty((1, 3, 3)), np.empty((1, 3))
+    _compiled()(
+        np.array([0.0, dt]), np.array([omega0_b, omega1_b], dtype=float),
+        np.array([f0_b, f1_b], dtype=float), mat_nb, np.asarray(vel_n, dtype=float),
+        np.array([lat, lon, height]), mech.earth_rotation, mech.transport_rate, mat, vel, pos,
+        mat_mid, dv_force,
+    )  # fmt: skip
+    lat1, lon1, h1 = pos[1].tolist()
+    return mat[1], vel[1], lat1, lon1, h1, mat_mid[0], dv_force[0]
 
 
 def strapdown_step_detail(
@@ -341,71 +318,129 @@ def strapdown_step(
     return strapdown_step_detail(state, omega0_b, omega1_b, f0_b, f1_b, t1, mech)[0]
 
 
-def _mul_soa(a: FloatArray, b: FloatArray) -> FloatArray:
-    """``a @ b`` for stacks of 3x3 matrices stored component-first, ``(3, 3, ...)``."""
-    return np.einsum("ik...,kj...->ij...", a, b)
+def _rotvec_matrix(x: float, y: float, z: float, out: FloatArray) -> None:
+    """``exp([phi x])`` of the rotation vector ``(x, y, z)`` into ``out`` (3, 3) (Rodrigues,
+    half-angle form; series below 1e-6 rad)."""
+    theta2 = x * x + y * y + z * z
+    if theta2 < 1e-12:
+        a, b = 1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0
+    else:
+        theta = math.sqrt(theta2)
+        a = math.sin(theta) / theta
+        h = math.sin(0.5 * theta)
+        b = 2.0 * h * h / theta2
+    out[0, 0] = 1.0 - b * (y * y + z * z)
+    out[1, 1] = 1.0 - b * (x * x + z * z)
+    out[2, 2] = 1.0 - b * (x * x + y * y)
+    out[0, 1], out[1, 0] = b * x * y - a * z, b * x * y + a * z
+    out[0, 2], out[2, 0] = b * x * z + a * y, b * x * z - a * y
+    out[1, 2], out[2, 1] = b * y * z - a * x, b * y * z + a * x
 
 
-def _scan_soa(m: FloatArray, left: bool) -> FloatArray:
-    """Inclusive prefix products along the last axis of ``(3, 3, n)`` matrices.
+def _run(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    t: FloatArray,
+    w: FloatArray,
+    f: FloatArray,
+    mat0: FloatArray,
+    vel0: FloatArray,
+    pos0: FloatArray,
+    earth: bool,
+    transport: bool,
+    mat: FloatArray,
+    vel: FloatArray,
+    pos: FloatArray,
+    mat_mid: FloatArray,
+    dv_force: FloatArray,
+) -> None:
+    """The steps of the module docstring, one interval after the other (compiled by numba:
+    :func:`_compiled`). Fills ``mat`` (n+1, 3, 3), ``vel`` (n+1, 3), ``pos`` (n+1, 3) =
+    (lat, lon, height), ``mat_mid`` (n, 3, 3) and ``dv_force`` (n, 3)."""
+    n = t.shape[0] - 1
+    mat[0] = mat0
+    vel[0] = vel0
+    pos[0] = pos0
+    inc, inc_h = np.empty((3, 3)), np.empty((3, 3))
+    nav, nav_h = np.eye(3), np.eye(3)
+    tmp = np.empty((3, 3))
+    z, e, dv, dv_f = np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3)
+    for k in range(n):
+        dt = t[k + 1] - t[k]
+        a0, a1, a2 = w[k, 0], w[k, 1], w[k, 2]
+        b0, b1, b2 = w[k + 1, 0], w[k + 1, 1], w[k + 1, 2]
+        q = dt * dt
+        c0, c1, c2 = (a1 * b2 - a2 * b1) * q, (a2 * b0 - a0 * b2) * q, (a0 * b1 - a1 * b0) * q
+        h, o = 0.5 * dt, 0.125 * dt
+        _rotvec((a0 + b0) * h + c0 / 12.0, (a1 + b1) * h + c1 / 12.0,
+                (a2 + b2) * h + c2 / 12.0, inc)  # fmt: skip
+        _rotvec((3.0 * a0 + b0) * o + c0 / 96.0, (3.0 * a1 + b1) * o + c1 / 96.0,
+                (3.0 * a2 + b2) * o + c2 / 96.0, inc_h)  # fmt: skip
+        lat, height = pos[k, 0], pos[k, 2]
+        v0, v1, v2 = vel[k, 0], vel[k, 1], vel[k, 2]
+        s2 = math.sin(lat) ** 2
+        r_m, r_n = _radii(s2)
+        dv[0] = dv[1] = dv[2] = 0.0
+        if earth or transport:
+            z[0] = z[1] = z[2] = 0.0  # omega_in_n
+            e[0] = e[1] = e[2] = 0.0  # 2 omega_ie_n + omega_en_n
+            if earth:
+                z[1], z[2] = OMEGA_IE * math.cos(lat), OMEGA_IE * math.sin(lat)
+                e[1], e[2] = 2.0 * z[1], 2.0 * z[2]
+            if transport:
+                w_en = (-v1 / (r_m + height), v0 / (r_n + height),
+                        v0 * math.tan(lat) / (r_n + height))  # fmt: skip
+                for i in range(3):
+                    z[i] += w_en[i]
+                    e[i] += w_en[i]
+            _rotvec(-z[0] * dt, -z[1] * dt, -z[2] * dt, nav)
+            _rotvec(-0.5 * z[0] * dt, -0.5 * z[1] * dt, -0.5 * z[2] * dt, nav_h)
+            dv[0] = -dt * (e[1] * v2 - e[2] * v1)
+            dv[1] = -dt * (e[2] * v0 - e[0] * v2)
+            dv[2] = -dt * (e[0] * v1 - e[1] * v0)
+        _mul3(nav, mat[k], tmp)
+        _mul3(tmp, inc, mat[k + 1])
+        _mul3(nav_h, mat[k], tmp)
+        _mul3(tmp, inc_h, mat_mid[k])
+        for i in range(3):  # Simpson on mat_nb f_b (sculling)
+            acc = 0.0
+            for j in range(3):
+                f0, f1 = f[k, j], f[k + 1, j]
+                acc += (
+                    mat[k, i, j] * f0 + mat_mid[k, i, j] * 2.0 * (f0 + f1) + mat[k + 1, i, j] * f1
+                )
+            dv_f[i] = acc * (dt / 6.0)
+        dv_force[k] = dv_f
+        dv[2] -= _gravity(s2, height) * dt
+        for i in range(3):
+            vel[k + 1, i] = vel[k, i] + (dv_f[i] + dv[i])
+            e[i] = 0.5 * dt * (vel[k, i] + vel[k + 1, i])  # the position increment
+        pos[k + 1, 0] = lat + e[1] / (r_m + height)
+        pos[k + 1, 1] = pos[k, 1] + e[0] / ((r_n + height) * math.cos(lat))
+        pos[k + 1, 2] = height + e[2]
 
-    ``out[..., i] = m_0 m_1 ... m_i`` (``left=False``) or ``m_i ... m_1 m_0`` (``left=True``).
-    Two-level Hillis-Steele scan: inside blocks of ``~sqrt(n)`` matrices, over the block
-    totals, and one product applying them (about ``log2(n) / 2 + 1`` batched products).
-    """
-    n = m.shape[-1]
-    block = 1 << max(0, (math.ceil(math.log2(max(n, 1))) + 1) // 2)
-    nb = -(-n // block)
-    out = np.empty((3, 3, nb * block))
-    out[..., :n] = m
-    out[..., n:] = np.eye(3)[:, :, None]
-    out = out.reshape(3, 3, nb, block)
 
-    def mul(earlier: FloatArray, later: FloatArray) -> FloatArray:
-        return _mul_soa(later, earlier) if left else _mul_soa(earlier, later)
-
-    d = 1
-    while d < block:
-        out[..., d:] = mul(out[..., :-d], out[..., d:])
-        d *= 2
-    carry = out[..., -1].copy()
-    d = 1
-    while d < nb:
-        carry[..., d:] = mul(carry[..., :-d], carry[..., d:])
-        d *= 2
-    out[..., 1:, :] = mul(carry[..., :-1, None], out[..., 1:, :])
-    return out.reshape(3, 3, nb * block)[..., :n]
+def _mul3_py(a: FloatArray, b: FloatArray, out: FloatArray) -> None:  # pragma: no cover
+    """``out = a @ b`` for 3x3 matrices (written out: compiled, it avoids BLAS calls)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
 
 
-def prefix_products(mats: FloatArray, block: int = 16) -> FloatArray:
-    """Inclusive prefix products ``out[i] = mats[0] @ mats[1] @ ... @ mats[i]``, ``(n, 3, 3)``.
-
-    Two-level Hillis-Steele scan on the components (:func:`_scan_soa`); ``block`` is
-    kept for compatibility (the block length is chosen from ``n``).
-    """
-    m = np.asarray(mats, dtype=float)
-    if m.shape[0] == 0:
-        return m.copy()
-    return np.moveaxis(_scan_soa(np.moveaxis(m, 0, -1), left=False), -1, 0)
+# the functions _run calls: numba dispatchers once compiled (:func:`_compiled`)
+_gravity, _radii, _rotvec, _mul3 = somigliana, radii_from_sin2, _rotvec_matrix, _mul3_py
 
 
-def _left_prefix_products(mats: FloatArray) -> FloatArray:
-    """``out[i] = mats[i] @ ... @ mats[1] @ mats[0]`` (new factors on the left)."""
-    m = np.asarray(mats, dtype=float)
-    return np.moveaxis(_scan_soa(np.moveaxis(m, 0, -1), left=True), -1, 0)
+@functools.cache
+def _compiled() -> Any:
+    """:func:`_run` compiled by numba (imported here, not with polins; the machine code is
+    cached on disk next to this module)."""
+    import numba
 
-
-def _force_increments(
-    mat: FloatArray, mat_h: FloatArray, f: FloatArray, f_half: FloatArray, dt: FloatArray
-) -> FloatArray:
-    """Simpson's rule on ``mat_nb f_b`` over each interval (the sculling-exact increment).
-
-    Component-first arrays: ``mat`` ``(3, 3, n + 1)``, ``mat_h`` ``(3, 3, n)``, ``f``
-    ``(3, n + 1)``, ``f_half`` ``(3, n)``; returns ``(3, n)``.
-    """
-    force_n = mat[:, 0] * f[0] + mat[:, 1] * f[1] + mat[:, 2] * f[2]
-    force_h = mat_h[:, 0] * f_half[0] + mat_h[:, 1] * f_half[1] + mat_h[:, 2] * f_half[2]
-    return (dt / 6.0) * (force_n[:, :-1] + 4.0 * force_h + force_n[:, 1:])
+    global _gravity, _radii, _rotvec, _mul3
+    _gravity = numba.njit(cache=True)(somigliana)
+    _radii = numba.njit(cache=True)(radii_from_sin2)
+    _rotvec = numba.njit(cache=True)(_rotvec_matrix)
+    _mul3 = numba.njit(cache=True)(_mul3_py)
+    return numba.njit(cache=True)(_run)
 
 
 def strapdown(
@@ -414,18 +449,11 @@ def strapdown(
     omega_b: ArrayLike,
     f_b: ArrayLike,
     mech: Mechanization,
-    *,
-    max_iter: int = 12,
 ) -> NavTrack:
-    """Propagate the nominal state through a block of IMU samples (vectorised).
+    """Propagate the nominal state through a block of IMU samples (compiled loop).
 
-    Mathematically identical to calling :func:`strapdown_step` for every interval.
-    The attitude is ``mat_nb(t_k) = L_k mat_nb(t_0) B_k`` with ``B_k`` the prefix product
-    of the body increments ``exp(phi)`` and ``L_k`` that of the navigation-frame increments
-    ``exp(-zeta)``; velocity and position are cumulative sums. The Earth terms evaluated at
-    ``t_k`` (gravity, Coriolis, transport rate) depend on the state itself, so they are
-    found by a fixed-point iteration that contracts by ``~|omega_in| * duration`` (plus
-    ``~3e-6 s^-2 * duration^2`` for gravity) per pass and stops at rounding level.
+    The steps of :func:`strapdown_step` for every interval, compiled with numba (the same
+    arithmetic; tests/test_ins.py compares the two).
 
     Parameters
     ----------
@@ -437,109 +465,28 @@ def strapdown(
         Corrected body rates [rad/s] and specific forces [m/s^2] at ``t``.
     mech : Mechanization
         Earth terms to include.
-    max_iter : int
-        Iteration limit (a ``RuntimeError`` if it does not converge, which would mean
-        an implausibly long block).
 
     Returns
     -------
     NavTrack
         States at all ``t`` (index 0 is ``state0``).
     """
-    t = np.asarray(t, dtype=float)
-    w = np.asarray(omega_b, dtype=float)
-    f = np.asarray(f_b, dtype=float)
+    t = np.ascontiguousarray(t, dtype=float)
+    w = np.ascontiguousarray(omega_b, dtype=float)
+    f = np.ascontiguousarray(f_b, dtype=float)
     n = t.shape[0] - 1
     if n < 1:
         raise ValueError("strapdown needs at least 2 samples")
     if abs(t[0] - state0.t) > 1e-9 * max(1.0, abs(t[0])):
         raise ValueError(f"t[0]={t[0]} differs from state0.t={state0.t}")
-    dt = np.diff(t)
-    if not np.all(dt > 0):
+    if not np.all(np.diff(t) > 0):
         raise ValueError("sample times must be strictly increasing")
-    phi, phi_h = rotation_vectors(w[:-1], w[1:], dt)
-    # Component-first (3, 3, k) matrices below: batched 3x3 products are elementwise.
-    incr = Rotation.from_rotvec(np.concatenate([phi, phi_h])).as_matrix()
-    incr = np.ascontiguousarray(np.moveaxis(incr, 0, -1))
-    seq = np.empty((3, 3, n + 1))
-    seq[..., 0] = state0.rot_nb.as_matrix()
-    seq[..., 1:] = incr[..., :n]
-    mat0_body = _scan_soa(seq, left=False)  # mat_nb(t_0) B_k
-    f_c = np.ascontiguousarray(f.T)
-    f_half = 0.5 * (f_c[:, :-1] + f_c[:, 1:])
-    dt_col = dt[:, None]
-    earth_terms = mech.earth_rotation or mech.transport_rate
-
-    # Guesses of the states at t_0..t_{n-1} that the Earth terms depend on.
-    lat = np.full(n, state0.lat)
-    height = np.full(n, state0.height)
-    vel = np.broadcast_to(state0.vel_n, (n, 3)).copy()
-    mat = mat0_body  # without navigation-frame rotation
-    mat_h = _mul_soa(mat[..., :-1], incr[..., n:])
-    dv_force = _force_increments(mat, mat_h, f_c, f_half, dt).T
-    coriolis = np.zeros((n, 3))
-    v0 = state0.vel_n
-    if earth_terms:
-        # predictor: velocity without the Earth terms, a good first guess for them
-        dv = dv_force.copy()
-        dv[:, 2] -= normal_gravity(state0.lat, state0.height) * dt
-        vel[1:] = v0 + np.cumsum(dv, axis=0)[:-1]
-    for _ in range(max_iter):
-        if earth_terms:
-            w_ie, w_en = nav_rates_n(lat, height, vel, mech)
-            zeta = (w_ie + w_en) * dt_col
-            nav = Rotation.from_rotvec(np.concatenate([-zeta, -0.5 * zeta])).as_matrix()
-            nav = np.ascontiguousarray(np.moveaxis(nav, 0, -1))
-            left = np.empty((3, 3, n + 1))
-            left[..., 0] = np.eye(3)
-            left[..., 1:] = _scan_soa(nav[..., :n], left=True)
-            mat = _mul_soa(left, mat0_body)
-            mat_h = _mul_soa(_mul_soa(nav[..., n:], mat[..., :-1]), incr[..., n:])
-            dv_force = _force_increments(mat, mat_h, f_c, f_half, dt).T
-            coriolis = cross(2.0 * w_ie + w_en, vel)
-        grav_u = -normal_gravity(lat, height)
-        dv = dv_force - coriolis * dt_col
-        dv[:, 2] += grav_u * dt
-        vel_all = np.empty((n + 1, 3))
-        vel_all[0] = v0
-        np.cumsum(dv, axis=0, out=vel_all[1:])
-        vel_all[1:] += v0
-        dpos = 0.5 * (vel_all[:-1] + vel_all[1:]) * dt_col
-        r_m, r_n = radii_of_curvature(lat)
-        h_all = np.empty(n + 1)
-        h_all[0] = 0.0
-        np.cumsum(dpos[:, 2], out=h_all[1:])
-        h_all += state0.height
-        lat_all = np.empty(n + 1)
-        lat_all[0] = 0.0
-        np.cumsum(dpos[:, 1] / (r_m + height), out=lat_all[1:])
-        lat_all += state0.lat
-        # A pass contracts the error of the guesses by ~|2 omega_ie + omega_en| * duration
-        # (< 3e-3 for 20 s): once a pass changes the guesses by less than these limits, the
-        # result is within ~3e-9 m/s of the exact fixed point and the attitude (which sees
-        # the velocity only through the transport rate v / R) within ~1e-15 rad.
-        change = max(
-            float(np.max(np.abs(vel_all[:-1] - vel))) / 1e-6,  # [m/s]
-            float(np.max(np.abs(h_all[:-1] - height))) / 1e-4,  # [m]
-            float(np.max(np.abs(lat_all[:-1] - lat))) / 1e-12,  # [rad]
-        )
-        vel, height, lat = vel_all[:-1], h_all[:-1], lat_all[:-1]
-        if change <= 1.0:
-            break
-    else:
-        raise RuntimeError("strapdown fixed-point iteration did not converge; split the block")
-    dlon = dpos[:, 0] / ((r_n + height) * np.cos(lat))
-    lon_all = np.empty(n + 1)
-    lon_all[0] = 0.0
-    np.cumsum(dlon, out=lon_all[1:])
-    lon_all += state0.lon
-    return NavTrack(
-        t=t,
-        mat_nb=np.ascontiguousarray(np.moveaxis(mat, -1, 0)),
-        vel_n=vel_all,
-        lat=lat_all,
-        lon=lon_all,
-        height=h_all,
-        mat_nb_mid=np.ascontiguousarray(np.moveaxis(mat_h, -1, 0)),
-        dv_force_n=dv_force,
-    )
+    mat, vel, pos = np.empty((n + 1, 3, 3)), np.empty((n + 1, 3)), np.empty((n + 1, 3))
+    mat_mid, dv_force = np.empty((n, 3, 3)), np.empty((n, 3))
+    _compiled()(
+        t, w, f, state0.rot_nb.as_matrix(), np.asarray(state0.vel_n, dtype=float),
+        np.array([state0.lat, state0.lon, state0.height], dtype=float),
+        mech.earth_rotation, mech.transport_rate, mat, vel, pos, mat_mid, dv_force,
+    )  # fmt: skip
+    return NavTrack(t, mat, vel, pos[:, 0].copy(), pos[:, 1].copy(), pos[:, 2].copy(),
+                    mat_mid, dv_force)  # fmt: skip

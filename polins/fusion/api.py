@@ -1,0 +1,164 @@
+"""The fusion's entry points: ``fuse`` (a solution table), ``run_fusion`` (the full result) and ``build_filter`` (streaming)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
+
+from polins.errors import UserInputError
+from polins.fusion.config import FuseConfig
+from polins.fusion.eskf.filter import ESKF, config_with_site
+from polins.fusion.eskf.propagate import advance, interpolate
+from polins.fusion.eskf.smoother import rts_smooth
+from polins.fusion.inputs import (
+    PRIOR_COLUMNS,
+    output_mask,
+    validate_imu,
+    validate_measurements,
+)
+from polins.fusion.items import MeasurementItem, items_from_table, records_table
+from polins.fusion.result import FusionResult
+from polins.fusion.state import solution_table
+
+
+def build_filter(
+    t0: float,
+    dt: float,
+    rot_nb0: Rotation | None = None,
+    config: FuseConfig | None = None,
+    **options: Any,
+) -> ESKF:
+    """The :class:`~polins.fusion.eskf.ESKF` that :func:`fuse` runs, for streaming use.
+
+    Feeding it the IMU samples (``propagate``) with the measurement rows queued
+    (``add_measurement``) gives ``fuse``'s results within the discretisation error
+    (``state().row()`` is a row of the solution table).
+
+    Parameters
+    ----------
+    t0 : float
+        Time of the first IMU sample [s].
+    dt : float
+        IMU sample interval [s] (sets the covariance-step and non-holonomic cadence).
+    rot_nb0 : Rotation, optional
+        Initial attitude; None for self-alignment.
+    config : FuseConfig, optional
+        The configuration; ``options`` (:class:`FuseConfig` field names, ``lat_deg/lon_deg/
+        alt_m`` for ``site``) replace its values. No site: one ``UserWarning``.
+    """
+    cfg = config_with_site(FuseConfig.from_options(config, **options), stacklevel=3)
+    cfg.check_backend("eskf")
+    return ESKF(cfg, float(t0), float(dt), rot_nb0)
+
+
+def run_fusion(
+    imu: pd.DataFrame,
+    measurements: pd.DataFrame | None = None,
+    backend: str = "eskf",
+    rot_nb0: Rotation | None = None,
+    config: FuseConfig | None = None,
+) -> FusionResult:
+    """Fuse an IMU log with measurements: the solution, the update log and the run's facts.
+
+    The arguments are those of :func:`fuse`, with the options in ``config``. The GTSAM
+    backend (``polins.fusion.graph.fuse_graph``) is imported only when asked for.
+    """
+    cfg = config or FuseConfig()
+    cfg.check_backend(backend)
+    meas = validate_measurements(measurements)
+    if cfg.tilt_coupling is None:
+        priors = all(c in meas.columns for c in PRIOR_COLUMNS)
+        cfg = dataclasses.replace(cfg, tilt_coupling=priors)
+    cfg = config_with_site(cfg, stacklevel=4)
+    if backend == "graph":
+        from polins.fusion.graph import fuse_graph  # gtsam: only when asked for
+
+        return fuse_graph(imu, meas, rot_nb0, cfg)
+    arrays = validate_imu(imu, max_gap_s=cfg.max_gap_s)
+    t, W, A = arrays.t, arrays.gyro_b, arrays.accel_b
+    filt = ESKF(cfg, float(t[0]), arrays.dt, rot_nb0)
+    items = items_from_table(meas, use_sun=cfg.use_sun)
+    if cfg.zupt_std is not None:
+        items += [MeasurementItem(ts, "zupt", cfg.zupt_std) for ts in cfg.stationary]
+    filt.add_items(items)
+    if not filt.ready:
+        tol = cfg.time_tol_s
+        k_end = int(np.searchsorted(t - t[0], cfg.align_s - tol, side="left"))
+        if k_end >= len(t):
+            raise UserInputError(
+                f"the IMU log ({t[-1] - t[0]:.3f} s) is shorter than the alignment window "
+                f"align_s={cfg.align_s} s; give rot_nb0 or a longer log"
+            )
+        filt.level([(float(t[k]), W[k], A[k]) for k in range(k_end + 1)])
+    run = advance(filt, t, W, A, output_mask(t, cfg.output_rate_hz), full=cfg.smooth)
+    assert run is not None
+    nodes, rows = run
+    slices = filt.layout.index
+    filtered = solution_table(interpolate(nodes, rows, slices))
+    solution = filtered
+    if cfg.smooth:
+        assert nodes.P_pre is not None and nodes.P_post is not None and nodes.Phi is not None
+        delta, P_s = rts_smooth(nodes.P_pre, nodes.P_post, nodes.Phi, nodes.dx, nodes.linked)
+        solution = solution_table(interpolate(nodes, rows, slices, delta, P_s))
+    info = {"imu_model": cfg.imu.name, "n_resets": filt.n_resets, "options": cfg.changes()}
+    return FusionResult(
+        solution, records_table(filt.records), filtered if cfg.smooth else None, "eskf", info
+    )
+
+
+def fuse(
+    imu: pd.DataFrame,
+    measurements: pd.DataFrame | None = None,
+    backend: str = "eskf",
+    rot_nb0: Rotation | None = None,
+    *,
+    config: FuseConfig | None = None,
+    **options: Any,
+) -> pd.DataFrame:
+    """Fuse an IMU log with polarization yaw / sun-vector measurements.
+
+    Parameters
+    ----------
+    imu : DataFrame
+        Columns ``t`` [s], ``gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2]: body (FLU)
+        angular rate and specific force, instantaneous at ``t``.
+    measurements : DataFrame, optional
+        Columns ``t`` and ``yaw, yaw_std`` [rad] and/or ``sun_bx, sun_by, sun_bz``
+        (measured, body), ``sun_nx, sun_ny, sun_nz`` (reference, ENU), ``sun_std`` [rad];
+        optionally ``zupt_std`` [m/s] and the prior ``prior_roll/pitch/yaw`` [rad]. NaN
+        values are skipped (logged). None: no aiding.
+    backend : {"eskf", "graph"}
+        Error-state Kalman filter (:mod:`polins.fusion.eskf`) or the GTSAM factor graph
+        (``polins.fusion.graph``, needs ``gtsam``).
+    rot_nb0 : Rotation, optional
+        Initial attitude (body FLU -> ENU). None: self-alignment (roll/pitch from the
+        accelerometer over ``align_s`` at rest, yaw from the first valid measurement).
+    config : FuseConfig, optional
+        The configuration (``polins.fusion.config.option_table()`` lists the options).
+    **options
+        :class:`FuseConfig` field names replacing the values of ``config``;
+        ``lat_deg, lon_deg, alt_m`` are a shorthand for ``site``. An unknown name is a
+        ``TypeError``; no site: one ``UserWarning`` naming the site assumed.
+
+    Returns
+    -------
+    DataFrame
+        The solution table (:func:`polins.fusion.state.solution_table`; docs/filter.md
+        lists its columns), smoothed with ``smooth=True``. ``attrs`` carries ``updates``,
+        ``backend``, ``imu_model`` and (smoothed) ``filtered`` for compatibility; pandas
+        operations drop them: :func:`run_fusion` returns them in a ``FusionResult``.
+    """
+    result = run_fusion(
+        imu, measurements, backend, rot_nb0, FuseConfig.from_options(config, **options)
+    )
+    sol = result.solution
+    sol.attrs["updates"] = result.updates
+    sol.attrs["backend"] = result.backend
+    sol.attrs["imu_model"] = result.info.get("imu_model")
+    if result.filtered is not None:
+        sol.attrs["filtered"] = result.filtered
+    return sol

@@ -1,0 +1,152 @@
+"""Self-alignment of the ESKF: levelling (with gyrocompassing) over a static window, and the yaw set by the first heading measurement.
+
+Levelling assumes the vehicle static during the first ``align_s`` seconds: roll and pitch
+from the averaged specific force, with the tilt error's exact correlation with the
+accelerometer bias (a horizontal bias ``b`` tilts the estimate by ``b / g``); the yaw is
+unknown (reported as NaN) until the first valid yaw or sun-vector measurement, which sets
+it (:func:`align_yaw`: its variance becomes the measurement's, its correlations zero). The
+vehicle may move before that measurement only if the yaw does not matter for the velocity
+then (it stands still, or drives straight from rest: the velocity is rotated with the
+frame at the alignment). When the mechanization includes the Earth rate, the levelling
+also gyrocompasses (:func:`polins.ins.alignment.gyrocompass`, with the yaw error's
+correlation with the gyro bias) if that yaw is better than ``GYROCOMPASS_MAX_STD``, so that
+the Earth rate is compensated about the right axes until the first yaw measurement (with a
+yaw off by ``d`` the tilt would drift by ``2 sin(d/2) Omega cos L``); that coarse yaw is
+not reported.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.fusion.config import FuseConfig
+from polins.fusion.eskf.blocks import Layout
+from polins.fusion.items import MeasurementItem, item_model
+from polins.fusion.measurement import yaw_from_sun
+from polins.ins.alignment import gyrocompass, level_from_accel
+from polins.ins.earth import OMEGA_IE, normal_gravity
+from polins.ins.strapdown import Mechanization
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger("polins.fusion")
+
+GYROCOMPASS_MAX_STD = math.radians(5.0)  # self-alignment gyrocompasses below this sigma
+
+
+def level(
+    t: FloatArray,
+    gyro_b: FloatArray,
+    accel_b: FloatArray,
+    lat: float,
+    alt_m: float,
+    P: FloatArray,
+    layout: Layout,
+    config: FuseConfig,
+    mech: Mechanization,
+) -> tuple[FloatArray, FloatArray]:
+    """The levelled attitude ``mat_nb`` and the covariance after the static window.
+
+    Parameters
+    ----------
+    t : (K,) ndarray
+        Sample times of the window [s].
+    gyro_b, accel_b : (K, 3) ndarray
+        Raw body rates [rad/s] and specific forces [m/s^2].
+    lat, alt_m : float
+        Position [rad], [m].
+    P : (n, n) ndarray
+        The initial covariance (its sensor-error blocks are kept).
+    layout : Layout
+        The error-state blocks.
+    config : FuseConfig
+        ``align_s`` and ``vel_std0``; ``config.imu`` for the noise.
+    mech : Mechanization
+        With the Earth rate: gyrocompass.
+    """
+    model = config.imu
+    f_mean = accel_b.mean(axis=0)
+    g = float(normal_gravity(lat, alt_m))
+    if abs(np.linalg.norm(f_mean) - g) > 0.05 * g or np.max(np.abs(gyro_b)) > 0.2:
+        log.warning(
+            "self-alignment: the IMU does not look static in the first %.2f s "
+            "(|f| = %.3f m/s^2, max |w| = %.3f rad/s); roll/pitch may be wrong",
+            config.align_s, np.linalg.norm(f_mean), np.max(np.abs(gyro_b)),
+        )  # fmt: skip
+    roll, pitch = level_from_accel(f_mean)
+    rot = Rotation.from_euler("ZYX", [0.0, pitch, roll])
+    duration = max(float(t[-1] - t[0]), 1.0 / max(model.sample_rate_hz, 1.0))
+    att, bg, ba, vel = (layout[k] for k in ("att", "bg", "ba", "vel"))
+    P = P.copy()
+    P[att, :] = 0.0
+    P[:, att] = 0.0
+    yaw_var = 1.0  # yaw unknown until the first yaw measurement
+    if mech.earth_rotation:
+        yaw0, j_bg = gyrocompass(gyro_b.mean(axis=0), rot, lat)
+        var = j_bg @ P[bg, bg] @ j_bg + (model.gyro_arw**2 / duration) * (j_bg @ j_bg)
+        if var < GYROCOMPASS_MAX_STD**2:
+            rot = Rotation.from_rotvec([0.0, 0.0, yaw0]) * rot
+            yaw_var = float(var)
+            P[2, bg] = j_bg @ P[bg, bg]
+            P[bg, 2] = P[2, bg]
+        else:
+            log.warning(
+                "self-alignment: the gyro bias (%.3g deg/h) is too large to gyrocompass "
+                "(yaw sigma %.1f deg); with the Earth rate mechanized the tilt drifts "
+                "by up to %.2g rad/s until the first yaw measurement",
+                np.degrees(model.gyro_bias) * 3600.0, np.degrees(math.sqrt(var)),
+                2.0 * OMEGA_IE * math.cos(lat),
+            )  # fmt: skip
+    # tilt error = J dba exactly, plus the averaged white noise of the accelerometer
+    J = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0]]) @ rot.as_matrix() / g
+    p_ba = P[ba, ba]
+    P[0:2, 0:2] = J @ p_ba @ J.T + np.eye(2) * ((model.accel_vrw / g) ** 2 / duration)
+    P[0:2, ba] = J @ p_ba
+    P[ba, 0:2] = (J @ p_ba).T
+    P[2, 2] = yaw_var
+    P[vel, vel] = np.eye(3) * config.vel_std0**2
+    return rot.as_matrix(), P
+
+
+def align_yaw(
+    item: MeasurementItem,
+    mat_nb: FloatArray,
+    vel_n: FloatArray,
+    P: FloatArray,
+    layout: Layout,
+    tilt_coupling: bool,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Attitude, velocity and covariance with the yaw of a first yaw / sun item (the error
+    state is zero: called after a reset). The yaw rotation turns the velocity and the
+    attitude/velocity covariance with it; the yaw variance becomes the item's."""
+    if item.kind == "yaw":
+        # the yaw that zeroes the residual: one step for the yaw of body x (exact), three
+        # Newton steps with the tilt coupling (the model depends on the prior's tilt)
+        delta, std = 0.0, item.std
+        coupled = tilt_coupling and item.sun_n is not None
+        for _ in range(3 if coupled else 1):
+            mat = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix() @ mat_nb
+            lin = item_model(item, mat, vel_n, tilt_coupling)
+            delta += float(lin.residual[0] / lin.H[0, 2])
+    else:
+        s_n = np.asarray(item.sun_n, dtype=float)
+        s_n = s_n / np.linalg.norm(s_n)
+        rot0 = Rotation.from_matrix(mat_nb)
+        yaw_meas = yaw_from_sun(rot0, item.sun_b, s_n)  # type: ignore[arg-type]
+        std = item.std / max(float(np.hypot(s_n[0], s_n[1])), 1e-3)
+        delta = float(wrap_angle(yaw_meas - yaw_from_rot_nb(rot0)))
+    rz = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix()
+    att, vel = layout["att"], layout["vel"]
+    T = np.eye(layout.n)
+    T[att, att] = rz
+    T[vel, vel] = rz
+    P = T @ P @ T.T
+    P[2, :] = 0.0
+    P[:, 2] = 0.0
+    P[2, 2] = std**2
+    return rz @ mat_nb, rz @ vel_n, P

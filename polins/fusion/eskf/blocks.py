@@ -1,0 +1,217 @@
+"""The error state built from named blocks: each declares its size, dynamics, noise, initial sigma and measurement columns.
+
+A :class:`Block` is one named part of the error state (``att``, ``vel``, ``pos``, ``bg``,
+``ba``, and with scale factors ``sg``, ``sa``). It declares
+
+* ``size``: its number of states;
+* ``columns(step)``: its columns of the continuous dynamics ``F``, as a mapping from the
+  name of a block (the rows) to an ``(S, rows, size)`` array, given the
+  :class:`~polins.fusion.eskf.dynamics.StepNominal` of S covariance steps. How the block's
+  error drives the others (``bg`` drives ``att`` through ``-C D_g``) and itself (a
+  Gauss-Markov state drives its own rows with ``-1/tau``); blocks not named are zero;
+* ``noise(model)``: its continuous process-noise density per state (white noise
+  entering its own rows; zero by default);
+* ``sigma0(model, config)``: its initial 1-sigma per state;
+* ``jacobian``: its columns of the measurement Jacobian: a ``slice`` of the columns of the
+  shared 15-state model (:func:`~polins.fusion.items.item_model`), or a function
+  ``(item, lin) -> (dim, size)`` of the item (:class:`~polins.fusion.items.MeasurementItem`)
+  and that model ``lin``; None (the default): zero;
+* ``correct(gyro_b, accel_b, estimate)``: for an IMU error, the samples corrected with the
+  block's estimate (applied in block order: ``(w - bg) / (1 + sg)``); None otherwise.
+
+Navigation blocks (``att``, ``vel``, ``pos``) are injected into the nominal attitude,
+velocity and position; the others are *sensor-error* blocks, whose estimates the filter
+keeps by name (``ESKF.errors``) and reports in the solution table. :class:`Layout` lays
+the blocks out in order and assembles ``F``, ``Qc``, ``P0`` and ``H`` from them, so a
+capability adds a block (:func:`error_blocks`) without touching the filter (docs/filter.md,
+"Adding a state block").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from polins.fusion.config import FuseConfig
+from polins.fusion.eskf.dynamics import StepNominal
+from polins.fusion.items import MeasurementItem
+from polins.fusion.measurement import BA, BG, Linearized
+from polins.ins.earth import radii_of_curvature
+from polins.models import ImuModel
+
+FloatArray = NDArray[np.float64]
+Columns = Callable[[StepNominal], Mapping[str, FloatArray]]
+# (gyro_b, accel_b, estimate) -> the IMU samples corrected with the block's estimate
+Correction = Callable[[FloatArray, FloatArray, FloatArray], tuple[FloatArray, FloatArray]]
+
+
+def _no_noise(model: ImuModel) -> float:
+    return 0.0
+
+
+@dataclass(frozen=True)
+class Block:
+    """One named block of the error state (module docstring)."""
+
+    name: str
+    size: int
+    columns: Columns
+    sigma0: Callable[[ImuModel, FuseConfig], float | Sequence[float]]
+    noise: Callable[[ImuModel], float] = _no_noise
+    jacobian: slice | Callable[[MeasurementItem, Linearized], FloatArray] | None = None
+    navigation: bool = False
+    correct: Correction | None = None
+
+
+def _skew_columns(v: FloatArray) -> FloatArray:
+    """``-[v x]`` for ``(S, 3)`` vectors, ``(S, 3, 3)``."""
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = v[..., 2], -v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = -v[..., 2], v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = v[..., 1], -v[..., 0]
+    return out
+
+
+def _att(step: StepNominal) -> Mapping[str, FloatArray]:
+    f = step.f_nav
+    return {"att": f[:, 0:3, 0:3], "vel": _skew_columns(step.force_n), "pos": f[:, 6:9, 0:3]}
+
+
+def _vel(step: StepNominal) -> Mapping[str, FloatArray]:
+    f = step.f_nav
+    return {"att": f[:, 0:3, 3:6], "vel": f[:, 3:6, 3:6], "pos": f[:, 6:9, 3:6]}
+
+
+def _pos(step: StepNominal) -> Mapping[str, FloatArray]:
+    f = step.f_nav
+    return {"att": f[:, 0:3, 6:9], "vel": f[:, 3:6, 6:9], "pos": f[:, 6:9, 6:9]}
+
+
+def _bg(step: StepNominal) -> Mapping[str, FloatArray]:
+    return {"att": -step.mat_nb * step.gyro_divisor}
+
+
+def _ba(step: StepNominal) -> Mapping[str, FloatArray]:
+    return {"vel": -step.mat_nb * step.accel_divisor}
+
+
+def _sg(step: StepNominal) -> Mapping[str, FloatArray]:
+    assert step.mat_omega is not None  # scale-factor runs carry it
+    return {"att": -step.mat_omega * step.gyro_divisor}
+
+
+def _sa(step: StepNominal) -> Mapping[str, FloatArray]:
+    assert step.mat_force is not None
+    return {"vel": -step.mat_force * step.accel_divisor}
+
+
+ATT = Block("att", 3, _att, lambda m, c: c.att_std0, lambda m: m.gyro_arw**2,
+            slice(0, 3), navigation=True)  # fmt: skip
+VEL = Block("vel", 3, _vel, lambda m, c: c.vel_std0, lambda m: m.accel_vrw**2,
+            slice(3, 6), navigation=True)  # fmt: skip
+POS = Block("pos", 3, _pos, lambda m, c: c.pos_std0, jacobian=slice(6, 9),
+            navigation=True)  # fmt: skip
+GYRO_BIAS = Block("bg", 3, _bg, lambda m, c: m.gyro_bias, lambda m: m.gyro_bias_rw**2,
+                  BG, correct=lambda w, f, e: (w - e, f))  # fmt: skip
+ACCEL_BIAS = Block("ba", 3, _ba, lambda m, c: m.accel_bias, lambda m: m.accel_bias_rw**2,
+                   BA, correct=lambda w, f, e: (w, f - e))  # fmt: skip
+GYRO_SCALE = Block("sg", 3, _sg, lambda m, c: m.gyro_scale_factor,
+                   correct=lambda w, f, e: (w / (1.0 + e), f))  # fmt: skip
+ACCEL_SCALE = Block("sa", 3, _sa, lambda m, c: m.accel_scale_factor,
+                    correct=lambda w, f, e: (w, f / (1.0 + e)))  # fmt: skip
+
+
+def error_blocks(config: FuseConfig) -> tuple[Block, ...]:
+    """The blocks of the error state that ``config`` asks for, in state order."""
+    blocks: tuple[Block, ...] = (ATT, VEL, POS, GYRO_BIAS, ACCEL_BIAS)
+    if config.scale_factors:
+        blocks += (GYRO_SCALE, ACCEL_SCALE)
+    return blocks
+
+
+class Layout:
+    """Blocks laid out in order: their slices, and ``F``, ``Qc``, ``P0``, ``H`` assembled.
+
+    The first three blocks must be ``att``, ``vel``, ``pos`` (the nominal navigation state).
+    """
+
+    def __init__(self, blocks: Sequence[Block]) -> None:
+        if [b.name for b in blocks[:3]] != ["att", "vel", "pos"]:
+            raise ValueError("the error state starts with the att, vel, pos blocks")
+        self.blocks = tuple(blocks)
+        self.index: dict[str, slice] = {}
+        start = 0
+        for b in self.blocks:
+            if b.name in self.index:
+                raise ValueError(f"two error-state blocks named {b.name!r}")
+            self.index[b.name] = slice(start, start + b.size)
+            start += b.size
+        self.n = start
+        self.sensor = tuple(b for b in self.blocks if not b.navigation)
+        # columns taken from the shared 15-state model, and the blocks with own functions
+        src = [np.arange(15)[b.jacobian] for b in self.blocks if isinstance(b.jacobian, slice)]
+        dst = [np.arange(self.n)[self.index[b.name]] for b in self.blocks
+               if isinstance(b.jacobian, slice)]  # fmt: skip
+        self._kernel_src = np.concatenate(src) if src else np.zeros(0, dtype=int)
+        self._kernel_dst = np.concatenate(dst) if dst else np.zeros(0, dtype=int)
+        self._own = tuple(b for b in self.blocks if callable(b.jacobian))
+        self._plain = self.n == 15 and not self._own and np.array_equal(self._kernel_dst,
+                                                                         self._kernel_src)  # fmt: skip
+
+    def __getitem__(self, name: str) -> slice:
+        return self.index[name]
+
+    def dynamics(self, step: StepNominal) -> FloatArray:
+        """Continuous error dynamics ``F`` of the steps, ``(S, n, n)``."""
+        F = np.zeros((step.dt.shape[0], self.n, self.n))
+        for b in self.blocks:
+            col = self.index[b.name]
+            for row_name, block in b.columns(step).items():
+                F[:, self.index[row_name], col] = block
+        return F
+
+    def noise_density(self, model: ImuModel) -> FloatArray:
+        """Diagonal of the continuous process-noise density ``Qc``, ``(n,)``."""
+        return np.concatenate([np.full(b.size, b.noise(model)) for b in self.blocks])
+
+    def initial_covariance(self, model: ImuModel, config: FuseConfig) -> FloatArray:
+        """Diagonal initial covariance ``P0`` from the blocks' initial sigmas."""
+        sig = [np.broadcast_to(np.asarray(b.sigma0(model, config), float), (b.size,))
+               for b in self.blocks]  # fmt: skip
+        return np.diag(np.concatenate(sig) ** 2)
+
+    def jacobian(self, item: MeasurementItem, lin: Linearized) -> FloatArray:
+        """The measurement Jacobian ``(dim, n)`` of an item over all blocks."""
+        if self._plain:  # the shared model's own layout
+            return lin.H
+        H = np.zeros((lin.H.shape[0], self.n))
+        H[:, self._kernel_dst] = lin.H[:, self._kernel_src]
+        for b in self._own:
+            H[:, self.index[b.name]] = b.jacobian(item, lin)  # type: ignore[misc,operator]
+        return H
+
+
+def inject_nav(
+    mat_nb: FloatArray,
+    vel_n: FloatArray,
+    lat: ArrayLike,
+    lon: ArrayLike,
+    alt_m: ArrayLike,
+    dx: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``nominal (+) dx`` for the navigation blocks (``dx[..., :9]``: attitude, velocity,
+    ENU position [m]); single or batched (leading axis)."""
+    r_m, r_n = radii_of_curvature(lat)
+    lat_a, alt_a = np.asarray(lat, dtype=float), np.asarray(alt_m, dtype=float)
+    mat = Rotation.from_rotvec(dx[..., 0:3]).as_matrix() @ mat_nb
+    return (
+        mat,
+        vel_n + dx[..., 3:6],
+        lat_a + dx[..., 7] / (r_m + alt_a),
+        np.asarray(lon, dtype=float) + dx[..., 6] / ((r_n + alt_a) * np.cos(lat_a)),
+        alt_a + dx[..., 8],
+    )

@@ -1,0 +1,584 @@
+"""The error-state Kalman filter: nominal strapdown state, error state and covariance, measurement queue, resets.
+
+:class:`ESKF` holds the nominal navigation state (attitude as a matrix, ENU velocity,
+geodetic position), the sensor-error estimates by block name and the error state ``x``
+with its covariance ``P`` (blocks of :mod:`polins.fusion.eskf.blocks`). The reported
+estimate is always ``nominal (+) x``. The prediction is ``x = Phi x``, ``P = Phi P Phi^T + Q``
+(filterpy's ``predict``), the update ``filterpy.kalman.update`` (Joseph form); innovations are gated with a chi-square test
+(:func:`~polins.fusion.items.gate_limit`, each rejection logged with its reason) and the
+normalised innovation squared (NIS) of every update is recorded.
+
+Streaming use: :meth:`ESKF.propagate` once per IMU sample (the nominal state by
+:func:`~polins.ins.strapdown.strapdown_increment`, the covariance every ``cov_step_s`` and
+at each measurement time), :meth:`ESKF.add_measurement` for each measurement row (applied
+when the IMU reaches its time, with the IMU interpolated linearly to it), :meth:`ESKF.state`
+for the current estimate. :mod:`polins.fusion.eskf.propagate` runs the same filter over
+runs of samples, through the public methods below (the interface
+:class:`polins.fusion.eskf.propagate.Filter` lists).
+
+Reset policy ("closed loop at a reduced rate"): the error estimate is injected into the
+nominal state and zeroed after the first processed measurement at least
+``reset_interval_s`` after the previous reset, or as soon as the attitude error estimate
+exceeds ``reset_angle_rad``. Between resets the updates act on the error state only, so the
+nominal state between resets does not depend on them (what the fast path exploits).
+
+Ground-vehicle constraints: ``nhc_std`` applies the non-holonomic constraint (no lateral,
+no vertical body velocity) at ``nhc_rate_hz``; measurement rows with ``zupt_std`` a
+zero-velocity update. The non-holonomic Jacobian depends on the nominal velocity, so its
+sigma must also cover the linearisation error (0.05 m/s is a sound default for a car).
+
+Alignment: ``rot_nb0`` given, or self-alignment (:mod:`polins.fusion.eskf.alignment`): the
+vehicle static for ``align_s``, the yaw unknown (NaN) until the first valid yaw or sun
+measurement sets it.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import update as kf_update
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from polins.errors import UserInputError
+from polins.fusion.config import FuseConfig
+from polins.fusion.eskf.alignment import align_yaw, level
+from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav
+from polins.fusion.eskf.dynamics import StepNominal, discretize, step_nominal
+from polins.fusion.eskf.propagate import advance
+from polins.fusion.items import (
+    MeasurementItem,
+    UpdateRecord,
+    gate_limit,
+    item_model,
+    measurement_items,
+)
+from polins.fusion.measurement import Linearized
+from polins.fusion.state import NavState
+from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown_increment
+from polins.site import PAPER_SITE
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger("polins.fusion")
+
+
+def config_with_site(config: FuseConfig | None, *, stacklevel: int = 3) -> FuseConfig:
+    """``config`` (default: all defaults) with a site: when none is given, the one
+    ``UserWarning`` that says which site is assumed (:data:`polins.site.PAPER_SITE`)."""
+    config = config or FuseConfig()
+    if config.site is not None:
+        return config
+    warnings.warn(
+        f"no site given (FuseConfig.site or lat_deg/lon_deg/alt_m); assuming the paper's "
+        f"site {PAPER_SITE} for gravity and the Earth rate",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+    return FuseConfig.from_options(config, site=PAPER_SITE)
+
+
+@dataclass
+class _StepSums:
+    """Sums over the IMU intervals of the covariance step in progress (streaming)."""
+
+    n: int = 0
+    dt: float = 0.0
+    mat: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C dt
+    dv: FloatArray = field(default_factory=lambda: np.zeros(3))  # sum int C f dt
+    mat_omega: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(phi)
+    mat_force: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(f) dt
+    start: tuple[FloatArray, float, float] = (np.zeros(3), 0.0, 0.0)  # vel, lat, alt
+
+
+class ESKF:
+    """Error-state Kalman filter holding its state; streaming interface (module docstring).
+
+    Parameters
+    ----------
+    config : FuseConfig
+        The configuration (the site must be set: :func:`config_with_site`).
+    t0 : float
+        Time of the first IMU sample [s] (the filter starts there).
+    dt : float
+        IMU sample interval [s]: sets the samples per covariance step (``cov_step_s``) and
+        per non-holonomic update (``nhc_rate_hz``).
+    rot_nb0 : Rotation, optional
+        Initial attitude; None for self-alignment.
+    blocks : sequence of Block, optional
+        The error-state blocks (default :func:`~polins.fusion.eskf.blocks.error_blocks`
+        of ``config``; docs/filter.md, "Adding a state block").
+    """
+
+    def __init__(
+        self,
+        config: FuseConfig,
+        t0: float,
+        dt: float,
+        rot_nb0: Rotation | None = None,
+        blocks: Sequence[Block] | None = None,
+    ) -> None:
+        if not isinstance(config, FuseConfig):
+            raise TypeError(f"config must be a FuseConfig, got {type(config).__name__}")
+        if not (math.isfinite(dt) and dt > 0):
+            raise UserInputError(f"dt must be a positive IMU sample interval [s], got {dt}")
+        if rot_nb0 is not None and (not isinstance(rot_nb0, Rotation) or not rot_nb0.single):
+            raise UserInputError(
+                "rot_nb0 must be a single scipy Rotation (body FLU -> ENU) or None"
+            )
+        config = config_with_site(config, stacklevel=3)
+        assert config.site is not None
+        self.config = config
+        self.model = config.imu
+        earth = config.mechanize_earth_rate
+        self.mech = Mechanization(earth_rotation=earth, transport_rate=earth)
+        self.layout = Layout(error_blocks(config) if blocks is None else blocks)
+        self.n = self.layout.n
+        self.qc = self.layout.noise_density(self.model)
+        self.cov_every = max(1, int(config.cov_step_s / dt + 1e-9))
+        self.nhc_every = max(1, round(1.0 / (config.nhc_rate_hz * dt)))
+        self.tilt_coupling = bool(config.tilt_coupling)
+        self.t = float(t0)
+        self.mat_nb = (rot_nb0 or Rotation.identity()).as_matrix()
+        self.vel_n = np.array(config.vel_n0, dtype=float)
+        self.lat, self.lon, self.alt_m = config.site.lat, config.site.lon, config.site.alt_m
+        self.errors = {b.name: np.zeros(b.size) for b in self.layout.sensor}
+        self.x = np.zeros(self.n)
+        self.P = self.layout.initial_covariance(self.model, config)
+        self.records: list[UpdateRecord] = []
+        self.yaw_aligned = rot_nb0 is not None
+        self.t_reset = float(t0)
+        self.n_resets = 0
+        self.count = 0  # real IMU samples consumed
+        self.correction = np.zeros(self.n)  # sum of the update corrections (the smoother's)
+        self._t0 = float(t0)
+        self._pending: list[MeasurementItem] = []
+        self._cur: tuple[float, FloatArray, FloatArray] | None = None  # last (virtual) sample
+        self._last: tuple[float, FloatArray, FloatArray] | None = None  # last real sample
+        self._align_buffer: list[tuple[float, FloatArray, FloatArray]] | None = (
+            None if rot_nb0 is not None else []
+        )
+        self._sums = _StepSums()
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def ready(self) -> bool:
+        """True once levelling is done (a state is available)."""
+        return self._align_buffer is None
+
+    @property
+    def started(self) -> bool:
+        """True once the first IMU sample (after levelling) is consumed."""
+        return self._cur is not None
+
+    @property
+    def last_sample(self) -> tuple[float, FloatArray, FloatArray] | None:
+        """The last real IMU sample consumed ``(t, gyro_b, accel_b)`` (raw), or None."""
+        return self._last
+
+    @property
+    def pending(self) -> tuple[MeasurementItem, ...]:
+        """The queued measurement items, in processing order."""
+        return tuple(self._pending)
+
+    def copy(self) -> ESKF:
+        """A cheap copy: arrays copied, model/config/layout shared, an empty update log."""
+        new = copy.copy(self)
+        new.mat_nb, new.vel_n = self.mat_nb.copy(), self.vel_n.copy()
+        new.errors = {k: v.copy() for k, v in self.errors.items()}
+        new.x, new.P, new.correction = self.x.copy(), self.P.copy(), self.correction.copy()
+        new.records = []
+        new._pending = list(self._pending)
+        if self._align_buffer is not None:
+            new._align_buffer = list(self._align_buffer)
+        new._sums = copy.deepcopy(self._sums)
+        return new
+
+    # ------------------------------------------------------------------ streaming API
+    def propagate(self, t: float, gyro_b: ArrayLike, accel_b: ArrayLike) -> list[UpdateRecord]:
+        """Consume one IMU sample (instantaneous rate and specific force at ``t``).
+
+        Applies the pending measurements with times up to ``t`` on the way.
+
+        Returns
+        -------
+        list of UpdateRecord
+            Records of the measurements applied during this call.
+        """
+        t = float(t)
+        w = np.array(gyro_b, dtype=float)
+        f = np.array(accel_b, dtype=float)
+        if (
+            w.shape != (3,)
+            or f.shape != (3,)
+            or not (np.isfinite(w).all() and np.isfinite(f).all() and math.isfinite(t))
+        ):
+            raise ValueError("gyro_b and accel_b must be finite 3-vectors [rad/s], [m/s^2]")
+        n_before = len(self.records)
+        tol = self.config.time_tol_s
+        buffer = self._align_buffer
+        if buffer is None:
+            self._consume(t, w, f)
+            return self.records[n_before:]
+        if buffer and t <= buffer[-1][0]:
+            raise ValueError(f"IMU time {t} is not after the previous sample {buffer[-1][0]}")
+        if not buffer and abs(t - self._t0) > tol:
+            raise ValueError(f"the first IMU sample must be at t0={self._t0}, got {t}")
+        buffer.append((t, w, f))
+        if t - self._t0 >= self.config.align_s - tol:
+            self.level(buffer)
+            for s in buffer:
+                self._consume(*s)
+        return self.records[n_before:]
+
+    def propagate_many(
+        self, t: ArrayLike, gyro_b: ArrayLike, accel_b: ArrayLike
+    ) -> list[UpdateRecord]:
+        """Consume a run of IMU samples, vectorised (:func:`polins.fusion.eskf.propagate.advance`).
+
+        The same filter as one :meth:`propagate` per sample, within the discretisation
+        error (a covariance step in progress ends at the first sample of the run).
+
+        Parameters
+        ----------
+        t : (N,) array_like
+            Sample times [s], strictly increasing, after the last consumed sample.
+        gyro_b, accel_b : (N, 3) array_like
+            Raw body rates [rad/s] and specific forces [m/s^2].
+        """
+        t_a = np.asarray(t, dtype=float)
+        W = np.asarray(gyro_b, dtype=float)
+        A = np.asarray(accel_b, dtype=float)
+        N = t_a.shape[0] if t_a.ndim == 1 else -1
+        if N < 0 or W.shape != (N, 3) or A.shape != (N, 3):
+            raise ValueError(
+                f"propagate_many needs t (N,), gyro_b and accel_b (N, 3); got shapes "
+                f"{t_a.shape}, {W.shape}, {A.shape}"
+            )
+        if not (np.isfinite(t_a).all() and np.isfinite(W).all() and np.isfinite(A).all()):
+            raise ValueError("gyro_b and accel_b must be finite 3-vectors [rad/s], [m/s^2]")
+        if N > 1 and not np.all(np.diff(t_a) > 0):
+            k = int(np.flatnonzero(np.diff(t_a) <= 0)[0])
+            raise ValueError(f"IMU time {t_a[k + 1]} is not after the previous sample {t_a[k]}")
+        n_before = len(self.records)
+        k = 0
+        while k < N and not (self.ready and self.started):  # levelling, first sample
+            self.propagate(t_a[k], W[k], A[k])
+            k += 1
+        if k < N:
+            last = self._last
+            assert last is not None
+            if t_a[k] <= last[0]:
+                raise ValueError(f"IMU time {t_a[k]} is not after the previous sample {last[0]}")
+            self.flush()
+            T = np.concatenate([[last[0]], t_a[k:]])
+            advance(self, T, np.vstack([last[1], W[k:]]), np.vstack([last[2], A[k:]]))
+        return self.records[n_before:]
+
+    def add_measurement(
+        self,
+        t: float,
+        *,
+        yaw: float | None = None,
+        yaw_std: float | None = None,
+        sun_b: ArrayLike | None = None,
+        sun_n: ArrayLike | None = None,
+        sun_std: float | None = None,
+        zupt_std: float | None = None,
+        rot_nb_prior: Rotation | None = None,
+    ) -> list[UpdateRecord]:
+        """Queue (or apply now, if ``t`` is the current time) one measurement row.
+
+        Parameters are the ``measurements`` table's columns (docs/filter.md): a yaw and its
+        1-sigma [rad]; and/or a measured body sun vector, its ENU reference and direction
+        1-sigma [rad]; and/or a zero-velocity 1-sigma [m/s]; ``rot_nb_prior`` is the prior
+        ``polins.measure`` used for the yaw (tilt coupling). A measurement older than the
+        filter time is rejected (logged): the filter does not re-process the past.
+
+        Returns
+        -------
+        list of UpdateRecord
+            Records of the items applied now (empty if queued).
+        """
+        items = measurement_items(
+            t, yaw=yaw, yaw_std=yaw_std, sun_b=sun_b, sun_n=sun_n, sun_std=sun_std,
+            zupt_std=zupt_std, use_sun=self.config.use_sun, rot_nb_prior=rot_nb_prior,
+        )  # fmt: skip
+        return self.add_items(items)
+
+    def add_items(self, items: Sequence[MeasurementItem]) -> list[UpdateRecord]:
+        """Queue measurement items (see :meth:`add_measurement`)."""
+        n_before = len(self.records)
+        tol = self.config.time_tol_s
+        started = self.started and self.ready
+        queued = False
+        for item in items:
+            if started and item.t < self.t - tol:
+                self.reject(item, f"out of sequence: t={item.t} is before the filter time {self.t}")
+            elif started and abs(item.t - self.t) <= tol and not self._pending:
+                self.apply(item)
+            else:
+                self._pending.append(item)
+                queued = True
+        if queued:
+            self._pending.sort(key=lambda it: it.order)
+        return self.records[n_before:]
+
+    def state(self) -> NavState:
+        """Current estimate ``nominal (+) x`` with the sigmas of every block.
+
+        Inside a covariance step, the error state and covariance are propagated over the
+        step so far (its own mean dynamics); the filter itself is not changed.
+        """
+        if not self.ready:
+            raise RuntimeError("the filter is still levelling (self-alignment); feed more samples")
+        x, P = self.x, self.P
+        if self._sums.n:
+            Phi, Q = self.step_matrices(self._step_nominal())
+            x, P = Phi @ x, Phi @ P @ Phi.T + Q
+        lay = self.layout
+        sig = np.sqrt(np.clip(np.diag(P), 0.0, None))
+        mat, vel, lat, lon, alt = inject_nav(
+            self.mat_nb, self.vel_n, self.lat, self.lon, self.alt_m, x[:9]
+        )
+        return NavState(
+            t=self.t,
+            rot_nb=Rotation.from_matrix(mat),
+            vel_n=vel,
+            lat=float(lat),
+            lon=float(lon),
+            alt_m=float(alt),
+            errors={k: v + x[lay[k]] for k, v in self.errors.items()},
+            sigma={b.name: sig[lay[b.name]] for b in lay.blocks},
+            att_cov=P[lay["att"], lay["att"]].copy(),
+            yaw_aligned=self.yaw_aligned,
+        )
+
+    # ------------------------------------------------------------------ the filter's steps
+    def nominal(self) -> tuple[float, FloatArray, FloatArray, float, float, float]:
+        """The nominal state ``(t, mat_nb, vel_n, lat, lon, alt_m)``."""
+        return self.t, self.mat_nb, self.vel_n, self.lat, self.lon, self.alt_m
+
+    def set_nominal(
+        self, t: float, mat_nb: FloatArray, vel_n: FloatArray, lat: float, lon: float, alt_m: float
+    ) -> None:
+        """Move the nominal state (the fast path: to a sample of its strapdown run)."""
+        self.t, self.mat_nb, self.vel_n = float(t), mat_nb, vel_n
+        self.lat, self.lon, self.alt_m = float(lat), float(lon), float(alt_m)
+
+    def corrected(self, gyro_b: ArrayLike, accel_b: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """IMU samples corrected with the sensor-error estimates (the blocks' ``correct``:
+        ``(w - bg) / (1 + sg)``, ``(f - ba) / (1 + sa)``)."""
+        w, f = np.asarray(gyro_b, dtype=float), np.asarray(accel_b, dtype=float)
+        for b in self.layout.sensor:
+            if b.correct is not None:
+                w, f = b.correct(w, f, self.errors[b.name])
+        return w, f
+
+    def divisors(self) -> tuple[FloatArray, FloatArray]:
+        """``1 / (1 + s)`` of the gyro and accelerometer scale-factor estimates."""
+        e = self.errors
+        if "sg" in e:
+            return 1.0 / (1.0 + e["sg"]), 1.0 / (1.0 + e["sa"])
+        return np.ones(3), np.ones(3)
+
+    def step_matrices(self, step: StepNominal) -> tuple[FloatArray, FloatArray]:
+        """``(Phi, Q)`` ``(n, n)`` of one covariance step."""
+        Phi, Q = discretize(self.layout.dynamics(step), step.dt, self.qc)
+        return Phi[0], Q[0]
+
+    def predict(self, Phi: FloatArray, Q: FloatArray) -> None:
+        """Propagate the error state and covariance over a step: ``x = Phi x``,
+        ``P = Phi P Phi^T + Q`` (filterpy's ``predict`` without its argument handling)."""
+        self.x = Phi @ self.x
+        self.P = Phi @ self.P @ Phi.T + Q
+
+    def flush(self) -> None:
+        """Propagate the covariance over the step in progress (streaming)."""
+        if self._sums.n:
+            self.predict(*self.step_matrices(self._step_nominal()))
+            self._sums = _StepSums()
+            # keep the attitude matrix orthonormal (rounding of the per-sample products)
+            self.mat_nb = Rotation.from_matrix(self.mat_nb).as_matrix()
+
+    def take_items(self, t_end: float) -> list[MeasurementItem]:
+        """Remove and return the queued items up to ``t_end`` [s] (in processing order)."""
+        k = 0
+        while k < len(self._pending) and self._pending[k].t <= t_end:
+            k += 1
+        items, self._pending = self._pending[:k], self._pending[k:]
+        return items
+
+    def finish_run(self, t: float, gyro_b: FloatArray, accel_b: FloatArray, count: int) -> None:
+        """After a fast-path run: the last real sample and the number of samples consumed."""
+        self._cur = self._last = (float(t), gyro_b.copy(), accel_b.copy())
+        self.count = count
+
+    def linearize(self, item: MeasurementItem) -> Linearized:
+        """The measurement model of ``item`` over all blocks, at the nominal state."""
+        lin = item_model(item, self.mat_nb, self.vel_n, self.tilt_coupling)
+        return Linearized(lin.residual, self.layout.jacobian(item, lin), lin.R, lin.name)
+
+    def reject(self, item: MeasurementItem, reason: str) -> UpdateRecord:
+        """Log an item as not used."""
+        return self._record(item, 0, math.nan, False, reason)
+
+    def apply(self, item: MeasurementItem) -> UpdateRecord:
+        """Gate and apply one measurement at the current time; then maybe reset."""
+        if self._sums.n:
+            self.flush()
+        if not item.valid:
+            return self.reject(item, "invalid measurement (NaN or non-positive std)")
+        if not self.yaw_aligned and item.kind in ("yaw", "sun"):
+            return self._align_yaw(item)
+        lin = item_model(item, self.mat_nb, self.vel_n, self.tilt_coupling)
+        H, dim = self.layout.jacobian(item, lin), lin.residual.shape[0]
+        if dim == 1:  # scalar innovation: dot products
+            h = H[0]
+            y1 = float(lin.residual[0]) - float(h @ self.x)
+            nis = y1 * y1 / (float(h @ (self.P @ h)) + float(lin.R[0, 0]))
+        else:
+            y = lin.residual - H @ self.x
+            nis = float(y @ np.linalg.solve(H @ (self.P @ H.T) + lin.R, y))
+        limit = gate_limit(self.config.gate_prob, dim)
+        if nis > limit:
+            reason = (
+                f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {dim} dof, p={self.config.gate_prob})"
+            )
+            rec = self._record(item, dim, nis, False, reason)
+        else:
+            x_before = self.x
+            self.x, self.P = kf_update(self.x, self.P, lin.residual, lin.R, H)
+            self.correction += self.x - x_before
+            rec = self._record(item, dim, nis, True, "")
+        x_att = self.x[0:3]
+        if (
+            self.t - self.t_reset >= self.config.reset_interval_s
+            or float(np.dot(x_att, x_att)) > self.config.reset_angle_rad**2
+        ):
+            self.reset()
+        return rec
+
+    def reset(self) -> None:
+        """Inject the error estimate into the nominal state and zero it (reset Jacobian I)."""
+        self.flush()
+        x = self.x
+        self.mat_nb, self.vel_n, lat, lon, alt = inject_nav(
+            self.mat_nb, self.vel_n, self.lat, self.lon, self.alt_m, x[:9]
+        )
+        self.lat, self.lon, self.alt_m = float(lat), float(lon), float(alt)
+        self.errors = {k: v + x[self.layout[k]] for k, v in self.errors.items()}
+        self.x = np.zeros(self.n)
+        self.t_reset = self.t
+        self.n_resets += 1
+
+    def level(self, samples: Sequence[tuple[float, FloatArray, FloatArray]]) -> None:
+        """Self-alignment of roll/pitch over the static window (:func:`level`).
+
+        ``samples`` are the raw ``(t, gyro_b, accel_b)`` from ``t0``; those up to
+        ``align_s`` are used. Ends the levelling (``ready``).
+        """
+        tol = self.config.time_tol_s
+        use = [s for s in samples if s[0] - self._t0 <= self.config.align_s + tol]
+        self._align_buffer = None
+        self.mat_nb, self.P = level(
+            np.array([s[0] for s in use]), np.array([s[1] for s in use]),
+            np.array([s[2] for s in use]), self.lat, self.alt_m, self.P, self.layout, self.config,
+            self.mech,
+        )  # fmt: skip
+        self.vel_n = np.zeros(3)
+
+    # ------------------------------------------------------------------ internals
+    def _record(
+        self, item: MeasurementItem, dim: int, nis: float, accepted: bool, reason: str
+    ) -> UpdateRecord:
+        rec = UpdateRecord(item.t, item.kind, dim, nis, accepted, reason)
+        self.records.append(rec)
+        if not accepted:
+            log.info("t=%.6f %s rejected: %s", item.t, item.kind, reason)
+        return rec
+
+    def _consume(self, t: float, w: FloatArray, f: FloatArray) -> None:
+        """One real IMU sample: apply the pending items up to ``t``, step to ``t``."""
+        tol = self.config.time_tol_s
+        if self._cur is None:
+            if abs(t - self._t0) > tol:
+                raise ValueError(f"the first IMU sample must be at t0={self._t0}, got {t}")
+            self._cur = self._last = (t, w, f)
+        else:
+            t_a, w_a, f_a = self._last  # type: ignore[misc]
+            if t <= t_a:
+                raise ValueError(f"IMU time {t} is not after the previous sample {t_a}")
+            while self._pending and self._pending[0].t <= t + tol:
+                item = self._pending.pop(0)
+                if item.t < self.t - tol:
+                    self.reject(
+                        item, f"out of sequence: t={item.t} is before the filter time {self.t}"
+                    )
+                    continue
+                if item.t > self.t + tol:
+                    if item.t >= t - tol:
+                        self._step(t, w, f)
+                    else:  # a virtual sample at the item time
+                        frac = (item.t - t_a) / (t - t_a)
+                        self._step(item.t, w_a + (w - w_a) * frac, f_a + (f - f_a) * frac)
+                self.apply(item)
+            if t > self.t + tol:
+                self._step(t, w, f)
+            self._last = (t, w, f)
+        self.count += 1
+        c = self.config
+        if c.nhc_std is not None and self.count > 1 and (self.count - 1) % self.nhc_every == 0:
+            self.apply(MeasurementItem(t, "nhc", c.nhc_std))
+        while self._pending and abs(self._pending[0].t - self.t) <= tol:
+            self.apply(self._pending.pop(0))
+
+    def _step(self, t1: float, w1: FloatArray, f1: FloatArray) -> None:
+        """Propagate the nominal state to ``t1``; accumulate the covariance step."""
+        t0, w0, f0 = self._cur  # type: ignore[misc]
+        (wc0, wc1), (fc0, fc1) = self.corrected(np.array([w0, w1]), np.array([f0, f1]))
+        dt = t1 - t0
+        mat1, v1, lat1, lon1, h1, mat_h, dv_force = strapdown_increment(
+            self.mat_nb, self.vel_n, self.lat, self.lon, self.alt_m, wc0, wc1, fc0, fc1, dt,
+            self.mech,
+        )  # fmt: skip
+        s = self._sums
+        if s.n == 0:
+            s.start = (self.vel_n, self.lat, self.alt_m)
+        if "sg" in self.errors:
+            phi, _ = rotation_vectors(wc0, wc1, dt)
+            s.mat_omega += mat_h * phi
+            s.mat_force += mat_h * (0.5 * (fc0 + fc1) * dt)
+        s.n += 1
+        s.dt += dt
+        s.mat += mat_h * dt
+        s.dv += dv_force
+        self.set_nominal(t1, mat1, v1, lat1, lon1, h1)
+        self._cur = (t1, w1, f1)
+        if s.n >= self.cov_every:
+            self.flush()
+
+    def _step_nominal(self) -> StepNominal:
+        """The :class:`StepNominal` of the step in progress."""
+        s = self._sums
+        vel, lat, alt = s.start
+        sf = "sg" in self.errors
+        return step_nominal(
+            np.array([s.dt]), s.mat[None], s.dv[None], vel[None], np.array([lat]),
+            np.array([alt]), self.mech, self.divisors(),
+            s.mat_omega[None] if sf else None, s.mat_force[None] if sf else None,
+        )  # fmt: skip
+
+    def _align_yaw(self, item: MeasurementItem) -> UpdateRecord:
+        """Set the yaw from the first yaw / sun measurement (:func:`align_yaw`)."""
+        self.reset()
+        self.mat_nb, self.vel_n, self.P = align_yaw(
+            item, self.mat_nb, self.vel_n, self.P, self.layout, self.tilt_coupling
+        )
+        self.yaw_aligned = True
+        return self._record(item, 1, math.nan, True, "used for the yaw alignment")

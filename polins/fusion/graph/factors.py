@@ -1,0 +1,211 @@
+"""GTSAM factors of the graph: IMU preintegration, sun, yaw, zero-velocity, non-holonomic, levelling
+
+Every ``CustomFactor`` here evaluates the shared measurement models of
+:mod:`polins.fusion.measurement` (the ESKF's ``(z, H, R)``) and maps their navigation-frame
+attitude columns to GTSAM's body-right tangent (:func:`body_jacobian`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gtsam
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from polins.frames import skew
+from polins.fusion.measurement import ATT, VEL, as_mat_nb, non_holonomic_kernel, yaw_kernel
+from polins.models.loader import ImuModel
+
+FloatArray = NDArray[np.float64]
+
+
+def pose_cov_nav_from_body(mat_nb: ArrayLike, cov_pose_b: ArrayLike) -> FloatArray:
+    """Pose covariance in GTSAM's body-frame tangent space -> navigation frame ``(6, 6)``.
+
+    GTSAM retracts a ``Pose3`` as ``(R exp(w_b), p + R v_b)``; the ESKF's errors are
+    ``dtheta_n = R w_b`` and ``dp_n = R v_b``, so ``cov_n = T cov_b T^T`` with
+    ``T = blockdiag(R, R)``.
+    """
+    r = np.asarray(mat_nb, dtype=float)
+    t = np.zeros((6, 6))
+    t[:3, :3] = r
+    t[3:, 3:] = r
+    return t @ np.asarray(cov_pose_b, dtype=float) @ t.T
+
+
+def pose_cov_body_from_nav(mat_nb: ArrayLike, cov_pose_n: ArrayLike) -> FloatArray:
+    """Inverse of :func:`pose_cov_nav_from_body` ``(6, 6)``."""
+    return pose_cov_nav_from_body(np.asarray(mat_nb, dtype=float).T, cov_pose_n)
+
+
+def bias_from_polins(bias: ArrayLike) -> gtsam.imuBias.ConstantBias:
+    """GTSAM bias from polins order ``[bg (3) rad/s, ba (3) m/s^2]`` (GTSAM: accel first)."""
+    b = np.asarray(bias, dtype=float)
+    return gtsam.imuBias.ConstantBias(b[3:6], b[0:3])
+
+
+def body_jacobian(h_att_n: FloatArray, mat_nb: FloatArray) -> FloatArray:
+    """Jacobian on a ``Pose3`` tangent ``[w_b, v_b]`` ``(m, 6)`` from one on the ESKF's
+    navigation-frame attitude error ``(m, 3)``: ``dtheta_n = R_nb w_b``, so ``H_n R_nb``."""
+    jac = np.zeros((h_att_n.shape[0], 6))
+    jac[:, :3] = h_att_n @ mat_nb
+    return jac
+
+
+def preintegration_params(
+    imu_model: ImuModel,
+    *,
+    gravity_mps2: float,
+    omega_ie_n: ArrayLike | None = None,
+    integration_std: float = 1e-2,
+) -> gtsam.PreintegrationCombinedParams:
+    """``PreintegrationCombinedParams`` for an ENU navigation frame from an IMU model.
+
+    Parameters
+    ----------
+    imu_model : ImuModel
+        White-noise densities (ARW [rad/sqrt(s)], VRW [m/s/sqrt(s)]) become GTSAM's
+        continuous-time gyro and accelerometer covariances; the bias random walks
+        [rad/s/sqrt(s)], [m/s^2/sqrt(s)] the bias covariances (variance growth per second).
+    gravity_mps2 : float
+        Magnitude of gravity [m/s^2]: ``n_gravity = (0, 0, -g)`` (``MakeSharedU``).
+    omega_ie_n : (3,) array_like, optional
+        Earth rate in ENU [rad/s] (:func:`polins.ins.earth.earth_rate_n`) as ``omegaCoriolis``;
+        None for a non-rotating navigation frame.
+    integration_std : float
+        Position-integration noise density [m/sqrt(s)] (GTSAM's integration covariance).
+        Without position measurements the positions are a sink of the graph and this value
+        does not change the attitude, velocity or bias estimates; 1 cm/sqrt(s) keeps the
+        position chain from dominating the conditioning.
+    """
+    params = gtsam.PreintegrationCombinedParams.MakeSharedU(float(gravity_mps2))
+    eye = np.eye(3)
+    params.setGyroscopeCovariance(eye * imu_model.gyro_arw**2)
+    params.setAccelerometerCovariance(eye * imu_model.accel_vrw**2)
+    params.setIntegrationCovariance(eye * integration_std**2)
+    # GTSAM needs a regular bias covariance; 1e-30 per second is far below any real IMU.
+    params.setBiasOmegaCovariance(eye * max(imu_model.gyro_bias_rw**2, 1e-30))
+    params.setBiasAccCovariance(eye * max(imu_model.accel_bias_rw**2, 1e-30))
+    if omega_ie_n is not None:
+        params.setOmegaCoriolis(np.asarray(omega_ie_n, dtype=float))
+    return params
+
+
+def sun_factor(
+    key: int, sun_n: ArrayLike, sun_b: ArrayLike, sun_std: float
+) -> gtsam.AttitudeFactorPose3:
+    """Sun-vector factor ``AttitudeFactorPose3(key, nRef=sun_n, model, bMeasured=sun_b)``.
+
+    Error ``B(sun_n)^T (R_nb sun_b)`` [rad] (2,) with ``B = Unit3(sun_n).basis()``: zero
+    when the measured body direction, rotated to ENU, is the ephemeris direction; its norm
+    is the sine of the angle between them. Isotropic ``sun_std`` [rad].
+    """
+    if not np.isfinite(sun_std) or sun_std <= 0:
+        raise ValueError(f"sun_std must be finite and > 0 [rad], got {sun_std!r}")
+    return gtsam.AttitudeFactorPose3(
+        key,
+        gtsam.Unit3(np.asarray(sun_n, dtype=float)),
+        gtsam.noiseModel.Isotropic.Sigma(2, float(sun_std)),
+        gtsam.Unit3(np.asarray(sun_b, dtype=float)),
+    )
+
+
+def yaw_factor(
+    key: int,
+    yaw: float,
+    yaw_std: float,
+    *,
+    sun_n: ArrayLike | None = None,
+    rot_nb_prior: Rotation | ArrayLike | None = None,
+) -> gtsam.CustomFactor:
+    """Yaw factor on ``X(k)`` with the ESKF's model (:func:`~polins.fusion.measurement.yaw_kernel`).
+
+    GTSAM error ``h(x) - z = -residual`` [rad] (wrapped); Jacobian with respect to the
+    ``Pose3`` tangent ``[w_b, v_b]``: ``[H_theta R_nb, 0]``. With ``sun_n`` and
+    ``rot_nb_prior`` (the tilt coupling of docs/model.md §10.2, option ``tilt_coupling``)
+    ``h(x)`` is the yaw ``polins.measure`` computes with that prior from the sun seen at
+    attitude ``x``: it depends on the tilt of ``x``. A graph re-linearizes away from the
+    prior, so the tilt coupling needs the prior (the ESKF may default it to its own state).
+    """
+    if not (np.isfinite(yaw) and np.isfinite(yaw_std) and yaw_std > 0):
+        raise ValueError(f"yaw and yaw_std must be finite, yaw_std > 0; got {yaw}, {yaw_std}")
+    var = float(yaw_std) ** 2
+    sun = None if sun_n is None else np.asarray(sun_n, dtype=float)
+    if sun is not None:
+        sun = sun / np.linalg.norm(sun)
+    if (sun is None) != (rot_nb_prior is None):
+        raise ValueError("the tilt-coupled yaw factor needs both sun_n and rot_nb_prior")
+    prior = None if rot_nb_prior is None else as_mat_nb(rot_nb_prior)
+    z = float(yaw)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
+        mat_nb = values.atPose3(this.keys()[0]).rotation().matrix()
+        lin = yaw_kernel(mat_nb, z, var, sun, prior)
+        if jacobians is not None:
+            jacobians[0] = body_jacobian(lin.H[:, ATT], mat_nb)
+        return -lin.residual
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, float(yaw_std)), [key], error)
+
+
+def zero_velocity_factor(vel_key: int, std: float) -> gtsam.PriorFactorVector:
+    """Zero-velocity factor (vehicle at rest): C++ ``PriorFactorVector(V(k), 0, std)`` [m/s]."""
+    return gtsam.PriorFactorVector(
+        vel_key, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, float(std))
+    )
+
+
+def non_holonomic_factor(pose_key: int, vel_key: int, std: float) -> gtsam.CustomFactor:
+    """Non-holonomic factor: zero lateral and vertical body velocity [m/s] (``CustomFactor``).
+
+    Residual and Jacobian of :func:`polins.fusion.measurement.non_holonomic`; the attitude
+    columns are mapped to GTSAM's body-right tangent (:func:`body_jacobian`), the velocity
+    columns are used as they are (``Vector3`` tangent = ENU velocity change).
+    """
+    var = np.full(2, float(std) ** 2)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
+        pkey, vkey = this.keys()
+        mat_nb = values.atPose3(pkey).rotation().matrix()
+        lin = non_holonomic_kernel(mat_nb, values.atVector(vkey), var)
+        if jacobians is not None:
+            jacobians[0] = body_jacobian(lin.H[:, ATT], mat_nb)
+            jacobians[1] = np.ascontiguousarray(lin.H[:, VEL])
+        return -lin.residual
+
+    return gtsam.CustomFactor(
+        gtsam.noiseModel.Isotropic.Sigma(2, float(std)), [pose_key, vel_key], error
+    )
+
+
+def levelling_factor(
+    pose_key: int, bias_key: int, force_b: ArrayLike, gravity_mps2: float, std: float
+) -> gtsam.CustomFactor:
+    """Static levelling: a mean specific force ``force_b`` [m/s^2] of a body at rest.
+
+    Model ``force_b = C_bn (0, 0, g) + b_a``; the factor uses the horizontal (E, N)
+    components of ``C_nb (force_b - b_a) - (0, 0, g)`` [m/s^2] (as the ESKF's levelling,
+    which does not use the vertical component), with sigma ``std`` (``VRW / sqrt(T)``).
+    Jacobians: ``-C_nb [force_b - b_a x]`` (body-right rotation), ``-C_nb`` (accel bias).
+    """
+    f_b = np.asarray(force_b, dtype=float)
+    up_g = np.array([0.0, 0.0, float(gravity_mps2)])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
+        pkey, bkey = this.keys()
+        mat_nb = values.atPose3(pkey).rotation().matrix()
+        f = f_b - values.atConstantBias(bkey).accelerometer()
+        if jacobians is not None:
+            jac_pose = np.zeros((2, 6))
+            jac_pose[:, :3] = -(mat_nb @ skew(f))[:2]
+            jac_bias = np.zeros((2, 6))
+            jac_bias[:, :3] = -mat_nb[:2]
+            jacobians[0] = jac_pose
+            jacobians[1] = jac_bias
+        return (mat_nb @ f - up_g)[:2]
+
+    return gtsam.CustomFactor(
+        gtsam.noiseModel.Isotropic.Sigma(2, float(std)), [pose_key, bias_key], error
+    )

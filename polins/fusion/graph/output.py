@@ -1,0 +1,111 @@
+"""Output of the graph: keyframe estimates carried to the output times, as one batched NavState.
+
+Between keyframes the state is the preintegrated prediction from the previous keyframe
+with the mismatch at the next keyframe spread linearly over the interval (attitude on the
+rotation vector, velocity, position); bias and covariance are interpolated linearly. The
+IMU steps are integrated per sample in GTSAM; the correction, the geodetic position and
+the solution table (:func:`polins.fusion.state.solution_table`) are vectorised.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from polins.fusion.graph.problem import Estimates, Problem
+from polins.fusion.measurement import ATT, BA, BG, POS, VEL
+from polins.fusion.state import NavState
+
+FloatArray = NDArray[np.float64]
+
+
+def nav_state(
+    prob: Problem,
+    t: FloatArray,
+    mat_nb: FloatArray,
+    vel_n: FloatArray,
+    pos_n: FloatArray,
+    bias: FloatArray,
+    cov: FloatArray,
+    yaw_known: NDArray[np.bool_],
+) -> NavState:
+    """A batched :class:`~polins.fusion.state.NavState` from stacked estimates.
+
+    ``mat_nb (N, 3, 3)``, ``vel_n (N, 3)`` [m/s], ``pos_n (N, 3)`` local ENU [m], ``bias
+    (N, 6)`` (``bg`` [rad/s], ``ba`` [m/s^2]), ``cov (N, 15, 15)`` in the ESKF's order.
+    """
+    lat, lon, alt_m = prob.geodetic(pos_n)
+    sigma = np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0.0, None))
+    return NavState(
+        t=np.asarray(t, dtype=float),
+        rot_nb=Rotation.from_matrix(mat_nb),
+        vel_n=vel_n,
+        lat=lat,
+        lon=lon,
+        alt_m=alt_m,
+        errors={"bg": bias[:, 0:3], "ba": bias[:, 3:6]},
+        sigma={
+            "att": sigma[:, ATT],
+            "vel": sigma[:, VEL],
+            "pos": sigma[:, POS],
+            "bg": sigma[:, BG],
+            "ba": sigma[:, BA],
+        },
+        att_cov=cov[:, ATT, ATT],
+        yaw_aligned=yaw_known,
+    )
+
+
+def keyframe_output(prob: Problem, est: Estimates) -> NavState:
+    """The keyframe estimates themselves (``graph_output="keyframes"``)."""
+    return nav_state(
+        prob, prob.t_key, est.mat_nb, est.vel_n, est.pos_n, est.bias, est.cov, est.yaw_known
+    )
+
+
+def interpolate(prob: Problem, est: Estimates, t_out: FloatArray) -> NavState:
+    """States at the times ``t_out`` [s] (break points of the IMU steps) between keyframes."""
+    seg, t_key = prob.segments, prob.t_key
+    n_key = len(t_key)
+    idx = np.searchsorted(seg.t, t_out - 1e-9)  # break-point index of each output time
+    key = np.clip(np.searchsorted(seg.bounds, idx, side="right") - 1, 0, n_key - 1)
+    # Preintegrated predictions at the wanted break points, and at every interval's end.
+    wanted = np.zeros(len(seg.t), dtype=bool)
+    wanted[idx] = True
+    mat_bp = np.empty((len(seg.t), 3, 3))
+    vel_bp = np.empty((len(seg.t), 3))
+    pos_bp = np.empty((len(seg.t), 3))
+    end_mat = np.tile(np.eye(3), (n_key, 1, 1))  # C_bn(end prediction) C_nb(next keyframe)
+    d_vel = np.zeros((n_key, 3))  # mismatch at the end of interval k
+    d_pos = np.zeros((n_key, 3))
+    for k in np.unique(key).tolist():
+        lo = seg.bounds[k]
+        mat_bp[lo], vel_bp[lo], pos_bp[lo] = est.mat_nb[k], est.vel_n[k], est.pos_n[k]
+        if k == n_key - 1:
+            continue
+        hi = seg.bounds[k + 1]
+        state, b = est.values(k)
+        corr = prob.imu_correction(state)
+        pim = gtsam.PreintegratedCombinedMeasurements(prob.params, b)
+        accel, gyro = seg.accel[lo:hi] - corr[3:], seg.gyro[lo:hi] - corr[:3]
+        for j, (a, w, dt) in enumerate(zip(accel, gyro, seg.dt[lo:hi], strict=True), lo + 1):
+            pim.integrateMeasurement(a, w, dt)
+            if j < hi and wanted[j]:
+                p = pim.predict(state, b)
+                mat_bp[j], vel_bp[j], pos_bp[j] = p.attitude().matrix(), p.velocity(), p.position()
+        end = pim.predict(state, b)
+        end_mat[k] = end.attitude().matrix().T @ est.mat_nb[k + 1]
+        d_vel[k] = est.vel_n[k + 1] - end.velocity()
+        d_pos[k] = est.pos_n[k + 1] - end.position()
+    d_rot = Rotation.from_matrix(end_mat).as_rotvec()
+    span = np.append(np.diff(t_key), 1.0)
+    a = ((seg.t[idx] - t_key[key]) / span[key])[:, None]  # fraction of the interval
+    nxt = np.minimum(key + 1, n_key - 1)
+    mat = mat_bp[idx] @ Rotation.from_rotvec(a * d_rot[key]).as_matrix()
+    bias = (1 - a) * est.bias[key] + a * est.bias[nxt]
+    cov = (1 - a[:, :, None]) * est.cov[key] + a[:, :, None] * est.cov[nxt]
+    vel = vel_bp[idx] + a * d_vel[key]
+    pos = pos_bp[idx] + a * d_pos[key]
+    return nav_state(prob, t_out, mat, vel, pos, bias, cov, est.yaw_known[key])

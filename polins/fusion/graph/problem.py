@@ -1,0 +1,398 @@
+"""The graph's problem: keyframes, IMU integration steps, factors per keyframe, keyframe estimates.
+
+:class:`Problem` holds what the solvers (:mod:`polins.fusion.graph.solvers`) need: the
+keyframe times, the preintegration parameters, the measurement factors per keyframe, the
+priors of the first state; :class:`Estimates` holds the keyframe results in polins
+conventions (navigation-frame errors, the ESKF's block order).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import Any
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, V, X
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import block_diag
+from scipy.spatial.transform import Rotation
+
+from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.fusion.config import FuseConfig
+from polins.fusion.graph.factors import (
+    bias_from_polins,
+    levelling_factor,
+    non_holonomic_factor,
+    pose_cov_body_from_nav,
+    pose_cov_nav_from_body,
+    preintegration_params,
+    sun_factor,
+    yaw_factor,
+    zero_velocity_factor,
+)
+from polins.fusion.items import MeasurementItem
+from polins.fusion.measurement import N_ERROR, yaw_from_sun
+from polins.ins.alignment import level_from_accel
+from polins.ins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
+from polins.site import Site
+
+FloatArray = NDArray[np.float64]
+
+# The ESKF's error order (att, vel, pos, bg, ba) from GTSAM's blocks (pose_n: att, pos;
+# velocity; bias: ba, bg), an index into block_diag(pose, velocity, bias).
+ESKF_FROM_GTSAM = np.r_[0:3, 6:9, 3:6, 12:15, 9:12]
+
+
+@dataclass(frozen=True, eq=False)
+class ImuSegments:
+    """The IMU signal cut at the keyframes: one row per integration step.
+
+    The samples are instantaneous values that vary linearly between rows (docs/filter.md);
+    a step between consecutive break points (IMU sample times and keyframe times) uses the
+    mean of that linear signal, its value at the step's midpoint, with the specific force
+    rotated to the start of the step (``f + dt/2 w x f``, see :func:`imu_segments`).
+
+    Attributes
+    ----------
+    t : (S + 1,) ndarray
+        Break points [s] (the step ``i`` runs from ``t[i]`` to ``t[i + 1]``).
+    dt : (S,) ndarray
+        Step lengths [s].
+    gyro, accel : (S, 3) ndarray
+        Step means [rad/s], [m/s^2].
+    bounds : (K,) int ndarray
+        Index into ``t`` of every keyframe (``bounds[0] = 0``).
+    """
+
+    t: FloatArray
+    dt: FloatArray
+    gyro: FloatArray
+    accel: FloatArray
+    bounds: NDArray[np.int_]
+
+
+def imu_segments(
+    t_imu: FloatArray, gyro: FloatArray, accel: FloatArray, t_key: FloatArray
+) -> ImuSegments:
+    """Integration steps between keyframe times ``t_key`` (inside the IMU's time span)."""
+    inside = (t_imu > t_key[0]) & (t_imu < t_key[-1])
+    samples = t_imu[inside]
+    pos = np.clip(np.searchsorted(t_key, samples), 1, len(t_key) - 1)
+    near = np.minimum(np.abs(samples - t_key[pos - 1]), np.abs(samples - t_key[pos])) < 1e-6
+    breaks = np.union1d(samples[~near], t_key)
+    mid = 0.5 * (breaks[1:] + breaks[:-1])
+    gyro_mid = np.column_stack([np.interp(mid, t_imu, gyro[:, i]) for i in range(3)])
+    accel_mid = np.column_stack([np.interp(mid, t_imu, accel[:, i]) for i in range(3)])
+    dt = np.diff(breaks)
+    # GTSAM integrates the velocity with the attitude at the start of a step (first
+    # order); expressing the step's mean specific force in that frame, f + dt/2 w x f,
+    # makes the velocity increment second order (the sculling-type error of turns).
+    accel_mid = accel_mid + 0.5 * dt[:, None] * np.cross(gyro_mid, accel_mid)
+    bounds = np.searchsorted(breaks, t_key)
+    return ImuSegments(breaks, dt, gyro_mid, accel_mid, bounds)
+
+
+def keyframe_times(
+    t_start: float, t_end: float, t_events: ArrayLike, max_keyframe_dt_s: float
+) -> FloatArray:
+    """Keyframe times [s]: start, end, every event time inside, and evenly spaced fill-ins
+    so that no interval exceeds ``max_keyframe_dt_s``. Events closer than 1 us merge."""
+    ev = np.asarray(t_events, dtype=float)
+    base = np.union1d([t_start, t_end], ev[(ev >= t_start) & (ev <= t_end)])
+    base = base[np.concatenate([[True], np.diff(base) > 1e-6])]
+    if base[-1] < t_end:  # the merge may have dropped t_end
+        base[-1] = t_end
+    out = [base[:1]]
+    for a, b in itertools.pairwise(base):
+        n = int(np.ceil((b - a) / max_keyframe_dt_s - 1e-9))
+        out.append(a + (b - a) * np.arange(1, n + 1) / n)
+    return np.concatenate(out)
+
+
+def snap_times(t: ArrayLike, t_imu: FloatArray, tol_s: float) -> FloatArray:
+    """Times [s] within ``tol_s`` of an IMU sample moved onto that sample."""
+    t = np.asarray(t, dtype=float)
+    k = np.clip(np.searchsorted(t_imu, t - tol_s), 0, len(t_imu) - 1)
+    return np.where(np.abs(t_imu[k] - t) <= tol_s, t_imu[k], t)
+
+
+@dataclass(frozen=True, eq=False)
+class MeasFactor:
+    """A yaw or sun factor at keyframe ``k`` with the item it came from (to gate and log it)."""
+
+    k: int
+    item: MeasurementItem
+    factor: gtsam.NonlinearFactor
+
+
+class Problem:
+    """One fusion problem: keyframes, IMU steps, GTSAM parameters, factors per keyframe.
+
+    Parameters
+    ----------
+    config : FuseConfig
+        The run's options (``config.site`` set: :func:`polins.fusion.graph.fuse_graph`
+        substitutes the assumed site).
+    tilt_coupling : bool
+        The resolved ``config.tilt_coupling``.
+    t_imu, gyro, accel : ndarray
+        Validated IMU samples [s], [rad/s], [m/s^2].
+    items : list of MeasurementItem
+        The measurement items (:func:`polins.fusion.items.items_from_table`).
+    rot_nb0 : Rotation or None
+        Initial attitude, or None for self-alignment.
+    """
+
+    def __init__(
+        self,
+        config: FuseConfig,
+        tilt_coupling: bool,
+        t_imu: FloatArray,
+        gyro: FloatArray,
+        accel: FloatArray,
+        items: list[MeasurementItem],
+        rot_nb0: Rotation | None,
+    ) -> None:
+        assert isinstance(config.site, Site)  # fuse_graph substitutes the assumed site
+        self.config = config
+        self.tilt_coupling = tilt_coupling
+        self.earth_rate = config.mechanize_earth_rate
+        self.lat = float(np.radians(config.site.lat_deg))
+        self.lon = float(np.radians(config.site.lon_deg))
+        self.alt_m = float(config.site.alt_m)
+        self.gravity = float(normal_gravity(self.lat, self.alt_m))
+        self.params = preintegration_params(
+            config.imu,
+            gravity_mps2=self.gravity,
+            omega_ie_n=earth_rate_n(self.lat) if self.earth_rate else None,
+            integration_std=config.integration_std,
+        )
+        t0, t1 = float(t_imu[0]), float(t_imu[-1])
+        stationary = np.asarray(config.stationary, dtype=float)
+        stationary = stationary[(stationary >= t0) & (stationary <= t1)]
+        aiding = [it for it in items if it.valid and it.kind in ("yaw", "sun")]
+        zupts = [(it.t, it.std) for it in items if it.valid and it.kind == "zupt"]
+        if config.zupt_std is not None:
+            zupts += [(float(t), config.zupt_std) for t in stationary]
+        # Times within time_tol_s of an IMU sample are moved onto it (as the ESKF does).
+        t_aid = snap_times([it.t for it in aiding], t_imu, config.time_tol_s).tolist()
+        t_zupt = snap_times([t for t, _ in zupts], t_imu, config.time_tol_s).tolist()
+        # Non-holonomic pseudo-measurements at the ESKF's epochs: every nhc_every-th sample.
+        nhc_t = np.zeros(0)
+        if config.nhc_std is not None:
+            dt_median = float(np.median(np.diff(t_imu)))
+            every = max(1, round(1.0 / (config.nhc_rate_hz * dt_median)))
+            nhc_t = t_imu[every::every]
+        events = np.concatenate([t_aid, t_zupt, nhc_t])
+        self.t_key = keyframe_times(t0, t1, events, config.max_keyframe_dt_s)
+        self.segments = imu_segments(t_imu, gyro, accel, self.t_key)
+        n_key = len(self.t_key)
+
+        self.meas: list[MeasFactor] = []
+        self.outside: list[MeasurementItem] = []
+        for it, t in zip(aiding, t_aid, strict=True):
+            k = self.key_of(t)
+            if k is None:
+                self.outside.append(it)
+            else:
+                self.meas.append(MeasFactor(k, it, self._aiding_factor(X(k), it)))
+        self.aux: list[list[gtsam.NonlinearFactor]] = [[] for _ in range(n_key)]
+        for t, (_, std) in zip(t_zupt, zupts, strict=True):
+            k = self.key_of(t)
+            if k is not None:
+                self.aux[k].append(zero_velocity_factor(V(k), std))
+        for t in nhc_t:
+            k = self.key_of(float(t))
+            if k is not None and config.nhc_std is not None:
+                self.aux[k].append(non_holonomic_factor(X(k), V(k), config.nhc_std))
+        self.meas_at: list[list[int]] = [[] for _ in range(n_key)]
+        for i, mf in enumerate(self.meas):
+            self.meas_at[mf.k].append(i)
+        self.yaw_given = rot_nb0 is not None  # else unknown until the first yaw / sun
+        self.state0, self.bias0, self.priors = self._first_state(t_imu, accel, rot_nb0)
+
+    def key_of(self, t: float) -> int | None:
+        """The keyframe at time ``t`` [s] (within 1 us), or None."""
+        n_key = len(self.t_key)
+        k = int(np.clip(np.searchsorted(self.t_key, t), 1, n_key - 1))
+        k = k if abs(self.t_key[k] - t) < abs(self.t_key[k - 1] - t) else k - 1
+        return k if abs(self.t_key[k] - t) < 1e-6 else None
+
+    def _aiding_factor(self, key: int, it: MeasurementItem) -> gtsam.NonlinearFactor:
+        if it.kind == "sun":
+            return sun_factor(key, it.sun_n, it.sun_b, it.std)  # type: ignore[arg-type]
+        if not self.tilt_coupling:
+            return yaw_factor(key, it.yaw, it.std)
+        if it.sun_n is None or it.mat_nb_prior is None:
+            raise ValueError(
+                f"tilt_coupling: the yaw row at t={it.t} needs sun_nx/ny/nz and the "
+                "prior_roll/prior_pitch/prior_yaw of the image (the graph "
+                "re-linearizes away from the prior polins.measure used)"
+            )
+        return yaw_factor(key, it.yaw, it.std, sun_n=it.sun_n, rot_nb_prior=it.mat_nb_prior)
+
+    def _first_state(
+        self, t_imu: FloatArray, accel: FloatArray, rot_nb0: Rotation | None
+    ) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias, list[gtsam.NonlinearFactor]]:
+        """First keyframe's initial values and priors (module docstring of the package)."""
+        c, m = self.config, self.config.imu
+        bias0 = gtsam.imuBias.ConstantBias()
+        bias_sigmas = np.concatenate([np.full(3, m.accel_bias), np.full(3, m.gyro_bias)])
+        priors: list[gtsam.NonlinearFactor] = [
+            gtsam.PriorFactorConstantBias(
+                B(0), bias0, gtsam.noiseModel.Diagonal.Sigmas(np.maximum(bias_sigmas, 1e-12))
+            )
+        ]
+        vel_n0 = np.asarray(c.vel_n0, dtype=float)
+        if rot_nb0 is not None:
+            rot = rot_nb0
+            att_var = np.asarray(c.att_std0, dtype=float) ** 2
+        else:
+            window = t_imu <= t_imu[0] + c.align_s
+            f_mean = accel[window].mean(axis=0)
+            duration = max(float(t_imu[window][-1] - t_imu[0]), 1.0 / m.sample_rate_hz)
+            roll, pitch = level_from_accel(f_mean)
+            vel_n0 = np.zeros(3)
+            level = Rotation.from_euler("ZYX", [0.0, pitch, roll])
+            rot = Rotation.from_euler("ZYX", [self._initial_yaw(level, vel_n0), pitch, roll])
+            std = max(m.accel_vrw / np.sqrt(duration), 1e-9)
+            priors.append(levelling_factor(X(0), B(0), f_mean, self.gravity, std))
+            # Tilt from the levelling factor only (1e4 rad is no information); yaw 1 rad
+            # until the first yaw / sun measurement (the ESKF's P[2, 2] = 1).
+            att_var = np.array([1e8, 1e8, 1.0])
+        mat_nb = rot.as_matrix()
+        cov_n = np.diag(np.concatenate([att_var, np.full(3, c.pos_std0**2)]))
+        state0 = gtsam.NavState(gtsam.Rot3(mat_nb), np.zeros(3), vel_n0)
+        priors.append(
+            gtsam.PriorFactorPose3(
+                X(0),
+                state0.pose(),
+                gtsam.noiseModel.Gaussian.Covariance(pose_cov_body_from_nav(mat_nb, cov_n)),
+            )
+        )
+        priors.append(
+            gtsam.PriorFactorVector(V(0), vel_n0, gtsam.noiseModel.Isotropic.Sigma(3, c.vel_std0))
+        )
+        return state0, bias0, priors
+
+    def _initial_yaw(self, level: Rotation, vel_n0: FloatArray) -> float:
+        """Yaw at the first keyframe from the first measurement, carried back by the gyro."""
+        if not self.meas:
+            raise ValueError(
+                "self-alignment (rot_nb0=None) needs a valid yaw or sun-vector measurement; "
+                "give rot_nb0 or measurements"
+            )
+        first = min(self.meas, key=lambda mf: mf.k)
+        state = gtsam.NavState(gtsam.Rot3(level.as_matrix()), np.zeros(3), vel_n0)
+        bias = gtsam.imuBias.ConstantBias()
+        for k in range(first.k):
+            state = self.preintegrate(k, bias, np.zeros(6)).predict(state, bias)
+        rot_k = Rotation.from_matrix(state.attitude().matrix())
+        it = first.item
+        if it.kind == "yaw":
+            measured = it.yaw
+        else:
+            measured = yaw_from_sun(rot_k, it.sun_b, it.sun_n)  # type: ignore[arg-type]
+        return float(wrap_angle(measured - yaw_from_rot_nb(rot_k)))
+
+    def imu_correction(self, state: gtsam.NavState) -> FloatArray:
+        """What to subtract from the (gyro, accelerometer) samples of the next interval (6,).
+
+        Gyro: the transport rate in body axes, ``C_bn omega_en_n`` [rad/s] (with Earth rate
+        only, like the ESKF's mechanization). Accelerometer: ``C_bn (0, 0, g(lat, h) - g0)``
+        [m/s^2], the change of normal gravity since the start, since GTSAM's gravity is
+        constant. Both at the current estimate ``state`` of the keyframe.
+        """
+        lat, _lon, alt_m = self.geodetic(state.position())
+        mat_bn = state.attitude().matrix().T
+        corr = np.zeros(6)
+        corr[3:] = mat_bn @ np.array([0.0, 0.0, float(normal_gravity(lat, alt_m)) - self.gravity])
+        if self.earth_rate:
+            corr[:3] = mat_bn @ transport_rate_n(lat, alt_m, state.velocity())
+        return corr
+
+    def geodetic(self, pos_n: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Latitude, longitude [rad] and height [m] of local ENU positions ``(..., 3)`` [m]."""
+        p = np.asarray(pos_n, dtype=float)
+        r_m, r_n = radii_of_curvature(self.lat)
+        lat = self.lat + p[..., 1] / (r_m + self.alt_m)
+        lon = self.lon + p[..., 0] / ((r_n + self.alt_m) * np.cos(self.lat))
+        return lat, lon, self.alt_m + p[..., 2]
+
+    def preintegrate(
+        self, k: int, bias: gtsam.imuBias.ConstantBias, correction: FloatArray
+    ) -> gtsam.PreintegratedCombinedMeasurements:
+        """Preintegrated IMU from keyframe ``k`` to ``k + 1`` (``correction``: see
+        :meth:`imu_correction`)."""
+        seg = self.segments
+        pim = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
+        lo, hi = seg.bounds[k], seg.bounds[k + 1]
+        gyro = seg.gyro[lo:hi] - correction[:3]
+        accel = seg.accel[lo:hi] - correction[3:]
+        for a, w, dt in zip(accel, gyro, seg.dt[lo:hi], strict=True):
+            pim.integrateMeasurement(a, w, dt)
+        return pim
+
+    def imu_factor(self, k: int, pim: gtsam.PreintegratedCombinedMeasurements) -> Any:
+        """``CombinedImuFactor`` between keyframes ``k`` and ``k + 1``."""
+        return gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
+
+    def factors_at(self, k: int, rejected: set[int]) -> list[gtsam.NonlinearFactor]:
+        """Measurement and pseudo-measurement factors of keyframe ``k``."""
+        out = list(self.aux[k])
+        out += [self.meas[i].factor for i in self.meas_at[k] if i not in rejected]
+        return out
+
+
+@dataclass
+class Estimates:
+    """Keyframe estimates in polins conventions, filled by the solvers.
+
+    ``cov`` is in the ESKF's error-state order (navigation-frame attitude error); a new
+    error block gets its own array here and its slice of ``cov`` (package docstring).
+    """
+
+    mat_nb: FloatArray  # (K, 3, 3)
+    vel_n: FloatArray  # (K, 3)
+    pos_n: FloatArray  # (K, 3) local ENU [m]
+    bias: FloatArray  # (K, 6): bg, ba
+    cov: FloatArray  # (K, 15, 15)
+    yaw_known: NDArray[np.bool_]  # (K,) a yaw/sun factor was in the graph when reported
+
+    @classmethod
+    def empty(cls, k: int) -> Estimates:
+        """Estimates of ``k`` keyframes, all unknown (NaN)."""
+
+        def nan(*shape: int) -> FloatArray:
+            return np.full((k, *shape), np.nan)
+
+        return cls(nan(3, 3), nan(3), nan(3), nan(6), nan(N_ERROR, N_ERROR), np.zeros(k, bool))
+
+    def store(
+        self,
+        k: int,
+        pose: gtsam.Pose3,
+        vel: FloatArray,
+        bias: gtsam.imuBias.ConstantBias,
+        cov_pose_b: FloatArray,
+        cov_vel: FloatArray,
+        cov_bias: FloatArray,
+        yaw_known: bool,
+    ) -> None:
+        """Keyframe ``k`` from GTSAM values and marginal covariances (block diagonal in
+        pose / velocity / bias; GTSAM's bias tangent is accelerometer, then gyro)."""
+        mat_nb = pose.rotation().matrix()
+        self.mat_nb[k] = mat_nb
+        self.pos_n[k] = pose.translation()
+        self.vel_n[k] = vel
+        self.bias[k] = np.concatenate([bias.gyroscope(), bias.accelerometer()])
+        cov = block_diag(pose_cov_nav_from_body(mat_nb, cov_pose_b), cov_vel, cov_bias)
+        self.cov[k] = cov[np.ix_(ESKF_FROM_GTSAM, ESKF_FROM_GTSAM)]
+        self.yaw_known[k] = yaw_known
+
+    def values(self, k: int) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias]:
+        """Keyframe ``k`` as GTSAM values."""
+        state = gtsam.NavState(gtsam.Rot3(self.mat_nb[k]), self.pos_n[k], self.vel_n[k])
+        return state, bias_from_polins(self.bias[k])
