@@ -87,7 +87,7 @@ def simulate(model: polins.ImuModel, duration: float, seed: int, aiding: str, sc
         "imu_model": model,
         "lat_deg": np.degrees(traj.lat[0]),
         "lon_deg": np.degrees(traj.lon[0]),
-        "alt_m": traj.height[0],
+        "alt_m": traj.alt_m[0],
         "earth_rate": True,  # the simulated IMU senses the Earth rate
         "zupt_std": 0.01,
         "stationary": stationary,

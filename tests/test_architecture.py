@@ -59,7 +59,9 @@ def test_module_size_and_first_line(path):
 
 
 def test_the_private_import_check_catches_one():
-    source = "from polins.frames import _x, y\nfrom polins.fusion import _own\nimport polins._hidden\n"
+    source = (
+        "from polins.frames import _x, y\nfrom polins.fusion import _own\nimport polins._hidden\n"
+    )
     assert _private_imports(source, "polins.fusion") == [
         "polins.frames._x (line 1)",
         "polins._hidden (line 3)",

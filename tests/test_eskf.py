@@ -31,7 +31,8 @@ from polins.fusion.measurement import (
     zero_velocity,
 )
 from polins.ins.earth import radii_of_curvature
-from polins.ins.strapdown import Mechanization, NavState, strapdown
+from polins.ins.state import NavState
+from polins.ins.strapdown import Mechanization, strapdown
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import turntable, ugv_drive
 from polins.site import Site
@@ -255,9 +256,9 @@ def test_transition_matches_mechanization_jacobian():
             0.0,
             Rotation.from_rotvec(dx[0:3]) * s0.rot_nb,
             s0.vel_n + dx[3:6],
-            s0.lat + dx[7] / (r_m + s0.height),
-            s0.lon + dx[6] / ((r_n + s0.height) * np.cos(s0.lat)),
-            s0.height + dx[8],
+            s0.lat + dx[7] / (r_m + s0.alt_m),
+            s0.lon + dx[6] / ((r_n + s0.alt_m) * np.cos(s0.lat)),
+            s0.alt_m + dx[8],
         )
         return strapdown(st, t, w - dx[9:12], f - dx[12:15], mech)
 
@@ -272,9 +273,9 @@ def test_transition_matches_mechanization_jacobian():
                     Rotation.from_matrix(tr.mat_nb[-1]) * Rotation.from_matrix(nom.mat_nb[-1]).inv()
                 ).as_rotvec(),
                 tr.vel_n[-1] - nom.vel_n[-1],
-                [(tr.lon[-1] - nom.lon[-1]) * (r_n + nom.height[-1]) * np.cos(nom.lat[-1])],
-                [(tr.lat[-1] - nom.lat[-1]) * (r_m + nom.height[-1])],
-                [tr.height[-1] - nom.height[-1]],
+                [(tr.lon[-1] - nom.lon[-1]) * (r_n + nom.alt_m[-1]) * np.cos(nom.lat[-1])],
+                [(tr.lat[-1] - nom.lat[-1]) * (r_m + nom.alt_m[-1])],
+                [tr.alt_m[-1] - nom.alt_m[-1]],
             ]
         )
 
@@ -289,7 +290,7 @@ def test_transition_matches_mechanization_jacobian():
     dt = np.diff(t)
     step = step_nominal(
         dt, nom.mat_nb_mid * dt[:, None, None], nom.dv_force_n, nom.vel_n[:-1], nom.lat[:-1],
-        nom.height[:-1], mech, (np.ones(3), np.ones(3)),
+        nom.alt_m[:-1], mech, (np.ones(3), np.ones(3)),
     )  # fmt: skip
     Phi, _ = discretize(Layout(error_blocks(CFG)).dynamics(step), dt, np.zeros(15))
     prod = np.eye(15)
@@ -330,7 +331,7 @@ def _rich_case(model_name, scale_factors, seed=7, gap=True):
     if gap:  # drop 0.1 s of IMU samples
         t = imu["t"].to_numpy()
         imu = imu[(t < 6.0) | (t >= 6.1)].reset_index(drop=True)
-    site = Site(np.degrees(traj.lat[0]), np.degrees(traj.lon[0]), float(traj.height[0]))
+    site = Site(np.degrees(traj.lat[0]), np.degrees(traj.lon[0]), float(traj.alt_m[0]))
     config = FuseConfig(imu_model=model, site=site, scale_factors=scale_factors, nhc_std=0.05,
                         reset_interval_s=2.0)  # fmt: skip
     return imu, items, config
@@ -365,7 +366,7 @@ def _streaming(config, imu, items, rot_nb0=None):
         filt.propagate(t[k], W[k], A[k])
         if filt.ready:
             states.append(filt.state())
-    return filt, polins.fusion.state.concatenate(states)
+    return filt, polins.ins.state.concatenate(states)
 
 
 def _compare(a, b):
@@ -395,7 +396,7 @@ def test_fast_path_and_streaming_agree_with_a_fine_step_reference(model_name, sc
     assert len(fast) == len(ref) == len(imu) and len(stream) == len(stream_ref)
     # the fine-step fast path is the fine-step streaming filter (same steps, exact rows)
     k0 = len(ref) - len(stream_ref)  # samples of the levelling window
-    tail = polins.fusion.state.concatenate([ref.at(i) for i in range(k0, len(ref))])
+    tail = polins.ins.state.concatenate([ref.at(i) for i in range(k0, len(ref))])
     d, r_att, r_bg = _compare(tail, stream_ref)
     assert d < 1e-9 and r_att < 1e-6 and r_bg < 1e-6
     for est in (fast, stream):

@@ -19,7 +19,7 @@ import polins.fusion.graph as G
 from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.fusion.config import FuseConfig
 from polins.fusion.measurement import sun_measurement
-from polins.fusion.state import NavState, solution_table
+from polins.ins.state import NavState, solution_table
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import turntable, ugv_drive
 from polins.sky.ephemeris import sun_vector_n
@@ -288,7 +288,7 @@ def test_noise_free_navigation_grade_drive_is_reproduced():
         imu_model=model,
         lat_deg=np.degrees(traj.lat[0]),
         lon_deg=np.degrees(traj.lon[0]),
-        alt_m=traj.height[0],
+        alt_m=traj.alt_m[0],
         att_std0=1e-5,
         vel_std0=1e-4,
         output_rate_hz=5.0,
@@ -335,7 +335,7 @@ def ugv_monte_carlo(runs, duration, *, aiding, seed0=100, model_name="mems-typic
             "imu_model": model,
             "lat_deg": np.degrees(traj.lat[0]),
             "lon_deg": np.degrees(traj.lon[0]),
-            "alt_m": traj.height[0],
+            "alt_m": traj.alt_m[0],
             "earth_rate": True,
             "zupt_std": 0.01,
             "stationary": stationary,

@@ -68,7 +68,7 @@ def test_ideal_imu_driving_north_coriolis_and_transport_rate():
         vel_n=np.tile([0.0, v, 0.0], (n, 1)),
         lat=lat,
         lon=np.zeros(n),
-        height=np.full(n, h0),
+        alt_m=np.full(n, h0),
         omega_nb_b=np.zeros((n, 3)),
         accel_n=np.zeros((n, 3)),
     )
@@ -101,7 +101,7 @@ def test_ideal_imu_ugv_consistent_with_navigation_equation():
     assert 0 < dv <= 2 * OMEGA_IE * np.linalg.norm(traj.vel_n, axis=1).max()
     # standing still (start of the drive): |f| = normal gravity
     f0 = np.linalg.norm(imu[a_cols].to_numpy()[0])
-    assert f0 == pytest.approx(normal_gravity(traj.lat[0], traj.height[0]), abs=1e-12)
+    assert f0 == pytest.approx(normal_gravity(traj.lat[0], traj.alt_m[0]), abs=1e-12)
 
 
 @pytest.mark.parametrize("name", ["mems-typical", "fins-paper"])

@@ -7,9 +7,9 @@ from scipy.spatial.transform import Rotation
 
 from polins.frames import skew
 from polins.ins.earth import gravity_n, normal_gravity, radii_of_curvature
+from polins.ins.state import NavState
 from polins.ins.strapdown import (
     Mechanization,
-    NavState,
     cross,
     nav_rates_n,
     rotation_vectors,
@@ -27,7 +27,7 @@ def _start(traj):
         traj.vel_n[0].copy(),
         float(traj.lat[0]),
         float(traj.lon[0]),
-        float(traj.height[0]),
+        float(traj.alt_m[0]),
     )
 
 
@@ -51,7 +51,7 @@ def test_turntable_noise_free_reproduction(earth_rotation):
     att_err = (traj.rot_nb * track.rot_nb.inv()).magnitude()
     assert att_err.max() < 1e-6
     assert np.abs(track.vel_n).max() < 1e-5  # standing still: velocity stays ~0
-    assert np.abs(track.height - traj.height).max() < 1e-4
+    assert np.abs(track.alt_m - traj.alt_m).max() < 1e-4
 
 
 @pytest.mark.parametrize("seed", [3, 11])
@@ -63,7 +63,7 @@ def test_ugv_noise_free_reproduction(seed):
     assert np.abs(track.vel_n - traj.vel_n).max() < 1e-3
     north_err_m = np.abs(track.lat - traj.lat).max() * 6.4e6
     assert north_err_m < 0.05
-    assert np.abs(track.height - traj.height).max() < 0.01
+    assert np.abs(track.alt_m - traj.alt_m).max() < 0.01
 
 
 def _reference_step(s, w0, w1, f0, f1, t1, mech):
@@ -72,18 +72,18 @@ def _reference_step(s, w0, w1, f0, f1, t1, mech):
     dt = t1 - s.t
     f0, f1 = np.array(f0), np.array(f1)
     phi, phi_h = rotation_vectors(w0, w1, dt)
-    w_ie, w_en = nav_rates_n(s.lat, s.height, s.vel_n, mech)
+    w_ie, w_en = nav_rates_n(s.lat, s.alt_m, s.vel_n, mech)
     zeta = (w_ie + w_en) * dt
     rot1 = Rotation.from_rotvec(-zeta) * s.rot_nb * Rotation.from_rotvec(phi)
     rot_h = Rotation.from_rotvec(-0.5 * zeta) * s.rot_nb * Rotation.from_rotvec(phi_h)
     dv_f = dt / 6.0 * (s.rot_nb.apply(f0) + rot_h.apply(2.0 * (f0 + f1)) + rot1.apply(f1))
     dv = dv_f - np.cross(2.0 * w_ie + w_en, s.vel_n) * dt
-    dv[2] -= normal_gravity(s.lat, s.height) * dt
+    dv[2] -= normal_gravity(s.lat, s.alt_m) * dt
     v1 = s.vel_n + dv
     r_m, r_n = radii_of_curvature(s.lat)
     d = 0.5 * dt * (s.vel_n + v1)
-    return NavState(t1, rot1, v1, s.lat + d[1] / (r_m + s.height),
-                    s.lon + d[0] / ((r_n + s.height) * np.cos(s.lat)), s.height + d[2])  # fmt: skip
+    return NavState(t1, rot1, v1, s.lat + d[1] / (r_m + s.alt_m),
+                    s.lon + d[0] / ((r_n + s.alt_m) * np.cos(s.lat)), s.alt_m + d[2])  # fmt: skip
 
 
 @pytest.mark.parametrize("earth", [True, False])
@@ -104,7 +104,7 @@ def test_compiled_loop_equals_reference_steps(earth):
         assert (s.rot_nb * last.rot_nb.inv()).magnitude() < 1e-13
         np.testing.assert_allclose(s.vel_n, last.vel_n, atol=1e-12)
         assert abs(s.lat - last.lat) < 1e-15 and abs(s.lon - last.lon) < 1e-15
-        assert abs(s.height - last.height) < 1e-10
+        assert abs(s.alt_m - last.alt_m) < 1e-10
 
 
 def test_static_level_body_feels_somigliana_gravity():

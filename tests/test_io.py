@@ -188,7 +188,7 @@ def _truth(n=5):
         {"t": np.arange(n) * 0.1, "roll": 0.01, "pitch": -0.02, "yaw": np.linspace(0, 1, n),
          "heading_deg": polins.heading_deg_from_yaw(np.linspace(0, 1, n)), "qw": 1.0,
          "qx": 0.0, "qy": 0.0, "qz": 0.0, "ve": 1.0, "vn": 0.0, "vu": 0.0,
-         "lat_deg": SITE["lat_deg"], "lon_deg": SITE["lon_deg"], "height_m": SITE["alt_m"]}
+         "lat_deg": SITE["lat_deg"], "lon_deg": SITE["lon_deg"], "alt_m": SITE["alt_m"]}
     )  # fmt: skip
 
 
@@ -474,3 +474,37 @@ def test_bad_imu_unit_is_a_user_error(tmp_path):
     path = write_imu(tmp_path / "imu.csv", _imu())
     with pytest.raises(UserInputError, match="unknown gyro unit 'rpm'"):
         read_imu(path, gyro_unit="rpm")
+
+
+def test_utf8_bom_is_accepted_in_the_imu_csv_and_the_manifest(tmp_path, cam):
+    """Found: a BOM gave "lacks column(s)" (IMU CSV) and "Invalid statement" (manifest)."""
+    imu = _imu()
+    manifest = write_log(tmp_path / "log", epoch_utc=EPOCH, camera=cam, imu_model="mems-typical",
+                         imu=imu, images=iter(_images(cam.shape, n=2)), **SITE)  # fmt: skip
+    for path in (manifest, tmp_path / "log" / "imu.csv"):
+        path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    log = read_log(manifest)
+    np.testing.assert_allclose(log.imu.to_numpy(), imu.to_numpy(), rtol=1e-14, atol=1e-15)
+    bare = tmp_path / "bare.csv"  # no units comment: the BOM sits before the header "t"
+    bare.write_bytes(b"\xef\xbb\xbf" + imu.to_csv(index=False).encode())
+    assert list(read_imu(bare).columns) == list(imu.columns)
+
+
+def test_bit_depth_warning_names_the_shift():
+    from polins.io.images import bit_depth_warning
+
+    raw = np.random.default_rng(0).integers(0, 4096, size=(8, 8), dtype=np.uint16)
+    assert bit_depth_warning(raw, 12, "a.png") is None
+    note = bit_depth_warning(raw << 4, 12, "a.png")
+    assert "values up to" in note and "shifted left by 4 bits (x16)" in note
+    assert "shifted" not in bit_depth_warning(raw | 0x8001, 12, "a.png")  # odd values: no shift
+
+
+def test_report_tables_are_short_logs_exact(tmp_path):
+    from polins.io.tables import read_table, write_table
+
+    df = pd.DataFrame({"t": [0.2, 1 / 3]})
+    write_table(tmp_path / "log.csv", df)
+    write_table(tmp_path / "report.csv", df, float_format="%.10g")
+    assert read_table(tmp_path / "log.csv")["t"].tolist() == df["t"].tolist()  # round trip
+    assert (tmp_path / "report.csv").read_text() == "t\n0.2\n0.3333333333\n"

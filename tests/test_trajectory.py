@@ -64,7 +64,7 @@ def test_turntable_turns_exactly_720_deg_at_constant_rate():
     assert yaw[-1] - yaw[0] == pytest.approx(4 * np.pi, abs=1e-12)
     assert np.degrees(traj.omega_nb_b[:, 2]) == pytest.approx(np.full(len(traj), 7.2))
     assert np.all(traj.vel_n == 0.0) and np.all(traj.accel_n == 0.0)
-    assert np.all(traj.lat == np.radians(45.6234)) and np.all(traj.height == 148.74)
+    assert np.all(traj.lat == np.radians(45.6234)) and np.all(traj.alt_m == 148.74)
 
 
 def test_tilted_ramped_turntable_is_consistent():
@@ -99,18 +99,18 @@ def test_ugv_acceleration_is_exact(drive):
 def test_ugv_position_integrates_velocity(drive):
     h = drive.t[1] - drive.t[0]
     r_m, r_n = radii_of_curvature(drive.lat)
-    lat, hgt = drive.lat[2:-2], drive.height[2:-2]
+    lat, hgt = drive.lat[2:-2], drive.alt_m[2:-2]
     vel_from_pos = np.stack(
         [
             five_point(drive.lon, h) * (r_n[2:-2] + hgt) * np.cos(lat),
             five_point(drive.lat, h) * (r_m[2:-2] + hgt),
-            five_point(drive.height, h),
+            five_point(drive.alt_m, h),
         ],
         axis=-1,
     )
     # float64 round-off of lat/lon [rad] divided by h dominates: ~1e-6 m/s
     assert np.max(np.abs(vel_from_pos - drive.vel_n[2:-2])) < 1e-5
-    assert drive.lat[0] == np.radians(45.6234) and drive.height[0] == 148.74
+    assert drive.lat[0] == np.radians(45.6234) and drive.alt_m[0] == 148.74
     # it went somewhere: > 500 m of travel
     assert np.sum(np.linalg.norm(drive.vel_n, axis=1)) * h > 500.0
 
@@ -130,7 +130,7 @@ def test_ugv_is_non_holonomic_with_stops_slopes_and_both_turns(drive):
     assert stop_len.size > 0
     pitch = drive.rot_nb.as_euler("ZYX")[:, 1]
     assert pitch.min() < -0.01 or pitch.max() > 0.01  # it drove on a grade
-    assert drive.height.max() - drive.height.min() > 0.5
+    assert drive.alt_m.max() - drive.alt_m.min() > 0.5
     yaw_rate = drive.omega_nb_b[:, 2]
     assert yaw_rate.min() < -0.1 and yaw_rate.max() > 0.1  # turns both ways
     roll = drive.rot_nb.as_euler("ZYX")[:, 2]
@@ -144,7 +144,7 @@ def test_ugv_is_seeded_and_rate_independent():
     d = ugv_drive(duration_s=60.0, rng=np.random.default_rng(4))
     assert np.array_equal(a.vel_n, b.vel_n) and np.array_equal(a.lat, b.lat)
     assert np.allclose(a.vel_n[::4], c.vel_n, atol=1e-12)
-    assert np.allclose(a.lat[::4], c.lat, atol=1e-14) and np.allclose(a.height[::4], c.height)
+    assert np.allclose(a.lat[::4], c.lat, atol=1e-14) and np.allclose(a.alt_m[::4], c.alt_m)
     assert not np.allclose(a.vel_n, d.vel_n)
 
 
@@ -165,7 +165,7 @@ def test_truth_frame_columns_and_round_trip(drive):
         "vu",
         "lat_deg",
         "lon_deg",
-        "height_m",
+        "alt_m",
     ]
     rot_q = Rotation.from_quat(df[["qx", "qy", "qz", "qw"]].to_numpy())
     rot_e = Rotation.from_euler("ZYX", df[["yaw", "pitch", "roll"]].to_numpy())

@@ -25,7 +25,7 @@ from polins.fusion.eskf import ESKF
 from polins.fusion.inputs import output_mask
 from polins.fusion.items import records_table
 from polins.fusion.result import FusionResult
-from polins.fusion.state import NavState, solution_table
+from polins.ins.state import NavState, solution_table
 from polins.site import Site
 
 __all__ = [

@@ -22,7 +22,7 @@ from polins.fusion.inputs import (
 )
 from polins.fusion.items import MeasurementItem, items_from_table, records_table
 from polins.fusion.result import FusionResult
-from polins.fusion.state import solution_table
+from polins.ins.state import solution_table
 
 
 def build_filter(
@@ -147,7 +147,7 @@ def fuse(
     Returns
     -------
     DataFrame
-        The solution table (:func:`polins.fusion.state.solution_table`; docs/filter.md
+        The solution table (:func:`polins.ins.state.solution_table`; docs/filter.md
         lists its columns), smoothed with ``smooth=True``. ``attrs`` carries ``updates``,
         ``backend``, ``imu_model`` and (smoothed) ``filtered`` for compatibility; pandas
         operations drop them: :func:`run_fusion` returns them in a ``FusionResult``.

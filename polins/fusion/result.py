@@ -15,7 +15,7 @@ class FusionResult:
     Attributes
     ----------
     solution : DataFrame
-        The solution table (``polins.fusion.state.solution_table``; docs/filter.md lists its
+        The solution table (``polins.ins.state.solution_table``; docs/filter.md lists its
         columns). With smoothing, the smoothed solution.
     updates : DataFrame
         One row per measurement: ``t, name, dim, nis, accepted, reason``

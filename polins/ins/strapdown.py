@@ -48,6 +48,7 @@ from polins.ins.earth import (
     somigliana,
     transport_rate_n,
 )
+from polins.ins.state import NavState
 from polins.models.loader import ImuModel
 
 FloatArray = NDArray[np.float64]
@@ -88,37 +89,13 @@ class Mechanization:
 
 
 @dataclass(frozen=True, eq=False)
-class NavState:
-    """Nominal navigation state at time ``t``.
-
-    Attributes
-    ----------
-    t : float
-        Time [s].
-    rot_nb : Rotation
-        Attitude, body FLU -> ENU.
-    vel_n : (3,) ndarray
-        ENU velocity relative to the Earth [m/s].
-    lat, lon : float
-        Geodetic latitude and longitude [rad].
-    height : float
-        Height above the WGS-84 ellipsoid [m].
-    """
-
-    t: float
-    rot_nb: Rotation
-    vel_n: FloatArray
-    lat: float
-    lon: float
-    height: float
-
-
-@dataclass(frozen=True, eq=False)
 class NavTrack:
-    """Nominal navigation states at many times (the output of :func:`strapdown`).
+    """The integrator's output over many samples (:func:`strapdown`): the nominal states
+    with what the error dynamics need between them.
 
     ``mat_nb`` ``(N, 3, 3)`` is the attitude as matrices (``Rotation.from_matrix`` gives
-    the rotations); the other fields are as in :class:`NavState` with a leading axis N.
+    the rotations); the other fields are as in :class:`polins.ins.state.NavState` with a
+    leading axis N (:meth:`state` gives one).
     Per interval (N - 1): ``mat_nb_mid`` the mid-interval attitude and ``dv_force_n`` the
     specific-force velocity increment (as in :func:`strapdown_step_detail`).
     """
@@ -128,7 +105,7 @@ class NavTrack:
     vel_n: FloatArray
     lat: FloatArray
     lon: FloatArray
-    height: FloatArray
+    alt_m: FloatArray
     mat_nb_mid: FloatArray
     dv_force_n: FloatArray
 
@@ -145,7 +122,7 @@ class NavTrack:
             vel_n=self.vel_n[i].copy(),
             lat=float(self.lat[i]),
             lon=float(self.lon[i]),
-            height=float(self.height[i]),
+            alt_m=float(self.alt_m[i]),
         )
 
 
@@ -274,7 +251,7 @@ def strapdown_step_detail(
         np.asarray(state.vel_n, dtype=float),
         state.lat,
         state.lon,
-        state.height,
+        state.alt_m,
         np.asarray(omega0_b, dtype=float),
         np.asarray(omega1_b, dtype=float),
         np.asarray(f0_b, dtype=float),
@@ -485,7 +462,7 @@ def strapdown(
     mat_mid, dv_force = np.empty((n, 3, 3)), np.empty((n, 3))
     _compiled()(
         t, w, f, state0.rot_nb.as_matrix(), np.asarray(state0.vel_n, dtype=float),
-        np.array([state0.lat, state0.lon, state0.height], dtype=float),
+        np.array([state0.lat, state0.lon, state0.alt_m], dtype=float),
         mech.earth_rotation, mech.transport_rate, mat, vel, pos, mat_mid, dv_force,
     )  # fmt: skip
     return NavTrack(t, mat, vel, pos[:, 0].copy(), pos[:, 1].copy(), pos[:, 2].copy(),

@@ -91,6 +91,30 @@ def decode_image(
     return raw
 
 
+def bit_depth_warning(raw: NDArray[np.unsignedinteger], bit_depth: int, source: str) -> str | None:
+    """A warning if ``raw`` holds values above the camera's ``2**bit_depth - 1``, else None.
+
+    Such an image would be counted as saturated everywhere; the warning names the likely
+    cause, a ``bit_depth``-bit image stored shifted left into 16 bits (12-bit x16).
+    """
+    top = int(np.max(raw)) if raw.size else 0
+    limit = 2**bit_depth - 1
+    if top <= limit:
+        return None
+    low_bits = int(np.bitwise_or.reduce(raw, axis=None))
+    shift = (low_bits & -low_bits).bit_length() - 1 if low_bits else 0
+    cause = (
+        f"the image looks stored shifted left by {shift} bits (x{2**shift}): divide it by "
+        f"{2**shift} (raw >> {shift})"
+        if shift > 0
+        else "the camera model's sensor.bit_depth may be wrong"
+    )
+    return (
+        f"{source}: values up to {top} exceed the camera's {bit_depth}-bit range (max {limit}); "
+        f"{cause}, or fix sensor.bit_depth"
+    )
+
+
 def read_image(
     path: str | Path, *, shape: tuple[int, int] | None = None
 ) -> NDArray[np.unsignedinteger]:
@@ -210,6 +234,7 @@ __all__ = [
     "IMAGE_SUFFIXES",
     "ImageIndex",
     "ImageReadError",
+    "bit_depth_warning",
     "decode_image",
     "load_raw",
     "read_image",

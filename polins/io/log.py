@@ -47,6 +47,7 @@ from __future__ import annotations
 import datetime as dt
 import difflib
 import math
+import os
 import re
 import shutil
 import tomllib
@@ -62,7 +63,7 @@ from numpy.typing import NDArray
 from polins.errors import UserInputError
 from polins.fusion.config import FuseConfig, config_from_mapping, option_names
 from polins.io.atomic import atomic_path, write_text_atomic
-from polins.io.images import IMAGE_SUFFIXES, read_image_index, write_image
+from polins.io.images import IMAGE_SUFFIXES, ImageIndex, read_image_index, write_image
 from polins.io.images import write_image_index as _write_index
 from polins.io.model_files import camera_model_toml, imu_model_toml, toml_dumps
 from polins.io.tables import ACCEL_UNITS, GYRO_UNITS, read_imu, read_table, write_imu, write_table
@@ -177,7 +178,7 @@ def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
     if not path.is_file():
         raise FileNotFoundError(f"manifest not found: {path}")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is accepted
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ManifestError(f"{path}: not valid TOML: {exc}") from None
     out: dict[str, dict[str, Any]] = {}
@@ -269,6 +270,9 @@ class Log:
         The validated manifest (``parse_manifest``).
     config : FuseConfig
         The filter configuration of the ``[filter]`` table, with the log's site and IMU model.
+    events : tuple of (t, kind, detail)
+        Data faults found while loading (``path-outside-log``: an image index entry outside
+        the log folder, skipped); the navigation loop reports them with its own.
     """
 
     manifest_path: Path
@@ -282,6 +286,7 @@ class Log:
     description: str = ""
     manifest: dict[str, dict[str, Any]] = field(default_factory=dict)
     config: FuseConfig = field(default_factory=FuseConfig)
+    events: tuple[tuple[float, str, str], ...] = ()
 
     @property
     def lat_deg(self) -> float:
@@ -324,13 +329,45 @@ def _model_ref(folder: Path, ref: str) -> str | Path:
     return ref
 
 
+def _inside(path: Path, roots: Iterable[Path]) -> bool:
+    """Whether ``path`` lies in one of ``roots`` (lexically: ``..`` resolved, symlinks kept)."""
+    p = Path(os.path.normpath(path.absolute()))
+    return any(p.is_relative_to(os.path.normpath(r.absolute())) for r in roots)
+
+
+def _images_inside(
+    images: ImageIndex, roots: Iterable[Path]
+) -> tuple[ImageIndex, list[tuple[float, str, str]]]:
+    """The index without its entries outside ``roots``, and one event per entry dropped."""
+    roots = list(roots)
+    keep = [_inside(f, roots) for f in images.files]
+    events = [
+        (float(t), "path-outside-log",
+         f"{f}: outside the log folder, skipped (--allow-outside-paths to follow it)")
+        for t, f, k in zip(images.t.tolist(), images.files, keep, strict=True) if not k
+    ]  # fmt: skip
+    if not events:
+        return images, []
+    mask = np.array(keep, dtype=bool)
+    files = tuple(f for f, k in zip(images.files, keep, strict=True) if k)
+    return ImageIndex(t=images.t[mask], files=files), events
+
+
 def read_log(
-    manifest_path: str | Path, *, gyro_unit: str | None = None, accel_unit: str | None = None
+    manifest_path: str | Path,
+    *,
+    gyro_unit: str | None = None,
+    accel_unit: str | None = None,
+    imu_model: str | Path | ImuModel | None = None,
+    allow_outside_paths: bool = False,
 ) -> Log:
     """Load a log from its manifest (a folder is taken to mean its ``manifest.toml``).
 
     ``gyro_unit`` / ``accel_unit`` override the manifest's ``[units]`` (not the IMU file's
-    own declaration, which must agree).
+    own declaration, which must agree). ``imu_model`` (a shipped name, a TOML path relative
+    to the working folder, or a model) overrides the manifest's ``log.imu``. Image index
+    entries outside the log folder (``../..``, absolute paths) are skipped and reported as
+    ``path-outside-log`` events (:attr:`Log.events`) unless ``allow_outside_paths``.
 
     Raises
     ------
@@ -351,7 +388,11 @@ def read_log(
             raise type(exc)(f"{path}: key 'log.{key}': {exc}") from None
 
     camera = load("camera", load_camera)
-    imu_model = load("imu", load_imu)
+    model: ImuModel
+    if imu_model is None:
+        model = load("imu", load_imu)
+    else:
+        model = imu_model if isinstance(imu_model, ImuModel) else load_imu(imu_model)
 
     def file(key: str) -> Path:
         p = Path(files[key])
@@ -372,20 +413,24 @@ def read_log(
             accel_unit=accel_unit or units.get("accel"),
         )
         images = read_image_index(file("images"))
+    events: list[tuple[float, str, str]] = []
+    if isinstance(images, ImageIndex) and not allow_outside_paths:
+        images, events = _images_inside(images, {folder, file("images").parent})
     truth = read_table(file("truth")) if "truth" in files else None
     site = Site(log["lat_deg"], log["lon_deg"], log["alt_m"])
     return Log(
         manifest_path=path,
         epoch_utc=log["epoch_utc"],
         camera=camera,
-        imu_model=imu_model,
+        imu_model=model,
         site=site,
         imu=imu,
         images=images,
         truth=truth,
         description=log["description"],
         manifest=m,
-        config=config_from_mapping(m["filter"], FuseConfig(imu_model=imu_model, site=site)),
+        config=config_from_mapping(m["filter"], FuseConfig(imu_model=model, site=site)),
+        events=tuple(events),
     )
 
 

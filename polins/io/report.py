@@ -7,6 +7,7 @@ Outputs (all written atomically into the output folder):
   heading_std_deg, epsilon, n_pixels``, the sun vectors, the prior and the filter's verdict
   (``accepted, innovation, nis, update_reason``); with a reference also ``yaw_error``.
 * ``events.csv``: skipped images and IMU samples, gaps (``t, kind, detail``).
+* ``schema.json``: unit and meaning of every column of the CSV files (docs/outputs.md).
 * ``summary.json``: counts, rejections by reason, timings, throughput, and, with a
   reference trajectory, RMS errors and their consistency with the reported sigmas.
 * ``heading.png``, ``heading_error.png``, ``measurements.png``, ``epsilon.png``.
@@ -26,9 +27,11 @@ from scipy.stats import chi2
 
 from polins.frames import wrap_angle
 from polins.io.atomic import atomic_path, write_text_atomic
+from polins.io.schema import schema_for
 from polins.io.tables import write_table
 
 FloatArray = NDArray[np.float64]
+CSV_FLOAT_FORMAT = "%.10g"  # 10 significant digits: 1e-10 relative, far below any sigma
 
 
 def truth_at(truth: pd.DataFrame, t: FloatArray) -> pd.DataFrame:
@@ -161,6 +164,50 @@ def summarize(
     return summary
 
 
+def heading_plot_series(
+    solution: pd.DataFrame, measurements: pd.DataFrame, truth: pd.DataFrame | None = None
+) -> dict[str, FloatArray]:
+    """Headings [deg] of the heading plot, wrapped consistently with the fused line.
+
+    The fused heading is unwrapped (continuous through 0/360 deg); the reference and the
+    measurements are each moved by whole turns to within 180 deg of it, point by point,
+    so no line jumps by 360 deg where one series wraps and the other does not.
+
+    Returns
+    -------
+    dict
+        ``fused`` (per solution row), ``ref`` (with a reference), ``mt, mh`` (times and
+        headings of the measurements that are ok) and ``mh_fused`` (the fused heading there).
+    """
+    t = solution["t"].to_numpy(dtype=float)
+    fused = np.degrees(np.unwrap(np.radians(solution["heading_deg"].to_numpy(dtype=float))))
+    out: dict[str, FloatArray] = {"fused": fused}
+
+    def near_fused(h: FloatArray, f: FloatArray) -> FloatArray:
+        return h + 360.0 * np.round((f - h) / 360.0)
+
+    if truth is not None:
+        ref = np.mod(90.0 - np.degrees(truth_at(truth, t)["yaw"].to_numpy()), 360.0)
+        out["ref"] = near_fused(ref, fused)
+    m = measurements
+    ok = m["ok"].to_numpy(dtype=bool) if len(m) else np.zeros(0, bool)
+    tm = m.loc[ok, "t"].to_numpy(dtype=float)
+    if len(t) and tm.size:
+        at = np.interp(tm, t, fused)
+        out["mt"] = tm
+        out["mh"] = near_fused(m.loc[ok, "heading_deg"].to_numpy(dtype=float), at)
+        out["mh_fused"] = at
+    else:
+        out["mt"] = out["mh"] = out["mh_fused"] = np.zeros(0)
+    return out
+
+
+def _legend(ax: Any) -> None:
+    """A legend if the axes have labelled artists (an empty run has none)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize=8)
+
+
 def _savefig(fig: Any, path: Path) -> Path:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
@@ -187,35 +234,49 @@ def plot_report(
     # rows before the yaw alignment have no heading
     solution = solution.loc[np.isfinite(solution["heading_deg"].to_numpy(dtype=float))]
     t = solution["t"].to_numpy(dtype=float)
-    heading = solution["heading_deg"].to_numpy(dtype=float)
     sigma3 = 3.0 * np.degrees(solution["yaw_std"].to_numpy(dtype=float))
     m = measurements
     ok = m["ok"].to_numpy(dtype=bool) if len(m) else np.zeros(0, bool)
     accepted = m["accepted"].to_numpy(dtype=bool) if "accepted" in m else ok
     paths = []
 
-    # 1. heading vs time with the 3-sigma band
-    fig, ax = plt.subplots(figsize=(9, 4.5))
-    unwrapped = np.degrees(np.unwrap(np.radians(heading)))
-    shift = unwrapped - heading
-    ax.fill_between(t, unwrapped - sigma3, unwrapped + sigma3, color="C0", alpha=0.25,
-                    label="fused ±3σ")  # fmt: skip
-    ax.plot(t, unwrapped, color="C0", lw=1.2, label="fused heading")
-    if truth is not None:
-        ref = truth_at(truth, t)
-        ref_h = np.mod(90.0 - np.degrees(ref["yaw"].to_numpy()), 360.0)
-        ax.plot(t, ref_h + shift, "k--", lw=0.9, label="reference")
-    if ok.any() and len(t):
-        tm = m.loc[ok, "t"].to_numpy(dtype=float)
-        hm = m.loc[ok, "heading_deg"].to_numpy(dtype=float)
-        hm = hm + np.interp(tm, t, shift)
-        hm += 360.0 * np.round((np.interp(tm, t, unwrapped) - hm) / 360.0)
-        ax.plot(tm, hm, ".", ms=3, color="C1", label="polarization measurements")
-    ax.set_xlabel("time t [s]")
-    ax.set_ylabel("heading [deg, clockwise from North, unwrapped]")
-    ax.set_title(f"Heading vs time with the 3σ band{suffix}")
-    ax.legend(loc="best")
+    # 1. heading vs time; below it, the measurements and the reference against the fused
+    #    heading inside its 3-sigma band (a band of 0.1 deg is invisible on a 360 deg axis)
+    series = heading_plot_series(solution, measurements, truth)
+    fig, (ax, axr) = plt.subplots(2, 1, figsize=(9, 7), sharex=True,
+                                  gridspec_kw={"height_ratios": (3, 2)})  # fmt: skip
+    if len(series["mt"]):
+        ax.plot(series["mt"], series["mh"], "o", ms=2.5, mew=0, alpha=0.6, color="C1",
+                zorder=2, label="polarization measurements")  # fmt: skip
+        axr.plot(series["mt"], series["mh"] - series["mh_fused"], "o", ms=2.5, mew=0,
+                 alpha=0.6, color="C1", zorder=2, label="measurement − fused")  # fmt: skip
+    if "ref" in series:
+        ax.plot(t, series["ref"], "--", color="k", lw=1.0, zorder=3, label="reference")
+        axr.plot(t, series["ref"] - series["fused"], "--", color="k", lw=1.0, zorder=3,
+                 label="reference − fused")  # fmt: skip
+    ax.fill_between(t, series["fused"] - sigma3, series["fused"] + sigma3, color="C0",
+                    alpha=0.25, lw=0, zorder=1, label="fused ±3σ")  # fmt: skip
+    ax.plot(t, series["fused"], color="C0", lw=1.6, zorder=4, label="fused heading")
+    axr.fill_between(t, -sigma3, sigma3, color="C0", alpha=0.25, lw=0, zorder=1,
+                     label="fused ±3σ")  # fmt: skip
+    axr.axhline(0.0, color="C0", lw=1.2, zorder=4)
+    if len(t):
+        after = sigma3[t >= t[0] + 0.2 * (t[-1] - t[0])]
+        span = [3.0 * float(np.nanmax(after))] if after.size and np.isfinite(after).any() else []
+        resid = series["mh"] - series["mh_fused"]
+        if np.isfinite(resid).any():
+            span.append(1.2 * float(np.nanpercentile(np.abs(resid), 98)))
+        if span and max(span) > 0:
+            axr.set_ylim(-max(span), max(span))
+    ax.set_ylabel("heading [deg, clockwise from North]")
+    ax.set_title(f"Heading vs time{suffix}")
+    _legend(ax)
     ax.grid(alpha=0.3)
+    axr.set_xlabel("time t [s]")
+    axr.set_ylabel("minus the fused heading [deg]")
+    axr.set_title("Measurements and reference relative to the fused heading, in its 3σ band")
+    _legend(axr)
+    axr.grid(alpha=0.3)
     paths.append(_savefig(fig, folder / "heading.png"))
     plt.close(fig)
 
@@ -232,7 +293,7 @@ def plot_report(
         ax.set_title(f"Heading 1σ (no reference trajectory in the log){suffix}")
     ax.set_xlabel("time t [s]")
     ax.set_ylabel("heading error [deg]")
-    ax.legend(loc="best")
+    _legend(ax)
     ax.grid(alpha=0.3)
     paths.append(_savefig(fig, folder / "heading_error.png"))
     plt.close(fig)
@@ -256,7 +317,7 @@ def plot_report(
         ax1.plot(tm, s3, color="C0", lw=0.8, label="±3σ (measurement)")
         ax1.plot(tm, -s3, color="C0", lw=0.8)
     ax1.set_ylabel("heading error [deg]")
-    ax1.legend(loc="best")
+    _legend(ax1)
     ax1.grid(alpha=0.3)
     if "nis" in m and accepted.any():
         ta = m.loc[accepted, "t"].to_numpy(dtype=float)
@@ -273,7 +334,7 @@ def plot_report(
     ax2.set_xlabel("time t [s]")
     ax2.set_ylabel("NIS [-]")
     ax2.set_title("Normalized innovation squared of the filter updates")
-    ax2.legend(loc="best")
+    _legend(ax2)
     ax2.grid(alpha=0.3)
     paths.append(_savefig(fig, folder / "measurements.png"))
     plt.close(fig)
@@ -291,7 +352,7 @@ def plot_report(
     ax.set_xlabel("time t [s]")
     ax.set_ylabel("direct-sunlight coefficient ε [-]")
     ax.set_title(f"Estimated direct-sunlight coefficient ε per image{suffix}")
-    ax.legend(loc="best")
+    _legend(ax)
     ax.grid(alpha=0.3)
     paths.append(_savefig(fig, folder / "epsilon.png"))
     plt.close(fig)
@@ -317,21 +378,25 @@ def write_report(
     plots: bool = True,
     title: str = "",
 ) -> dict[str, Path]:
-    """Write CSVs, ``summary.json`` and (optionally) the plots; returns name -> path."""
+    """Write CSVs (floats ``%.10g``), ``summary.json``, ``schema.json`` (unit and meaning of
+    every column, :mod:`polins.io.schema`) and (optionally) the plots; returns name -> path."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     meas = measurements.copy()
     if truth is not None and len(meas):
         ref = truth_at(truth, meas["t"].to_numpy(dtype=float))
         meas["yaw_error"] = wrap_angle(meas["yaw"].to_numpy(dtype=float) - ref["yaw"].to_numpy())
+    tables = {"solution.csv": solution, "measurements.csv": meas, "events.csv": events}
     out = {
-        "solution": write_table(folder / "solution.csv", solution),
-        "measurements": write_table(folder / "measurements.csv", meas),
-        "events": write_table(folder / "events.csv", events),
-        "summary": write_text_atomic(
-            folder / "summary.json", json.dumps(summary, indent=2, default=_json_default) + "\n"
-        ),
+        name.removesuffix(".csv"): write_table(folder / name, df, float_format=CSV_FLOAT_FORMAT)
+        for name, df in tables.items()
     }
+    out["summary"] = write_text_atomic(
+        folder / "summary.json", json.dumps(summary, indent=2, default=_json_default) + "\n"
+    )
+    out["schema"] = write_text_atomic(
+        folder / "schema.json", json.dumps(schema_for(tables), indent=2) + "\n"
+    )
     if plots:
         for p in plot_report(folder, solution, measurements, truth=truth, title=title):
             out[p.stem] = p
@@ -380,7 +445,9 @@ def format_summary(summary: Mapping[str, Any]) -> str:
 
 
 __all__ = [
+    "CSV_FLOAT_FORMAT",
     "format_summary",
+    "heading_plot_series",
     "plot_report",
     "solution_errors",
     "summarize",

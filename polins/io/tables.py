@@ -57,10 +57,12 @@ def write_table(
     *,
     metadata: Mapping[str, str] | None = None,
     header_comment: str | None = None,
+    float_format: str = "%.17g",
 ) -> Path:
     """Write a DataFrame as CSV or Parquet (by suffix), atomically.
 
-    Floats are written in full round-trip precision. ``metadata`` goes to the Parquet schema
+    CSV floats use ``float_format``: the default is the full round-trip precision (logs);
+    reports for people use ``"%.10g"``. ``metadata`` goes to the Parquet schema
     metadata; ``header_comment`` (without ``#``) becomes a first comment line of a CSV.
     """
     path = Path(path)
@@ -70,7 +72,7 @@ def write_table(
             with open(tmp, "w", encoding="utf-8", newline="") as fh:
                 if header_comment:
                     fh.write(f"# {header_comment}\n")
-                df.to_csv(fh, index=False, float_format="%.17g", lineterminator="\n")
+                df.to_csv(fh, index=False, float_format=float_format, lineterminator="\n")
         else:
             pa, pq = _pyarrow()
             table = pa.Table.from_pandas(df, preserve_index=False)
@@ -97,7 +99,7 @@ def _csv_units(path: Path) -> tuple[dict[str, str], int]:
     """Units declared in leading ``#`` lines of a CSV, and the number of those lines."""
     units: dict[str, str] = {}
     n_comment = 0
-    with open(path, encoding="utf-8") as fh:
+    with open(path, encoding="utf-8-sig") as fh:  # a UTF-8 BOM is accepted
         for line in fh:
             if not line.startswith("#"):
                 break
@@ -124,7 +126,7 @@ def read_table(path: str | Path) -> pd.DataFrame:
         raise FileNotFoundError(f"table not found: {path}")
     if _table_format(path) == "csv":
         _, n_comment = _csv_units(path)
-        return pd.read_csv(path, skiprows=n_comment)
+        return pd.read_csv(path, skiprows=n_comment, encoding="utf-8-sig")
     _pyarrow()
     return pd.read_parquet(path)
 

@@ -30,6 +30,7 @@ from polins.fusion.result import FusionResult
 from polins.io.log import Log
 from polins.loop.options import LoopOptions
 from polins.loop.stream import NavigationStream
+from polins.loop.tables import EVENT_COLUMNS
 
 MEASUREMENT_INPUTS = ("t", "yaw", "yaw_std", "sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny",
                       "sun_nz", "sun_std", "prior_roll", "prior_pitch", "prior_yaw")  # fmt: skip
@@ -167,6 +168,9 @@ def run_log(
     loop_s = time.perf_counter() - start
     measurements = stream.drain_measurements()
     events = stream.drain_events()
+    if log.events:  # faults found while loading the log (paths outside its folder)
+        loaded = pd.DataFrame(list(log.events), columns=pd.Index(EVENT_COLUMNS))
+        events = pd.concat([loaded, events], ignore_index=True)
     imu_used = imu.loc[used].reset_index(drop=True)
     t_fuse = time.perf_counter()
     if own_solution:
@@ -192,6 +196,7 @@ def run_log(
         "camera_shape": list(log.camera.shape),
         "imu_model": log.imu_model.name,
         "rot_nb0_given": rot_nb0 is not None,
+        "events_dropped": stream.events_dropped,  # beyond the bounded event buffer
     }
     timing = {
         "run_s": end - start,

@@ -1,6 +1,6 @@
 """What each image is measured with: the attitude prior from a filter snapshot, and the sun vector.
 
-The prior of an image at ``t_i`` is a filter snapshot (a :class:`polins.fusion.state.NavState`)
+The prior of an image at ``t_i`` is a filter snapshot (a :class:`polins.ins.state.NavState`)
 propagated to ``t_i`` by the strapdown (:func:`polins.ins.strapdown.strapdown`) through the
 raw IMU samples in between, corrected by the snapshot's sensor-error estimates as the filter
 corrects them. The sun vector comes from the NREL SPA ephemeris on a coarse time grid
@@ -16,9 +16,8 @@ import pandas as pd
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.fusion.state import NavState
+from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, strapdown
-from polins.ins.strapdown import NavState as NominalState
 from polins.site import Site
 from polins.sky.ephemeris import sun_position, sun_vector_n
 
@@ -65,7 +64,7 @@ def propagate_nominal(
     err = state.errors
     w = (w - err.get("bg", 0.0)) / (1.0 + err.get("sg", 0.0))
     f = (f - err.get("ba", 0.0)) / (1.0 + err.get("sa", 0.0))
-    nav0 = NominalState(t0, state.rot_nb, np.asarray(state.vel_n), float(state.lat),
+    nav0 = NavState(t0, state.rot_nb, np.asarray(state.vel_n), float(state.lat),
                         float(state.lon), float(state.alt_m))  # fmt: skip
     track = strapdown(nav0, t, w, f, mech)
     return Rotation.from_matrix(track.mat_nb[-1])

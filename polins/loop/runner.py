@@ -24,7 +24,7 @@ from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.filter import ESKF
 from polins.fusion.eskf.propagate import advance, interpolate
 from polins.fusion.items import UpdateRecord
-from polins.fusion.state import NavState, concatenate, solution_table
+from polins.ins.state import NavState, concatenate, solution_table
 from polins.loop.prior import Sample
 
 FloatArray = NDArray[np.float64]

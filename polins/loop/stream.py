@@ -65,7 +65,7 @@ from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.filter import ESKF, config_with_site
 from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.fusion.items import UpdateRecord
-from polins.fusion.state import NavState
+from polins.ins.state import NavState
 from polins.loop.measurer import EXECUTORS, ImageMeasurer, PendingImage, make_executor
 from polins.loop.options import LoopOptions
 from polins.loop.prior import Sample, SunGrid, propagate_nominal
@@ -244,7 +244,7 @@ class NavigationStream:
 
     def drain_solution(self) -> pd.DataFrame:
         """The filter's estimate at every filtered IMU sample since the last call
-        (``record_solution=True``; the solution table of ``polins.fusion.state``)."""
+        (``record_solution=True``; the solution table of ``polins.ins.state``)."""
         return pd.DataFrame() if self._runner is None else self._runner.drain_solution()
 
     # ------------------------------------------------------------------ inputs

@@ -16,6 +16,8 @@ and a detail text, so a user can count and filter them. The data faults of the l
 * Image inside the levelling window of a self-alignment: skipped (``image-during-alignment``).
 * Image that cannot be read or decoded (``image-unreadable``), or on which OpenCV fails
   (``image-error``): skipped. Any other exception of the measurement is a bug and propagates.
+* Image index entry outside the log folder (``polins.io.read_log`` without
+  ``allow_outside_paths``): skipped (``path-outside-log``).
 * Image refused by the measurement (too few pixels, sun near the zenith, ...): kept in the
   measurement table with ``ok=False`` and its reason; no update.
 * Update refused by the filter's chi-square gate: kept with ``accepted=False`` and the reason.
@@ -39,6 +41,7 @@ EVENT_KINDS = (
     "image-during-alignment",
     "image-unreadable",
     "image-error",
+    "path-outside-log",
 )
 EVENT_COLUMNS = ("t", "kind", "detail")
 MEASUREMENT_COLUMNS = (
@@ -101,10 +104,10 @@ def measurement_frame(rows: list[dict[str, Any]]) -> pd.DataFrame:
     df = df.loc[:, list(MEASUREMENT_COLUMNS)]
     if len(df):
         df = df.sort_values("t", kind="stable").reset_index(drop=True)
-    df["ok"] = df["ok"].fillna(False).astype(bool)
-    df["accepted"] = df["accepted"].fillna(False).astype(bool)
-    df["reason"] = df["reason"].fillna("").astype(str)
-    df["update_reason"] = df["update_reason"].fillna("").astype(str)
+    for col in ("ok", "accepted"):
+        df[col] = df[col].astype(object).fillna(False).astype(bool)
+    for col in ("reason", "update_reason", "image"):
+        df[col] = df[col].astype(object).fillna("").astype(str)
     return df
 
 

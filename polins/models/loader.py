@@ -340,6 +340,19 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
         raise fail("lens.distortion", f"{lens['projection']} takes {n_dist} coefficients")
     if not 0 < lens["fov_max_deg"] < (100.0 if lens["projection"] == "kannala-brandt" else 90.0):
         raise fail("lens.fov_max_deg", "must be in (0, 100) deg for a fisheye, (0, 90) pinhole")
+    if lens["fov_max_deg"] < 10.0:  # a sky camera sees tens of degrees
+        raise fail("lens.fov_max_deg", f"{lens['fov_max_deg']:g} deg is implausible for a sky "
+                   f"camera: degrees expected (in radians it would be "
+                   f"{np.degrees(lens['fov_max_deg']):.1f} deg)")  # fmt: skip
+    theta = np.radians(lens["fov_max_deg"])  # image radius of the field of view vs the sensor
+    r_fov = lens["fx_superpixel"] * (
+        theta if lens["projection"] == "kannala-brandt" else np.tan(theta)
+    )
+    ratio = r_fov / (0.25 * np.hypot(s["width_px"], s["height_px"]))  # half-diagonal, superpixels
+    if not 0.05 <= ratio <= 20.0:
+        raise fail("lens.fx_superpixel", f"the field of view ({lens['fov_max_deg']:g} deg) spans "
+                   f"{ratio:.3g} x the sensor's half-diagonal: the focal length must be in "
+                   "superpixels (2 x 2 pixels) and agree with the sensor size")  # fmt: skip
     mat_bc = d["mount"]["mat_bc"]
     if not np.allclose(mat_bc @ mat_bc.T, np.eye(3), atol=1e-6) or np.linalg.det(mat_bc) < 0:
         raise fail("mount.mat_bc", "not a proper rotation matrix")

@@ -73,12 +73,12 @@ def ideal_imu(traj: Trajectory, *, earth_rotation: bool = True) -> pd.DataFrame:
     """
     if not isinstance(traj, Trajectory):
         raise ValueError(f"traj must be a polins.sim.trajectory.Trajectory, got {type(traj)}")
-    omega_en_n = transport_rate_n(traj.lat, traj.height, traj.vel_n)
+    omega_en_n = transport_rate_n(traj.lat, traj.alt_m, traj.vel_n)
     omega_ie_n = earth_rate_n(traj.lat) if earth_rotation else np.zeros_like(omega_en_n)
     rot_bn = traj.rot_nb.inv()
     gyro_b = traj.omega_nb_b + rot_bn.apply(omega_ie_n + omega_en_n)
     coriolis_n = np.cross(2.0 * omega_ie_n + omega_en_n, traj.vel_n)
-    force_b = rot_bn.apply(traj.accel_n + coriolis_n - gravity_n(traj.lat, traj.height))
+    force_b = rot_bn.apply(traj.accel_n + coriolis_n - gravity_n(traj.lat, traj.alt_m))
     return pd.DataFrame(np.column_stack([traj.t, gyro_b, force_b]), columns=pd.Index(IMU_COLUMNS))
 
 

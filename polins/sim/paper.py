@@ -163,6 +163,7 @@ def explain(paper: Reproduction, occluder: Reproduction | None = None) -> str:
 # ----------------------------------------------------------------------------- figures
 PLOTTED = ("trad_nogain", "trad", "paper", "compensated")
 _COLORS = {"trad_nogain": "C0", "trad": "C1", "paper": "C2", "compensated": "C3"}
+_MARKERS = {"trad_nogain": "o", "trad": "^", "paper": "s", "compensated": "d"}
 
 
 def plot_reproduction(repro: Reproduction, out_dir: Any, *, prefix: str = "") -> list[Any]:
@@ -185,7 +186,8 @@ def plot_reproduction(repro: Reproduction, out_dir: Any, *, prefix: str = "") ->
     heading = np.mod(90.0 - sc.turn_deg * t_dense / sc.duration_s, 360.0)
     heading[1:][np.abs(np.diff(heading)) > 180.0] = np.nan  # break the line where it wraps
     ax.plot(t_dense, heading, "k-", lw=2.5, label="true heading")
-    for key, marker in zip(PLOTTED, "o^sd", strict=True):
+    for key in PLOTTED:
+        marker = _MARKERS[key]
         sel = img[img["estimator"] == key]
         if len(sel):
             ax.plot(
@@ -219,10 +221,11 @@ def plot_reproduction(repro: Reproduction, out_dir: Any, *, prefix: str = "") ->
             ax.plot(
                 sel["t"],
                 sel["error_deg"],
-                ".-",
+                _MARKERS[key] + "-",
                 ms=3,
                 lw=0.8,
-                label=f"{labels[key]} (RMSE {rmse:.4f})",
+                color=_COLORS[key],  # one colour per method in every panel and figure
+                label=f"{labels[key]} (RMSE {rmse:.4f} deg)",
             )
     axes[0].set(
         ylabel="heading error [deg]",

@@ -147,7 +147,7 @@ def simulate_log(
     scenario: str = "turntable",
     duration_s: float | None = None,
     image_rate_hz: float = 5.0,
-    downscale: int = 4,
+    downscale: int = 8,
     imu: str | Path | ImuModel = "fins-paper",
     camera: str | Path | CameraModel = "paper-table1",
     seed: int = 0,
@@ -175,7 +175,8 @@ def simulate_log(
     downscale : int
         Render the camera at ``1/downscale`` resolution (``CameraModel.downscaled``), for
         small, quick logs; 1 = full resolution (2048 x 2448, ~6 MB per PNG). The default
-        (4, 512 x 612) takes ~25 ms and ~0.25 MB per image.
+        (8, 256 x 306, as ``polins simulate``) takes a few ms and ~0.07 MB per image; 4
+        (512 x 612) ~25 ms and ~0.25 MB.
     imu : str, Path or ImuModel
         IMU error model: shipped name (``fins-paper``, ``mems-typical``), TOML path or model.
     camera : str, Path or CameraModel

@@ -46,7 +46,7 @@ class Trajectory:
         Velocity relative to the Earth in ENU [m/s].
     lat, lon : ndarray, (N,)
         Geodetic latitude and longitude [rad].
-    height : ndarray, (N,)
+    alt_m : ndarray, (N,)
         Height above the WGS-84 ellipsoid [m].
     omega_nb_b : ndarray, (N, 3)
         Angular rate of the body relative to the local ENU frame, in body axes [rad/s]
@@ -60,7 +60,7 @@ class Trajectory:
     vel_n: FloatArray
     lat: FloatArray
     lon: FloatArray
-    height: FloatArray
+    alt_m: FloatArray
     omega_nb_b: FloatArray
     accel_n: FloatArray
 
@@ -73,7 +73,7 @@ class Trajectory:
             "vel_n": self.vel_n.shape,
             "lat": self.lat.shape,
             "lon": self.lon.shape,
-            "height": self.height.shape,
+            "alt_m": self.alt_m.shape,
             "omega_nb_b": self.omega_nb_b.shape,
             "accel_n": self.accel_n.shape,
         }
@@ -82,7 +82,7 @@ class Trajectory:
             "vel_n": (n, 3),
             "lat": (n,),
             "lon": (n,),
-            "height": (n,),
+            "alt_m": (n,),
             "omega_nb_b": (n, 3),
             "accel_n": (n, 3),
         }
@@ -106,7 +106,7 @@ class Trajectory:
         DataFrame
             Columns ``t`` [s]; ``roll, pitch, yaw`` [rad] (ZYX Euler, yaw wrapped to
             (-pi, pi]); ``heading_deg``; the quaternion ``qw, qx, qy, qz`` of ``rot_nb``;
-            ``ve, vn, vu`` [m/s]; ``lat_deg, lon_deg, height_m``.
+            ``ve, vn, vu`` [m/s]; ``lat_deg, lon_deg, alt_m``.
         """
         ypr = self.rot_nb.as_euler("ZYX")
         yaw = wrap_angle(ypr[:, 0])
@@ -127,7 +127,7 @@ class Trajectory:
                 "vu": self.vel_n[:, 2],
                 "lat_deg": np.degrees(self.lat),
                 "lon_deg": np.degrees(self.lon),
-                "height_m": self.height,
+                "alt_m": self.alt_m,
             }
         )
 
@@ -325,7 +325,7 @@ def turntable(
         vel_n=np.zeros((n, 3)),
         lat=np.full(n, np.radians(lat_deg)),
         lon=np.full(n, np.radians(lon_deg)),
-        height=np.full(n, float(alt_m)),
+        alt_m=np.full(n, float(alt_m)),
         omega_nb_b=omega_nb_b,
         accel_n=np.zeros((n, 3)),
     )
@@ -495,7 +495,7 @@ def ugv_drive(
     _check_site(lat_deg, lon_deg)
     plan = _plan_ugv(float(t[-1]), rng, speed_mps, yaw0, rest_s)
     kin = _ugv_kinematics(plan, t)
-    lat, lon, height = _geodetic_from_velocity(
+    lat, lon, alt = _geodetic_from_velocity(
         t,
         lambda tf: _ugv_kinematics(plan, tf)["vel_n"],
         np.radians(lat_deg),
@@ -510,7 +510,7 @@ def ugv_drive(
         vel_n=kin["vel_n"],
         lat=lat,
         lon=lon,
-        height=height,
+        alt_m=alt,
         omega_nb_b=kin["omega_nb_b"],
         accel_n=kin["accel_n"],
     )

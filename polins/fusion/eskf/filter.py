@@ -60,7 +60,7 @@ from polins.fusion.items import (
     measurement_items,
 )
 from polins.fusion.measurement import Linearized
-from polins.fusion.state import NavState
+from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown_increment
 from polins.site import PAPER_SITE
 

@@ -30,9 +30,8 @@ from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.blocks import Layout, inject_nav
 from polins.fusion.eskf.dynamics import StepNominal, discretize, step_nominal
 from polins.fusion.items import MeasurementItem, UpdateRecord
-from polins.fusion.state import NavState
+from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown
-from polins.ins.strapdown import NavState as NominalState
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int_]
@@ -315,7 +314,7 @@ def _segment(
     e = int(ends[-1])
     wc, fc = filt.corrected(W[s : e + 1], A[s : e + 1])
     t0, mat0, vel0, lat0, lon0, alt0 = filt.nominal()
-    start = NominalState(t0, Rotation.from_matrix(mat0, assume_valid=True), vel0, lat0, lon0, alt0)
+    start = NavState(t0, Rotation.from_matrix(mat0, assume_valid=True), vel0, lat0, lon0, alt0)
     track = strapdown(start, T[s : e + 1], wc, fc, filt.mech)
     dt = np.diff(T[s : e + 1])
     sf = "sg" in filt.errors
@@ -333,7 +332,7 @@ def _segment(
     S = b.size
     step = step_nominal(
         sums[:, 0], sums[:, 1:10].reshape(S, 3, 3), sums[:, 10:13], track.vel_n[a],
-        track.lat[a], track.height[a],
+        track.lat[a], track.alt_m[a],
         filt.mech, filt.divisors(),
         sums[:, 13:22].reshape(S, 3, 3) if sf else None,
         sums[:, 22:31].reshape(S, 3, 3) if sf else None,
@@ -343,7 +342,7 @@ def _segment(
     resets, done = filt.n_resets, S
     step_aligned = []
     t_l, lat_l, lon_l, alt_l = (v.tolist() for v in (T[s : e + 1], track.lat, track.lon,
-                                                        track.height))  # fmt: skip
+                                                        track.alt_m))  # fmt: skip
     mat, vel = track.mat_nb, track.vel_n
     for j, i in enumerate(b.tolist()):
         if j % _CHUNK == 0:  # discretise the next steps (a reset ends the segment early)
@@ -371,7 +370,7 @@ def _segment(
             rec.add_rows(
                 T[p],
                 (track.mat_nb[rows], track.vel_n[rows], track.lat[rows], track.lon[rows],
-                 track.height[rows]),
+                 track.alt_m[rows]),
                 errors, n_nodes - 1 + jr, (T[p] - ta) / (tb - ta),
                 np.array(step_aligned)[jr],
             )  # fmt: skip

@@ -5,7 +5,7 @@ The optional second backend of ``polins.fuse(..., backend="graph")`` (``pip inst
 the ESKF (``att, vel, pos, bg, ba``) from the same inputs and
 :class:`~polins.fusion.config.FuseConfig`, as a nonlinear least-squares problem over
 keyframe states, and returns the same solution table
-(:func:`polins.fusion.state.solution_table`). Modules: :mod:`~polins.fusion.graph.factors`,
+(:func:`polins.ins.state.solution_table`). Modules: :mod:`~polins.fusion.graph.factors`,
 :mod:`~polins.fusion.graph.problem`, :mod:`~polins.fusion.graph.solvers`,
 :mod:`~polins.fusion.graph.output`.
 
@@ -109,7 +109,7 @@ from polins.fusion.graph.solvers import (
 from polins.fusion.inputs import PRIOR_COLUMNS, output_mask, validate_imu, validate_measurements
 from polins.fusion.items import UpdateRecord, items_from_table, records_table
 from polins.fusion.result import FusionResult
-from polins.fusion.state import solution_table
+from polins.ins.state import solution_table
 
 
 def fuse_graph(
@@ -141,7 +141,7 @@ def fuse_graph(
     Returns
     -------
     FusionResult
-        ``solution``: the solution table (:func:`polins.fusion.state.solution_table`);
+        ``solution``: the solution table (:func:`polins.ins.state.solution_table`);
         ``updates``: one row per yaw/sun measurement (``t, name, dim, nis, accepted,
         reason``; the batch solver's NIS is post-fit); ``info``: the IMU model's name, the
         solver, the options set (``FuseConfig.changes``), iterations, keyframes, timings

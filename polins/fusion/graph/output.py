@@ -4,7 +4,7 @@ Between keyframes the state is the preintegrated prediction from the previous ke
 with the mismatch at the next keyframe spread linearly over the interval (attitude on the
 rotation vector, velocity, position); bias and covariance are interpolated linearly. The
 IMU steps are integrated per sample in GTSAM; the correction, the geodetic position and
-the solution table (:func:`polins.fusion.state.solution_table`) are vectorised.
+the solution table (:func:`polins.ins.state.solution_table`) are vectorised.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.fusion.graph.problem import Estimates, Problem
 from polins.fusion.measurement import ATT, BA, BG, POS, VEL
-from polins.fusion.state import NavState
+from polins.ins.state import NavState
 
 FloatArray = NDArray[np.float64]
 
@@ -31,7 +31,7 @@ def nav_state(
     cov: FloatArray,
     yaw_known: NDArray[np.bool_],
 ) -> NavState:
-    """A batched :class:`~polins.fusion.state.NavState` from stacked estimates.
+    """A batched :class:`~polins.ins.state.NavState` from stacked estimates.
 
     ``mat_nb (N, 3, 3)``, ``vel_n (N, 3)`` [m/s], ``pos_n (N, 3)`` local ENU [m], ``bias
     (N, 6)`` (``bg`` [rad/s], ``ba`` [m/s^2]), ``cov (N, 15, 15)`` in the ESKF's order.

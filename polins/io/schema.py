@@ -1,0 +1,188 @@
+"""Unit and meaning of every column polins writes: one table behind ``schema.json`` and docs/outputs.md.
+
+:data:`COLUMNS` maps an output file to its columns, each with its unit and meaning.
+``polins fuse`` writes the part for the files of a run as ``schema.json``
+(:func:`schema_for`); :func:`schema_markdown` renders the same table for docs/outputs.md
+(a test checks that the page holds it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+import pandas as pd
+
+_ANG = "rad"
+_SOLUTION: dict[str, tuple[str, str]] = {
+    "t": ("s", "time on the log's clock (seconds after the manifest's epoch_utc)"),
+    "roll": (
+        _ANG,
+        "roll of body (FLU) in ENU, rot_nb = Rotation.from_euler('ZYX', [yaw, pitch, roll])",
+    ),
+    "pitch": (_ANG, "pitch (nose down positive)"),
+    "yaw": (_ANG, "ENU yaw of body x, counter-clockwise from East, wrapped to (-pi, pi]"),
+    "heading_deg": ("deg", "compass heading of body x, clockwise from North, in [0, 360)"),
+    "roll_std": (_ANG, "1-sigma of roll"),
+    "pitch_std": (_ANG, "1-sigma of pitch"),
+    "yaw_std": (_ANG, "1-sigma of yaw (and of the heading)"),
+    **{f"bg{a}": ("rad/s", f"gyro bias estimate, body {a}") for a in "xyz"},
+    **{f"ba{a}": ("m/s^2", f"accelerometer bias estimate, body {a}") for a in "xyz"},
+    **{f"bg{a}_std": ("rad/s", f"1-sigma of bg{a}") for a in "xyz"},
+    **{f"ba{a}_std": ("m/s^2", f"1-sigma of ba{a}") for a in "xyz"},
+    **{
+        f"sg{a}": ("-", f"gyro scale-factor error, body {a} (only with scale_factors)")
+        for a in "xyz"
+    },
+    **{
+        f"sa{a}": ("-", f"accelerometer scale-factor error, body {a} (only with scale_factors)")
+        for a in "xyz"
+    },
+    **{f"sg{a}_std": ("-", f"1-sigma of sg{a}") for a in "xyz"},
+    **{f"sa{a}_std": ("-", f"1-sigma of sa{a}") for a in "xyz"},
+    "ve": ("m/s", "velocity, East"),
+    "vn": ("m/s", "velocity, North"),
+    "vu": ("m/s", "velocity, Up"),
+    "ve_std": ("m/s", "1-sigma of ve"),
+    "vn_std": ("m/s", "1-sigma of vn"),
+    "vu_std": ("m/s", "1-sigma of vu"),
+    "lat_deg": ("deg", "geodetic latitude (WGS-84)"),
+    "lon_deg": ("deg", "geodetic longitude (WGS-84)"),
+    "alt_m": ("m", "height above the WGS-84 ellipsoid"),
+    "pe_std": ("m", "position 1-sigma, local East"),
+    "pn_std": ("m", "position 1-sigma, local North"),
+    "pu_std": ("m", "position 1-sigma, local Up"),
+    "qw": ("-", "attitude quaternion body -> ENU, scalar part"),
+    "qx": ("-", "attitude quaternion body -> ENU, x"),
+    "qy": ("-", "attitude quaternion body -> ENU, y"),
+    "qz": ("-", "attitude quaternion body -> ENU, z"),
+}
+_MEASUREMENTS: dict[str, tuple[str, str]] = {
+    "t": ("s", "image time on the log's clock"),
+    "ok": ("bool", "the image gave a heading (False: refused, see reason)"),
+    "reason": ("text", "why the measurement refused the image (empty when ok)"),
+    "yaw": (_ANG, "measured ENU yaw of body x"),
+    "yaw_std": (_ANG, "1-sigma of the measured yaw the filter uses (includes the model floor)"),
+    "heading_deg": ("deg", "measured compass heading, clockwise from North"),
+    "heading_std_deg": ("deg", "1-sigma of heading_deg (= yaw_std)"),
+    "epsilon": ("-", "estimated direct-sunlight coefficient of the sky model (docs/model.md)"),
+    "epsilon_std": ("-", "1-sigma of epsilon"),
+    "n_pixels": ("count", "pixels used by the estimate"),
+    "yaw_std_meas": (_ANG, "1-sigma of the yaw from the pixel noise alone (no model floor)"),
+    "sun_bx": ("-", "measured unit sun vector, body x"),
+    "sun_by": ("-", "measured unit sun vector, body y"),
+    "sun_bz": ("-", "measured unit sun vector, body z"),
+    "sun_nx": ("-", "ephemeris unit sun vector, East"),
+    "sun_ny": ("-", "ephemeris unit sun vector, North"),
+    "sun_nz": ("-", "ephemeris unit sun vector, Up"),
+    "sun_std": (_ANG, "sun-direction 1-sigma per tangent axis"),
+    "eigen_gap": (
+        "-",
+        "normalised eigen-gap (lambda_perp - lambda_1) / lambda_perp of the polarization "
+        "eigenproblem (docs/model.md 10.1): how clearly the sky fixes the sun's vertical "
+        "plane; 1 is a clear sky, below 0.5 the image is refused",
+    ),
+    "residual_rms": (
+        "-",
+        "RMS of the fit residuals normalised by the pixel noise; about 1 when the sky model "
+        "fits, 25-35 for swapped 45/135 deg channels (docs/measurement.md 8)",
+    ),
+    "prior_t": ("s", "time of the filter state the image prior was taken from"),
+    "prior_roll": (_ANG, "attitude prior given to the measurement: roll"),
+    "prior_pitch": (_ANG, "attitude prior: pitch"),
+    "prior_yaw": (_ANG, "attitude prior: ENU yaw"),
+    "accepted": ("bool", "the filter used the measurement (False: gated out or not ok)"),
+    "update_reason": ("text", "why the filter did not use it (empty when accepted)"),
+    "innovation": (_ANG, "measurement minus the filter's prediction (yaw update)"),
+    "nis": ("-", "normalised innovation squared; chi-square with nis_dof degrees of freedom"),
+    "nis_dof": ("count", "degrees of freedom of nis (1: yaw, 2: sun vector)"),
+    "measure_s": ("s", "wall-clock time the measurement of this image took"),
+    "image": ("text", "the image file (or bag message) measured"),
+    "yaw_error": (_ANG, "measured yaw minus the reference yaw (logs with truth.csv only)"),
+}
+_EVENTS: dict[str, tuple[str, str]] = {
+    "t": ("s", "time of the sample or image the event is about"),
+    "kind": ("text", "event kind (docs/faults.md; polins.loop.tables.EVENT_KINDS)"),
+    "detail": ("text", "what happened, for a person"),
+}
+_DEMO_SUMMARY: dict[str, tuple[str, str]] = {
+    "key": ("text", "short name of the heading estimator"),
+    "estimator": ("text", "heading estimator, as labelled in the plots"),
+    "rmse_deg": ("deg", "RMS heading error over the images"),
+    "mean_deg": ("deg", "mean heading error"),
+    "sd_deg": ("deg", "standard deviation of the heading error"),
+    "max_abs_deg": ("deg", "largest absolute heading error"),
+    "n_ok": ("count", "images that gave a heading"),
+    "n": ("count", "images"),
+    "paper_role": ("text", "what the estimator stands for in the paper"),
+    "scenario": ("text", "simulated scenario"),
+    "crlb_deg": ("deg", "Cramer-Rao lower bound of the heading 1-sigma"),
+}
+_DEMO_IMAGES: dict[str, tuple[str, str]] = {
+    "image": ("count", "image number"),
+    "t": ("s", "image time"),
+    "estimator": ("text", "short name of the heading estimator"),
+    "heading_true_deg": ("deg", "true compass heading, clockwise from North"),
+    "heading_prior_deg": ("deg", "heading of the attitude prior given to the estimator"),
+    "heading_deg": ("deg", "estimated compass heading, clockwise from North"),
+    "error_deg": ("deg", "estimated minus true heading, wrapped to (-180, 180]"),
+    "yaw_std_meas_deg": ("deg", "1-sigma of the estimate from the pixel noise"),
+    "epsilon": ("-", "estimated direct-sunlight coefficient"),
+    "ok": ("bool", "the estimator gave a heading"),
+    "reason": ("text", "why it did not (empty when ok)"),
+    "scenario": ("text", "simulated scenario"),
+}
+
+COLUMNS: dict[str, dict[str, tuple[str, str]]] = {
+    "solution.csv": _SOLUTION,
+    "measurements.csv": _MEASUREMENTS,
+    "events.csv": _EVENTS,
+    "summary.csv": _DEMO_SUMMARY,
+    "images.csv": _DEMO_IMAGES,
+}
+FILES: dict[str, str] = {
+    "solution.csv": "fused solution, one row per IMU sample used (ESKF) or per output row",
+    "measurements.csv": "one row per image: the measurement and the filter's verdict",
+    "events.csv": "data faults skipped and reported (docs/faults.md)",
+    "summary.json": "counts, rejections, NIS, timings and (with truth) accuracy statistics",
+    "schema.json": "this table: unit and meaning of every column of the CSV files",
+    "run.json": "stamp of the run: polins version, command, settings, files, status",
+    "heading.png": "heading vs time (fused, reference, measurements) and the residuals in the fused 3-sigma band",
+    "heading_error.png": "fused heading minus the reference, with the reported 3-sigma band",
+    "measurements.png": "per-image measurement error and the NIS of the filter updates",
+    "epsilon.png": "estimated direct-sunlight coefficient per image",
+}
+
+
+def schema_for(tables: Mapping[str, pd.DataFrame]) -> dict[str, dict[str, dict[str, str]]]:
+    """``{file: {column: {"unit", "meaning"}}}`` for the columns of the tables written.
+
+    A column without an entry in :data:`COLUMNS` gets an empty unit and meaning (a test
+    keeps the table complete).
+    """
+    out = {}
+    for name, df in tables.items():
+        known = COLUMNS.get(name, {})
+        out[name] = {
+            str(c): {
+                "unit": known.get(str(c), ("", ""))[0],
+                "meaning": known.get(str(c), ("", ""))[1],
+            }
+            for c in df.columns
+        }
+    return out
+
+
+def schema_markdown(
+    files: Iterable[str] = ("solution.csv", "measurements.csv", "events.csv"),
+) -> str:
+    """The column tables of ``files`` as Markdown (for docs/outputs.md)."""
+    parts = []
+    for name in files:
+        parts.append(f"### `{name}`\n\n{FILES.get(name, '')}\n")
+        parts.append("| column | unit | meaning |\n|---|---|---|")
+        parts.extend(f"| `{c}` | {u} | {m} |" for c, (u, m) in COLUMNS[name].items())
+        parts.append("")
+    return "\n".join(parts)
+
+
+__all__ = ["COLUMNS", "FILES", "schema_for", "schema_markdown"]
