@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+import signal
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
@@ -104,6 +105,9 @@ _WORKER: ImageMeasurer | None = None
 def _worker_init(measurer: ImageMeasurer) -> None:
     global _WORKER
     _WORKER = measurer
+    # Ctrl-C is the parent's to handle (one line, outputs unchanged): a worker of any start
+    # method must not print a traceback of its own
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _worker_call(item: Any, sun_n: FloatArray, quat_prior: FloatArray) -> dict[str, Any]:
