@@ -76,3 +76,25 @@ def test_every_package_is_installed():
     listed = set(pyproject["tool"]["setuptools"]["packages"])
     found = {_module_name(p) for p in PACKAGE.rglob("__init__.py")}
     assert found - listed == set()
+
+
+def test_shipped_models_load_from_a_source_checkout(tmp_path):
+    """``polins`` imported from the checkout itself (not an installed copy) finds the shipped
+    model files in the top-level ``models/`` folder."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import polins; from polins.models.schema import shipped_folder; "
+        f"assert polins.__file__.startswith({str(PACKAGE)!r}), polins.__file__; "
+        "print(shipped_folder('cameras')); print(polins.load_camera('paper-table1').name)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(PACKAGE.parent)}
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True
+    )
+    assert out.returncode == 0, out.stderr
+    folder, name = out.stdout.split()
+    assert name == "paper-table1"
+    assert Path(folder) == PACKAGE.parent / "models" / "cameras"

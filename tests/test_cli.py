@@ -158,17 +158,17 @@ def test_list_options(capsys):
 
 
 def test_a_bug_is_a_traceback_and_exit_1(monkeypatch):
-    import polins.cli
+    import polins.cli.sun
 
     def bug(args):
         return {}["no such key"]  # a KeyError inside polins is a bug, not a user mistake
 
-    monkeypatch.setattr(polins.cli, "_cmd_sun", bug)
+    monkeypatch.setattr(polins.cli.sun, "cmd_sun", bug)
     with pytest.raises(KeyError):
         main(["sun", "--time", "2023-09-05T07:06Z", "--lat", "45", "--lon", "126"])
     code = (
-        "import sys, polins.cli as c\n"
-        "c._cmd_sun = lambda args: [][1]\n"
+        "import sys, polins.cli as c, polins.cli.sun as s\n"
+        "s.cmd_sun = lambda args: [][1]\n"
         "sys.exit(c.main(['sun', '--time', '2023-09-05T07:06Z', '--lat', '45', '--lon', '1']))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

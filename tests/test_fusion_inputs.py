@@ -45,23 +45,27 @@ def test_duplicated_and_non_monotonic_timestamps():
         validate_imu(df)
 
 
-def test_nan_samples():
+def test_nan_samples_are_dropped_and_reported():
+    # a data fault (docs/faults.md): the sample is dropped with an event; a NaN time is not
     df = _imu()
     df.loc[33, "ay"] = np.nan
-    with pytest.raises(ValueError, match="NaN/inf sample in column 'ay' at row 33"):
-        validate_imu(df)
+    arrays = validate_imu(df)
+    assert arrays.t.size == 399 and 0.165 not in arrays.t
+    assert [(e.t, e.kind) for e in arrays.events] == [(pytest.approx(0.165), "imu-nonfinite")]
     df = _imu()
     df.loc[5, "t"] = np.nan
     with pytest.raises(ValueError, match="t is NaN"):
         validate_imu(df)
 
 
-def test_gaps_are_reported_not_bridged():
+def test_gaps_are_reported():
+    # gaps longer than max_gap_s (default 5 intervals) are reported to the fusion, which
+    # skips the measurements inside and inflates the covariance (tests/test_robustness.py)
     df = _imu().drop(index=range(100, 140)).reset_index(drop=True)
-    with pytest.raises(ValueError, match=r"1 gap\(s\) longer than 0.025 s.*0.205 s after t=0.495"):
-        validate_imu(df)
-    # an explicit, larger limit accepts it
-    assert validate_imu(df, max_gap_s=0.5).t.size == 360
+    arrays = validate_imu(df)
+    assert arrays.gaps.tolist() == [99] and arrays.t[100] - arrays.t[99] == pytest.approx(0.205)
+    # an explicit, larger limit bridges it
+    assert validate_imu(df, max_gap_s=0.5).gaps.size == 0
 
 
 def test_unit_mistakes_detected():
@@ -93,8 +97,13 @@ def test_measurement_validation():
         validate_measurements(pd.DataFrame({"t": [0.1, 0.1], "yaw": [0, 0], "yaw_std": [1, 1]}))
     with pytest.raises(ValueError, match="radians"):
         validate_measurements(pd.DataFrame({"t": [0.1], "yaw": [90.0], "yaw_std": [0.01]}))
-    with pytest.raises(ValueError, match="yaw_std=0 at row 0 must be > 0"):
-        validate_measurements(pd.DataFrame({"t": [0.1], "yaw": [0.1], "yaw_std": [0.0]}))
+    with pytest.raises(ValueError, match=r"yaw_std=10 at row 0 must be <= 3.142 \(radians"):
+        validate_measurements(pd.DataFrame({"t": [0.1], "yaw": [0.1], "yaw_std": [10.0]}))
+    # a non-positive or non-finite sigma is a data fault: its row is rejected, not the table
+    bad = pd.DataFrame({"t": [0.1, 0.2], "yaw": [0.1, 0.1], "yaw_std": [0.0, np.inf]})
+    items = items_from_table(validate_measurements(bad))
+    assert [it.valid for it in items] == [False, False]
+    assert items[1].reason == "invalid yaw_std=inf: a 1-sigma must be finite and > 0"
     sun = {f"sun_b{c}": [v] for c, v in zip("xyz", (0.0, 0.0, 2.0), strict=True)}
     sun |= {f"sun_n{c}": [v] for c, v in zip("xyz", (0.0, 0.6, 0.8), strict=True)}
     with pytest.raises(ValueError, match="sun_b at row 0 has norm 2"):
@@ -146,8 +155,8 @@ def test_items_from_frame_rules():
 
 def test_fuse_reports_input_errors():
     imu = _imu()
-    imu.loc[3, "gx"] = np.nan
-    with pytest.raises(ValueError, match="NaN/inf sample"):
+    imu.loc[3, "t"] = np.nan
+    with pytest.raises(ValueError, match="t is NaN"):
         polins.fuse(imu, None, rot_nb0=polins.rot_nb_from_euler(0, 0, 0), lat_deg=45.0, lon_deg=0)
     with pytest.raises(UserInputError, match=r"unknown fuse option.*nhc_sdt"):
         polins.fuse(_imu(), None, lat_deg=45.0, lon_deg=0.0, nhc_sdt=0.1)

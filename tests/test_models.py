@@ -1,12 +1,15 @@
 """Strict loading of the shipped camera and IMU model files."""
 
+import pickle
 import re
 
 import numpy as np
 import pytest
 
 import polins
-from polins.models.loader import ModelFileError, shipped_models
+from polins.io.model_files import camera_model_toml, write_camera_file
+from polins.models import ModelFileError, save_pixel_map, shipped_models
+from polins.models.camera import calibration_entry
 
 CAMERA = polins.load_camera("paper-table1").path.read_text()
 
@@ -89,3 +92,153 @@ def test_imu_wrong_unit(tmp_path):
     path = _write(tmp_path, text.replace("arw_deg_per_sqrt_h", "arw_deg_per_sqrt_s"), "imu.toml")
     with pytest.raises(ModelFileError, match=r"gyro\.arw_deg_per_sqrt_s"):
         polins.load_imu(path)
+
+
+# ----------------------------------------------------------------------------- calibration
+SMALL = polins.load_camera("paper-table1").downscaled(8)  # 153 x 128 superpixels
+ENTRY = (
+    '\n[[calibration]]\nkind = "flat"\ndate = "2026-05-04T10:30:00+00:00"\n'
+    'method = "channel means"\nn_images = 20\nresidual_rms = 1.5e-4\nn_superpixels = 9000\n'
+    "dsnu_dn = [0.1, 0.2, 0.0, 0.1]\n"
+)
+
+
+def _small_text(**polarizer_keys):
+    """SMALL as a camera file, with extra ``[polarizer]`` keys."""
+    text = camera_model_toml(SMALL)
+    extra = "".join(f'{k} = "{v}"\n' for k, v in polarizer_keys.items())
+    return text.replace("[noise]", extra + "\n[noise]")
+
+
+def _maps(cam, rng):
+    shape = (*cam.superpixel_shape, 4)
+    gain = 1 + 0.01 * rng.standard_normal(shape)
+    gain[0, 0] = np.nan  # NaN: the channel's value
+    angle = np.radians(cam.nominal_angle_deg) + np.radians(0.5) * rng.standard_normal(shape)
+    return gain, angle, rng.uniform(0.95, 1.0, shape)
+
+
+def test_calibration_record_and_maps_load(tmp_path):
+    rng = np.random.default_rng(0)
+    gain, angle, eff = _maps(SMALL, rng)
+    (tmp_path / "maps").mkdir()
+    for name, values in (("g", gain), ("a", angle), ("e", eff)):
+        save_pixel_map(tmp_path / "maps" / name, values)
+    text = _small_text(gain_map_npy="maps/g.npy", transmission_angle_map_rad_npy="maps/a.npy",
+                       efficiency_map_npy=str(tmp_path / "maps" / "e.npy"))  # fmt: skip
+    cam = polins.load_camera(_write(tmp_path, text + ENTRY + ENTRY.replace('"flat"', '"dark"')))
+    assert cam.has_pixel_maps and cam.gain_map.shape == (128, 153, 4)
+    np.testing.assert_allclose(cam.gain_map, gain, rtol=1e-6)  # float32 on disk
+    np.testing.assert_allclose(cam.transmission_angle_map, angle, rtol=1e-6)
+    assert np.isnan(cam.gain_map[0, 0]).all()
+    g, _, _ = cam.pixel_calibration()
+    np.testing.assert_array_equal(g[0, 0], cam.gain)  # NaN -> channel value
+    assert [e["kind"] for e in cam.calibration] == ["flat", "dark"]
+    first = dict(cam.calibration[0])
+    assert first == {"kind": "flat", "date": "2026-05-04T10:30:00+00:00",
+                     "method": "channel means", "n_images": 20, "residual_rms": 1.5e-4,
+                     "n_superpixels": 9000, "dsnu_dn": [0.1, 0.2, 0.0, 0.1]}  # fmt: skip
+    assert not polins.load_camera("paper-table1").has_pixel_maps
+    assert polins.load_camera("paper-table1").calibration == ()
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (
+            lambda t: t.replace("n_images = 20", "n_image = 20"),
+            r"missing key 'calibration\[0\].n_images'",
+        ),
+        (lambda t: t.replace('"flat"', '"flats"'), r"calibration\[0\].kind.*expected one of"),
+        (lambda t: t.replace("+00:00", "+02:00"), r"calibration\[0\].date.*UTC"),
+        (lambda t: t.replace('"2026-05-04T10:30:00+00:00"', '"yesterday"'), "ISO-8601"),
+        (
+            lambda t: t.replace("residual_rms = 1.5e-4", 'residual_rms = "small"'),
+            "fit figures must be numbers",
+        ),
+        (
+            lambda t: t.replace("dsnu_dn = [0.1, 0.2, 0.0, 0.1]", 'dsnu_dn = [0.1, "a"]'),
+            "fit figures must be numbers or lists of numbers",
+        ),
+        (
+            lambda t: t.replace("[[calibration]]", "[calibration]"),
+            r"array of tables \[\[calibration\]\]",
+        ),
+    ],
+)
+def test_bad_calibration_entries_are_named(tmp_path, change, match):
+    path = _write(tmp_path, change(_small_text() + ENTRY))
+    with pytest.raises(ModelFileError, match=match):
+        polins.load_camera(path)
+
+
+def test_a_misspelt_map_key_gets_a_hint_and_bad_maps_are_named(tmp_path):
+    save_pixel_map(tmp_path / "g", np.ones((128, 153, 4)))
+    save_pixel_map(tmp_path / "small", np.ones((64, 76, 4)))
+    with pytest.raises(ModelFileError, match=r"did you mean 'polarizer.gain_map_npy'"):
+        polins.load_camera(_write(tmp_path, _small_text(gain_map_np="g.npy")))
+    with pytest.raises(
+        ModelFileError, match=r"did you mean 'polarizer.transmission_angle_map_rad_npy'"
+    ):
+        polins.load_camera(_write(tmp_path, _small_text(transmission_angle_map_deg_npy="g.npy")))
+    with pytest.raises(ModelFileError, match=r"shape \(64, 76, 4\).*\(128, 153, 4\)"):
+        polins.load_camera(_write(tmp_path, _small_text(gain_map_npy="small.npy")))
+    with pytest.raises(ModelFileError, match="map file not found"):
+        polins.load_camera(_write(tmp_path, _small_text(efficiency_map_npy="none.npy")))
+    save_pixel_map(tmp_path / "deg", np.full((128, 153, 4), 45.0))
+    with pytest.raises(ModelFileError, match="radians expected"):
+        polins.load_camera(_write(tmp_path, _small_text(transmission_angle_map_rad_npy="deg.npy")))
+    save_pixel_map(tmp_path / "zero", np.zeros((128, 153, 4)))
+    with pytest.raises(ModelFileError, match=r"efficiencies must be in \(0, 1.1\]"):
+        polins.load_camera(_write(tmp_path, _small_text(efficiency_map_npy="zero.npy")))
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(ModelFileError, match=r"not a plain \.npy"):
+        polins.load_camera(_write(tmp_path, _small_text(gain_map_npy="obj.npy")))
+
+
+def test_camera_file_round_trip_with_maps_and_record(tmp_path):
+    """load_camera(write_camera_file(cam)) gives the same model: every field, the maps and
+    the [[calibration]] record."""
+    rng = np.random.default_rng(1)
+    gain, angle, eff = _maps(SMALL, rng)
+    record = calibration_entry({"kind": "polarizer", "date": "2026-05-04T10:30:00+00:00",
+                                "method": "Malus fit", "n_images": 12, "chi2_dof": 1.02})  # fmt: skip
+    cam = SMALL.with_changes(
+        name="mine", gain=np.array([1.01, 0.99, 1.02, 0.98]), gain_map=gain,
+        transmission_angle_map=angle, efficiency_map=eff, calibration=(record,),
+        occlusion_polygons=(np.array([[0.0, 0.0], [10.0, 0.0], [5.0, 8.0]]),),
+    )  # fmt: skip
+    cam = polins.load_camera(
+        write_camera_file(cam, tmp_path / "a.toml", maps_dir=tmp_path / "m")[-1]
+    )
+    again = polins.load_camera(
+        write_camera_file(cam, tmp_path / "sub" / "b.toml", comments=["line one", "line two"])[-1]
+    )
+    assert again.path.read_text().startswith("# line one\n# line two\n")
+    for name in cam.__dataclass_fields__:
+        if name in ("path", "occlusion_polygons", "calibration"):
+            continue
+        a, b = getattr(cam, name), getattr(again, name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        else:
+            assert a == b, name
+    assert [dict(e) for e in again.calibration] == [dict(record)]
+    clone = pickle.loads(pickle.dumps(again))  # worker processes get the camera by pickle
+    assert clone.calibration == again.calibration
+    np.testing.assert_array_equal(clone.gain_map, again.gain_map)
+    np.testing.assert_array_equal(again.occlusion_polygons[0], cam.occlusion_polygons[0])
+    assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == [
+        "b.efficiency_map.npy", "b.gain_map.npy", "b.toml", "b.transmission_angle_map.npy"
+    ]  # fmt: skip
+    # The text alone cannot name maps it does not have.
+    with pytest.raises(ValueError, match="gain_map is set but has no file"):
+        camera_model_toml(cam)
+    assert camera_model_toml(SMALL).count("[[calibration]]") == 0
+
+
+def test_calibration_kinds_match_the_estimators():
+    from polins.calibration import KINDS
+    from polins.models import CALIBRATION_KINDS
+
+    assert set(KINDS) == set(CALIBRATION_KINDS)

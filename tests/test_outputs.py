@@ -425,3 +425,20 @@ def test_stream_events_are_bounded_and_counted():
     nav.add_imu_many(np.full(n, t[-1]), np.zeros((n, 3)), np.tile([0.0, 0.0, 9.8], (n, 1)))
     assert nav.counts["imu-out-of-order"] == n and nav.events_dropped == n - 500
     assert len(nav.drain_events()) == 500 and len(nav.drain_events()) == 0
+
+
+def test_tune_command_writes_a_model_that_loads(log_dir, tmp_path, capsys):
+    """``polins tune`` on a log: a tuned IMU file that load_imu reads, the report printed;
+    an unknown parameter is one line and exit 2 before any work."""
+    out = tmp_path / "tuned.toml"
+    argv = ["tune", str(log_dir / "manifest.toml"), "--params", "yaw_std_scale", "--out", str(out),
+            "--workers", "1", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "yaw_std_scale" in printed and f"wrote {out}" in printed
+    tuned = polins.load_imu(out)
+    assert tuned.name == "tuned" and tuned.gyro_arw == polins.load_imu("mems-typical").gyro_arw
+    bad = ["tune", str(log_dir / "manifest.toml"), "--params", "gyro_arx", "--out", str(out)]
+    assert main(bad) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "gyro_arx" in err

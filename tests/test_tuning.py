@@ -10,7 +10,7 @@ import pytest
 import polins
 from polins.errors import UserInputError
 from polins.io.model_files import imu_model_toml
-from polins.models.loader import ModelFileError
+from polins.models import ModelFileError
 from polins.sim.imu import IMU_COLUMNS, imu_errors
 from polins.tuning import (
     NoiseTerms,

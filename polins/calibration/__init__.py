@@ -25,7 +25,7 @@ from polins.calibration.sky_rotation import (
     calibrate_sky_rotation,
     fit_sky_rotation,
 )
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 __all__ = [
     "KINDS",
@@ -64,5 +64,7 @@ class CalibrationResult(Protocol):
 
 def apply_to_camera(cam: CameraModel, result: CalibrationResult) -> CameraModel:
     """The camera model ``cam`` with the fields a calibration result sets replaced (the
-    per-pixel maps and the provenance are not camera-model fields: the caller stores them)."""
+    result's per-pixel maps and its provenance record are the caller's to add:
+    ``CameraModel.gain_map`` etc. and ``CameraModel.calibration``, as
+    ``polins calibrate`` does, docs/calibrate.md#the-command-line)."""
     return replace(cam, **result.camera_changes())

@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from polins.calibration.images import channel_stack, provenance
 from polins.errors import UserInputError
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from polins.errors import UserInputError
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

@@ -30,7 +30,7 @@ from scipy.optimize import least_squares
 
 from polins.calibration.images import zero_sum_basis
 from polins.errors import UserInputError
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 

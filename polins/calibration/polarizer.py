@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from polins.calibration.images import channel_stack, provenance
 from polins.calibration.malus import fit_turning_polarization
 from polins.errors import UserInputError
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike
 from polins.calibration.images import channel_stack
 from polins.compass.camera import fov_mask
 from polins.compass.polarimetry import stokes_from_channels, stokes_noise_variance
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 __all__ = ["CheckReport", "check"]
 

@@ -54,7 +54,7 @@ from polins.calibration.images import channel_stack, provenance
 from polins.calibration.malus import base_stokes, fit_turning_polarization
 from polins.compass.camera import fov_mask
 from polins.errors import UserInputError
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 

@@ -11,6 +11,7 @@ Modules in the order of the data flow::
     prediction   the AoP a trial sun predicts; selection: which pixels enter the estimate
     jointml      joint maximum likelihood of the sun and epsilon
     heading      level frame, yaw, its variance, the 180 deg choice
+    branch       the 180 deg branch without an ephemeris: elevation, brightness, prior
     measurement  Measurement and MeasureOptions; chain: one image through all of it
     measure      ``polins.measure``; paper: the paper's Algorithm 1 (reproduction only)
     crlb         the Cramer-Rao bound of the yaw

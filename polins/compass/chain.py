@@ -14,6 +14,12 @@ One function, :func:`measure_image`, runs every method of ``polins.measure``
 4. the heading, its 180 deg choice and the filter sigma, inflated by
    ``kappa^2 sigma^2 + sigma_floor^2 + cot^2(Z) tilt_std^2`` (docs/model.md §10).
 
+Without an ephemeris (``sun_n=None``) the zenith is estimated, the yaw is NaN and the sun is
+reported in the body frame, its 180 deg branch chosen by :mod:`polins.compass.branch`. A
+joint ML that cannot be trusted (epsilon not separable from the sun, on its bound, or not
+converged) falls back to the weighted eigen solution with the reason
+(docs/measurement.md §11).
+
 A :data:`Compensation` replaces the least-squares Stokes rows of step 1 by another
 per-pixel estimate (the paper's Algorithm 1, :mod:`polins.compass.paper`).
 """
@@ -26,8 +32,11 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
+from scipy.special import ndtri
 
+from polins.compass.branch import brightness_contrast, choose_branch, sun_angle_variances
 from polins.compass.eigen import (
+    EigenSolution,
     eigen_gap,
     eigen_level_rows,
     sandwich_covariance,
@@ -41,7 +50,13 @@ from polins.compass.heading import (
     yaw_from_sun_level,
     yaw_variance_from_sun_covariance,
 )
-from polins.compass.jointml import gauss_newton, ml_evaluate
+from polins.compass.jointml import (
+    MLSolution,
+    epsilon_correlation,
+    gauss_newton,
+    ml_evaluate,
+    sun_covariance,
+)
 from polins.compass.kernels import dot, dot_rows
 from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import METHODS, Measurement, MeasurementMaps, MeasureOptions
@@ -54,8 +69,9 @@ from polins.compass.polarimetry import (
 )
 from polins.compass.prediction import PixelData, pixel_data
 from polins.compass.selection import Selection, selection_mask
+from polins.errors import UserInputError
 from polins.frames import heading_deg_from_yaw, wrap_angle
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 __all__ = ["Compensation", "measure_image"]
 
@@ -69,16 +85,66 @@ def _excluded_sun(sun_c: NDArray, rays: NDArray, cos_excl: float) -> NDArray:
     return dot_rows(sun_c.astype(rays.dtype), rays) > cos_excl
 
 
+def _noise_ratio(
+    nu: NDArray, sigma2: NDArray | float, channels: NDArray, saturation: float, index: NDArray
+) -> float:
+    """Robust measured / declared channel noise on the unsaturated pixels among ``index``,
+    before the redundancy test (which would truncate ``nu``): from the fraction ``f`` of
+    ``|nu| < sigma``, ``1 / Phi^-1((1 + f)/2)`` for Gaussian noise (a quantile, like the
+    MAD, but without a sort)."""
+    used = channels.take(index, axis=1).max(axis=0) < saturation  # False for NaN
+    n = int(np.count_nonzero(used))
+    if n == 0:
+        return float("nan")
+    sigma = np.sqrt(sigma2.take(index) if isinstance(sigma2, np.ndarray) else sigma2)
+    used &= np.abs(nu.take(index)) < sigma
+    q = float(ndtri(0.5 + 0.5 * np.count_nonzero(used) / n))
+    return 1.0 / q if q > 0 else float("inf")
+
+
+def _ml_problem(ml: MLSolution, opt: MeasureOptions, converged: bool) -> str:
+    """Why a joint ML solution cannot be used ("" if it can; docs/measurement.md §11)."""
+    corr = epsilon_correlation(ml.covariance)
+    if corr > opt.separability_max:
+        what = "zenith" if ml.theta.size == 3 else "sun azimuth"
+        return f"epsilon and {what} not separable (corr {corr:.4f})"
+    if converged and not ml.converged:
+        return "joint ML did not converge"
+    eps = float(ml.theta[-1])
+    if not abs(eps) < opt.epsilon_max:
+        return f"epsilon {eps:.3g} at its bound {opt.epsilon_max:g} (physical: about 0 to 0.05)"
+    return ""
+
+
+def _check_inputs(
+    sun_n: ArrayLike | None, rot_nb_prior: Rotation | None, sun_azimuth_b_prior: float | None
+) -> tuple[NDArray | None, Rotation]:
+    """The unit ENU sun (None without an ephemeris) and the prior attitude (identity, a
+    level body, when there is none and no ``sun_n``)."""
+    if sun_azimuth_b_prior is not None and not np.isfinite(sun_azimuth_b_prior):
+        raise UserInputError(f"sun_azimuth_b_prior={sun_azimuth_b_prior} must be finite [rad]")
+    if sun_n is None:
+        if rot_nb_prior is None:
+            return None, Rotation.identity()
+        if not isinstance(rot_nb_prior, Rotation) or not rot_nb_prior.single:
+            raise UserInputError("rot_nb_prior must be a single scipy Rotation (body -> ENU)")
+        return None, rot_nb_prior
+    if rot_nb_prior is None:
+        raise UserInputError("sun_n needs rot_nb_prior: its roll and pitch level the sun")
+    return check_sun_and_attitude(sun_n, rot_nb_prior), rot_nb_prior
+
+
 def measure_image(
     raw: ArrayLike,
     cam: CameraModel,
-    sun_n: ArrayLike,
-    rot_nb_prior: Rotation,
+    sun_n: ArrayLike | None,
+    rot_nb_prior: Rotation | None,
     opt: MeasureOptions,
     *,
     method: str,
     maps: bool = False,
     compensation: Compensation | None = None,
+    sun_azimuth_b_prior: float | None = None,
 ) -> tuple[Measurement, MeasurementMaps | None]:
     """One image through the chain (the body of ``polins.measure``).
 
@@ -87,18 +153,23 @@ def measure_image(
     raw : array_like, (H, W)
         Raw mosaic (checked with :func:`polins.compass.pixels.check_raw`).
     cam : CameraModel
-    sun_n : array_like, (3,)
-        ENU sun vector.
-    rot_nb_prior : Rotation
-        Prior body -> ENU attitude.
+    sun_n : array_like, (3,), or None
+        ENU sun vector; None: measure the sun in the body frame only (no yaw,
+        docs/measurement.md §11).
+    rot_nb_prior : Rotation or None
+        Prior body -> ENU attitude (required with ``sun_n``; without it only its roll and
+        pitch are used, and None means a level body).
     opt : MeasureOptions
     method : {"compensated", "traditional", "paper"}
         ``"compensated"`` runs the joint ML, the others the eigen solution; the name is
-        reported in the :class:`~polins.compass.measurement.Measurement`.
+        reported in the :class:`~polins.compass.measurement.Measurement` (``"traditional"``
+        when the joint ML fell back to it).
     maps : bool
         Also return the per-pixel :class:`~polins.compass.measurement.MeasurementMaps`.
     compensation : Compensation, optional
         Replaces the least-squares Stokes rows (not with ``"compensated"``).
+    sun_azimuth_b_prior : float, optional
+        Without ``sun_n``: prior body-frame sun azimuth [rad] for the 180 deg branch.
 
     Returns
     -------
@@ -107,20 +178,22 @@ def measure_image(
     arr = check_raw(raw, cam)
     if method not in METHODS:
         raise ValueError(f"method={method!r}: expected one of {METHODS}")
-    s_n = check_sun_and_attitude(sun_n, rot_nb_prior)
+    s_n, rot_prior = _check_inputs(sun_n, rot_nb_prior, sun_azimuth_b_prior)
     if compensation is not None and method == "compensated":
         raise ValueError("a per-pixel compensation replaces the joint ML: not with 'compensated'")
 
     # Frames: l is level with x_l the horizontal projection of body x (docs/conventions.md).
-    yaw_prior, mat_lb, mat_cl, mat_cn = level_frames(rot_nb_prior, cam)
+    yaw_prior, mat_lb, mat_cl, mat_cn = level_frames(rot_prior, cam)
     mat_lc = mat_cl.T
-    zenith = float(np.arccos(np.clip(s_n[2], -1.0, 1.0)))
-    if s_n[2] <= 0.0:
-        return Measurement.refused(method, "sun below the horizon"), None
-    if zenith < opt.zenith_min:
-        zenith_min_deg = float(np.degrees(opt.zenith_min))
-        reason = f"sun within {zenith_min_deg:.3g} deg of the zenith: heading unobservable"
-        return Measurement.refused(method, reason), None
+    zenith = float("nan")
+    if s_n is not None:
+        zenith = float(np.arccos(np.clip(s_n[2], -1.0, 1.0)))
+        if s_n[2] <= 0.0:
+            return Measurement.refused(method, "sun below the horizon"), None
+        if zenith < opt.zenith_min:
+            zenith_min_deg = float(np.degrees(opt.zenith_min))
+            reason = f"sun within {zenith_min_deg:.3g} deg of the zenith: heading unobservable"
+            return Measurement.refused(method, reason), None
 
     # Stokes of the field-of-view pixels and the sun-independent quality masks.
     # Precision follows the input: integer mosaics (quantised to 1 DN) in float32, whose
@@ -128,7 +201,7 @@ def measure_image(
     dtype = np.float64 if np.issubdtype(arr.dtype, np.floating) else np.float32
     cache = camera_constants(cam, dtype)
     channels = gather_channels(arr, cache.pixels, dtype)
-    cal = stokes_calibration(cam, opt.gain_correction)
+    cal = stokes_calibration(cam, opt.gain_correction, cache.pixels)  # per-pixel with maps
     rows = stokes_rows(channels, cal, dtype)
     sigma2 = stokes_noise_variance(cam, rows[0])
     valid = validity_rows(
@@ -143,18 +216,24 @@ def measure_image(
         gradient_max=opt.gradient_max,
         finite_check=dtype == np.float64,
     )
-    sigma_l2 = sigma2 * cal.sigma_l_factor**2
+    sigma_l2 = sigma2 * cal.sigma_l_factors() ** 2
     inv_sigma_l2: NDArray | float
     if isinstance(sigma_l2, np.ndarray):
         inv_sigma_l2 = (1.0 / sigma_l2).astype(dtype)
     else:
         inv_sigma_l2 = 1.0 / float(sigma_l2)
+    n_fov = cache.pixels.size
+    stride = max(1, n_fov // opt.gn_pixels) if opt.gn_pixels > 0 else 1
+    sub = subsample(cam, dtype, stride)
+    # Every 4th subsample pixel: ~4,000 pixels give the ratio to ~2 %.
+    noise_ratio = _noise_ratio(rows[3], sigma2, channels, cam.saturation_dn, sub.index[::4])
 
-    sun_c_prior = mat_cn @ s_n
     cos_excl = float(np.cos(opt.sun_exclusion))
     epsilon_px = None
     if compensation is not None:
-        est_rows, epsilon_px = compensation(channels, cam, sun_c_prior)
+        if s_n is None:
+            raise UserInputError(f"method={method!r} needs sun_n")
+        est_rows, epsilon_px = compensation(channels, cam, mat_cn @ s_n)
         est_rows = est_rows.astype(dtype)
         valid &= np.isfinite(est_rows).all(axis=0)
     else:
@@ -175,38 +254,43 @@ def measure_image(
     def inv_sigma2_at(idx: NDArray) -> NDArray | float:
         return inv_sigma_l2.take(idx) if isinstance(inv_sigma_l2, np.ndarray) else inv_sigma_l2
 
-    # 1. Starting sun: eigen solution on the fixed pixel subsample, sun mask from the prior.
-    n_fov = cache.pixels.size
-    stride = max(1, n_fov // opt.gn_pixels) if opt.gn_pixels > 0 else 1
-    sub = subsample(cam, dtype, stride)
+    # 1. Starting sun: eigen solution on the fixed pixel subsample, sun mask from the prior
+    # (without an ephemeris: from a first eigen solution, around the sun and the antisun).
     rows_sub = est_rows.take(sub.index, axis=1)
     valid_sub = valid[sub.index]
     s0d, s1d, s2d = rows_sub
-    keep = valid_sub & ~_excluded_sun(sun_c_prior, sub.rays, cos_excl)
+    keep = valid_sub.copy()
     p2 = s1d * s1d + s2d * s2d
     keep &= p2 >= opt.dop_min**2 * (s0d * s0d)
     keep &= p2 >= opt.snr_min**2 / inv_sigma2_at(sub.index)
+
+    def starting_eigen(mask: NDArray) -> EigenSolution:
+        eig, _, _ = eigen_level_rows(
+            s1d, s2d, inv_sigma2_at(sub.index), sub.basis, cache.projection, mat_lc,
+            opt.weighted, mask=mask,
+        )  # fmt: skip
+        return eig
+
+    if s_n is not None:
+        keep &= ~_excluded_sun(mat_cn @ s_n, sub.rays, cos_excl)
+    elif np.count_nonzero(keep) >= 3:
+        sun_c00 = mat_cl @ starting_eigen(keep).sun
+        keep &= ~_excluded_sun(sun_c00, sub.rays, cos_excl)
+        keep &= ~_excluded_sun(-sun_c00, sub.rays, cos_excl)
     if np.count_nonzero(keep) * stride < opt.min_pixels:
         n_est = int(np.count_nonzero(keep)) * stride
         reason = f"too few valid pixels ({n_est} < {opt.min_pixels})"
         return Measurement.refused(method, reason, n_est), None
-    eig0, _, _ = eigen_level_rows(
-        s1d,
-        s2d,
-        inv_sigma2_at(sub.index),
-        sub.basis,
-        cache.projection,
-        mat_lc,
-        opt.weighted,
-        mask=keep,
-    )
-    sun_l0 = resolve_sun_sign(eig0.sun, s_n, yaw_prior, opt.horizon_fallback)
+    eig0 = starting_eigen(keep)
+    sun_l0 = eig0.sun
+    if s_n is not None:
+        sun_l0 = resolve_sun_sign(eig0.sun, s_n, yaw_prior, opt.horizon_fallback)
 
     # 2. Subsample selection with this sun; the DoP cut along the predicted direction.
     sel_sub = Selection(
         valid_sub, sub.rays, cos_excl, opt.dop_min, opt.snr_min / inv_sigma_at(sub.index)
     )
-    fixed = opt.fixed_zenith and method == "compensated"
+    fixed = opt.fixed_zenith and method == "compensated" and s_n is not None
     zen_arg = zenith if fixed else None
     a0 = float(np.arctan2(sun_l0[1], sun_l0[0]))
     z0 = float(np.arccos(np.clip(sun_l0[2], -1.0, 1.0)))
@@ -233,8 +317,11 @@ def measure_image(
         rays=cache.lens_rays,
     )
 
+    used_method, fallback = method, ""
+    gap = eigen_gap(eig0)
+    mask: NDArray
     if method == "compensated":
-        gap = eigen_gap(eig0)
+        ml, mask_ml = None, None
         if stride > 1:
             ml, _ = gauss_newton(
                 data_sub,
@@ -245,29 +332,36 @@ def measure_image(
                 max_iterations=opt.max_iterations,
                 tol_sigma=0.1,  # the full-set step that follows removes the rest
                 select=sel_sub,
+                epsilon_bound=opt.epsilon_max,
             )
-            if not ml.converged:
-                return Measurement.refused(method, "joint ML did not converge", ml.n * stride), None
+            fallback = _ml_problem(ml, opt, converged=True)
             theta = ml.theta
-        # 3. One Gauss-Newton step on all valid pixels (iterate if there is no subsample).
-        ml, mask = gauss_newton(
-            data_full,
-            theta,
-            zen_arg,
-            mat_cl,
-            loss=opt.loss,
-            max_iterations=1 if stride > 1 else opt.max_iterations,
-            select=full_select,
-        )
-        if stride == 1 and not ml.converged:
-            return Measurement.refused(method, "joint ML did not converge", ml.n), None
-        assert mask is not None
-        theta = ml.theta
-        sun_l = ml.sun_l
-        var_yaw = float(ml.covariance[0, 0])
-        epsilon, epsilon_std = float(theta[-1]), float(np.sqrt(ml.covariance[-1, -1]))
-        residual_rms = ml.residual_rms
-    else:
+        if not fallback:
+            # 3. One Gauss-Newton step on all valid pixels (iterate if there is no subsample).
+            ml, mask_ml = gauss_newton(
+                data_full,
+                theta,
+                zen_arg,
+                mat_cl,
+                loss=opt.loss,
+                max_iterations=1 if stride > 1 else opt.max_iterations,
+                select=full_select,
+                epsilon_bound=opt.epsilon_max,
+            )
+            fallback = _ml_problem(ml, opt, converged=stride == 1)
+        if fallback:
+            used_method = "traditional"  # weighted, with the reason (docs/measurement.md §11)
+            fallback = f"compensated -> traditional: {fallback}"
+        else:
+            assert ml is not None and mask_ml is not None
+            mask = mask_ml
+            theta = ml.theta
+            sun_l = ml.sun_l
+            cov_sun_l = sun_covariance(ml)
+            var_yaw = float(ml.covariance[0, 0])
+            epsilon, epsilon_std = float(theta[-1]), float(np.sqrt(ml.covariance[-1, -1]))
+            residual_rms = ml.residual_rms
+    if used_method != "compensated":
         # 3. Eigen solution on all valid pixels, selected with the starting sun.
         mask = selection_mask(data_full, full_select, mat_cl @ sun_l0)
         eig, e, omega = eigen_level_rows(
@@ -277,20 +371,21 @@ def measure_image(
             cache.basis,
             cache.projection,
             mat_lc,
-            opt.weighted,
+            opt.weighted or bool(fallback),
             mask=mask,
         )
-        sun_l = resolve_sun_sign(eig.sun, s_n, yaw_prior, opt.horizon_fallback)
+        sun_l = eig.sun
+        if s_n is not None:
+            sun_l = resolve_sun_sign(eig.sun, s_n, yaw_prior, opt.horizon_fallback)
         gap = eigen_gap(eig)
         middle = sandwich_middle(e, omega, mat_cl @ sun_l)
-        var_yaw = yaw_variance_from_sun_covariance(
-            sun_l, sandwich_covariance(eig, mat_lc @ middle @ mat_lc.T)
-        )
+        cov_sun_l = sandwich_covariance(eig, mat_lc @ middle @ mat_lc.T)
+        var_yaw = yaw_variance_from_sun_covariance(sun_l, cov_sun_l)
         theta = np.array([np.arctan2(sun_l[1], sun_l[0]), np.arccos(np.clip(sun_l[2], -1, 1)), 0.0])
         zen_arg = None
         epsilon, epsilon_std = float("nan"), float("nan")
         if epsilon_px is not None:
-            epsilon = float(np.nanmedian(epsilon_px[mask]))
+            epsilon = float(np.nanmedian(epsilon_px[mask])) if mask.any() else float("nan")
         r_sub, _, _, _ = ml_evaluate(
             dataclasses.replace(data_sub, mask=valid_sub), theta, None, mat_cl, False
         )
@@ -301,36 +396,82 @@ def measure_image(
     n_pixels = int(np.count_nonzero(mask))
     if n_pixels < opt.min_pixels:
         reason = f"too few valid pixels ({n_pixels} < {opt.min_pixels})"
-        return Measurement.refused(method, reason, n_pixels), None
+        return Measurement.refused(used_method, reason, n_pixels), None
     nu = rows[3] * mask
     noise_std_est = float(np.sqrt(dot(nu, nu) / n_pixels))
-    yaw = yaw_from_sun_level(sun_l, s_n)
     mapped = _maps(cache, est_rows, mask, data_full, theta, zen_arg, mat_cl) if maps else None
+    sun_l = sun_l / np.linalg.norm(sun_l)
+
+    # The 180 deg branch: the ephemeris, or without one the elevation, the sky brightness,
+    # the prior azimuth (docs/measurement.md §11).
+    if s_n is not None:
+        branch = "elevation" if sun_l[2] >= np.sin(opt.horizon_fallback) else "prior yaw"
+    else:
+        if sun_l[2] < 0:
+            sun_l = -sun_l
+        _, var_el_l = sun_angle_variances(sun_l, cov_sun_l)
+        var_s0 = sigma2 * float(np.sum(cal.estimator[0] ** 2))
+        brightness = brightness_contrast(
+            rows_sub[0],
+            valid_sub,
+            sub.rays,
+            mat_cl @ sun_l,
+            var_s0.take(sub.index) if isinstance(var_s0, np.ndarray) else var_s0,
+        )
+        sun_b0 = mat_lb.T @ sun_l
+        sign, branch = choose_branch(
+            float(np.arcsin(np.clip(sun_l[2], -1.0, 1.0))),
+            float(np.sqrt(var_el_l)),
+            float(np.arctan2(sun_b0[1], sun_b0[0])),
+            brightness,
+            sun_azimuth_b_prior,
+            elevation_min=opt.horizon_fallback,
+            z_min=opt.branch_z_min,
+            contrast_min=opt.branch_contrast_min,
+        )
+        sun_l = sign * sun_l
+        zenith = float(np.arccos(np.clip(sun_l[2], -1.0, 1.0)))
+        if zenith < opt.zenith_min:
+            zenith_min_deg = float(np.degrees(opt.zenith_min))
+            reason = f"sun within {zenith_min_deg:.3g} deg of the zenith: azimuth unobservable"
+            return Measurement.refused(used_method, reason, n_pixels), mapped
 
     if not gap >= opt.eigen_gap_min:
         reason = f"eigen-gap {gap:.3f} below {opt.eigen_gap_min}"
-        return Measurement.refused(method, reason, n_pixels), mapped
+        return Measurement.refused(used_method, reason, n_pixels), mapped
+    yaw = yaw_from_sun_level(sun_l, s_n) if s_n is not None else float("nan")
     if opt.yaw_gate is not None and abs(float(wrap_angle(yaw - yaw_prior))) > opt.yaw_gate:
         reason = "heading outside the gate around the prior yaw"
-        return Measurement.refused(method, reason, n_pixels), mapped
+        return Measurement.refused(used_method, reason, n_pixels), mapped
     if opt.residual_rms_max is not None and not residual_rms <= opt.residual_rms_max:
         reason = f"residual RMS {residual_rms:.3g} above {opt.residual_rms_max:g}"
-        return Measurement.refused(method, reason, n_pixels), mapped
+        return Measurement.refused(used_method, reason, n_pixels), mapped
     if not np.isfinite(var_yaw) or var_yaw < 0:
-        return Measurement.refused(method, "singular covariance", n_pixels), mapped
+        return Measurement.refused(used_method, "singular covariance", n_pixels), mapped
 
     std_meas = float(np.sqrt(var_yaw))
     yaw_std, sun_std = filter_sigmas(std_meas, zenith, opt.kappa, opt.sigma_floor, opt.tilt_std)
-    sun_l = sun_l / np.linalg.norm(sun_l)
+    sun_b = mat_lb.T @ sun_l
+    var_az_b, var_el_b = sun_angle_variances(sun_b, mat_lb.T @ cov_sun_l @ mat_lb)
+    azimuth_b = float(np.arctan2(sun_b[1], sun_b[0]))
+    elevation_b = float(np.arcsin(np.clip(sun_b[2], -1.0, 1.0)))
+    elevation_b_std = float("nan") if fixed else float(np.sqrt(var_el_b))
+    if not fixed and not elevation_b_std <= opt.elevation_std_max:
+        elevation_b = float("nan")
+    reasons = [fallback]
+    azimuth_b_alt = float("nan")
+    if branch == "ambiguous":
+        azimuth_b_alt = float(wrap_angle(azimuth_b + np.pi))
+        reasons.append("ambiguous: 180 deg (the other candidate is sun_azimuth_b_alt)")
     result = Measurement(
         ok=True,
-        reason="",
-        method=method,
+        reason="; ".join(r for r in reasons if r),
+        method=used_method,
         yaw=yaw,
-        yaw_std=yaw_std,
-        yaw_std_meas=std_meas,
-        heading_deg=float(heading_deg_from_yaw(yaw)),
-        sun_b=mat_lb.T @ sun_l,
+        yaw_std=yaw_std if s_n is not None else float("nan"),
+        yaw_std_meas=std_meas if s_n is not None else float("nan"),
+        heading_deg=float(heading_deg_from_yaw(yaw)) if s_n is not None else float("nan"),
+        sun_b=sun_b,
         sun_l=sun_l,
         sun_c=mat_cl @ sun_l,
         sun_std=sun_std,
@@ -340,6 +481,13 @@ def measure_image(
         eigen_gap=float(gap),
         residual_rms=float(residual_rms),
         noise_std_est=noise_std_est,
+        sun_azimuth_b=azimuth_b,
+        sun_azimuth_b_std=float(np.hypot(opt.kappa * np.sqrt(var_az_b), opt.sigma_floor)),
+        sun_elevation_b=elevation_b,
+        sun_elevation_b_std=elevation_b_std,
+        sun_azimuth_b_alt=azimuth_b_alt,
+        sun_branch=branch,
+        noise_ratio=noise_ratio,
     )
     return result, mapped
 

@@ -24,7 +24,7 @@ from polins.compass.polarimetry import stokes_calibration
 from polins.compass.prediction import pixel_data
 from polins.compass.sunlight import stokes_with_sunlight, sunlight_direction
 from polins.frames import rot_lb_from_rot_nb, yaw_from_rot_nb
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 __all__ = ["yaw_crlb"]
 

@@ -37,15 +37,19 @@ FloatArray = NDArray[np.float64]
 __all__ = [
     "LOSSES",
     "MLSolution",
+    "epsilon_correlation",
     "gauss_newton",
     "ml_evaluate",
     "ml_residuals",
+    "sun_covariance",
     "sun_joint_ml",
 ]
 
 LOSSES = ("linear", "huber", "cauchy")
 _HUBER_K = 1.345
 _CAUCHY_C = 2.3849
+_SUN_STEP_MAX = 0.3  # largest Gauss-Newton step of a sun angle [rad] (docs/measurement.md §11)
+_HALVINGS_MAX = 6  # step halvings of the line search before giving up
 
 
 def _pixel_data_of(stokes: NDArray, forward: ArrayLike, sigma_l: ArrayLike | float) -> PixelData:
@@ -175,6 +179,48 @@ def _loss_weights(r: NDArray, loss: str, n: int) -> tuple[NDArray | None, float]
     raise ValueError(f"loss={loss!r}: expected one of {LOSSES}")
 
 
+def _objective(r: NDArray, loss: str, scale: float) -> float:
+    """The loss ``sum rho(r_i / scale) scale^2`` that Gauss-Newton/IRLS decreases (the
+    line search compares it between iterations at one scale)."""
+    if loss == "linear":
+        return dot(r, r)
+    t = np.abs(r.astype(float)) / scale
+    if loss == "huber":
+        rho = np.where(t <= _HUBER_K, 0.5 * t * t, _HUBER_K * (t - 0.5 * _HUBER_K))
+    else:
+        rho = 0.5 * _CAUCHY_C**2 * np.log1p((t / _CAUCHY_C) ** 2)
+    return float(np.sum(rho)) * scale**2
+
+
+def _bounded_step(step: NDArray, k_sun: int) -> NDArray:
+    """The Gauss-Newton step with its sun angles scaled down to at most
+    :data:`_SUN_STEP_MAX` (the direction is kept)."""
+    largest = max(abs(float(a)) for a in step[:k_sun])
+    return step * (_SUN_STEP_MAX / largest) if largest > _SUN_STEP_MAX else step
+
+
+def epsilon_correlation(covariance: ArrayLike) -> float:
+    """How far epsilon (the last parameter) is from separable from the sun parameters: the
+    multiple correlation ``R = sqrt(1 - 1/(C_ee F_ee))`` of epsilon with the others, with
+    ``F = C^-1`` the Fisher information (docs/measurement.md §11). With one sun parameter it
+    is ``|corr(A, eps)|``; with the zenith free it is dominated by ``corr(Z, eps)``. 1 (not
+    separable) for a singular or non-finite covariance."""
+    cov = np.asarray(covariance, dtype=float)
+    if not np.all(np.isfinite(cov)) or cov[-1, -1] <= 0:
+        return 1.0
+    if cov.shape == (2, 2):  # |corr(A, eps)| without a matrix inverse
+        product = float(cov[0, 0] * cov[1, 1])
+        return min(abs(float(cov[0, 1])) / np.sqrt(product), 1.0) if product > 0 else 1.0
+    try:
+        info = np.linalg.inv(cov)
+    except np.linalg.LinAlgError:
+        return 1.0
+    vif = float(cov[-1, -1] * info[-1, -1])  # variance inflation factor, >= 1
+    if not vif > 0:
+        return 1.0
+    return float(np.sqrt(max(0.0, 1.0 - 1.0 / vif)))
+
+
 def _robust_variance_factor(r: NDArray, loss: str, scale: float, n: int, dof: int) -> float:
     """``sigma^2`` of ``Cov = sigma^2 (J^T J)^-1`` (Huber's M-estimator sandwich)."""
     t = r.astype(float) / scale
@@ -229,11 +275,20 @@ def gauss_newton(
     tol: float = 1e-9,
     tol_sigma: float = 1e-2,
     select: Selection | None = None,
+    epsilon_bound: float = np.inf,
 ) -> tuple[MLSolution, NDArray | None]:
     """Gauss-Newton (IRLS for robust losses) on ``data``; with ``max_iterations=1`` it is the
     single full-set step of the subsample-then-full scheme (docs/measurement.md). ``select``
-    makes the pixel selection at the first evaluation (then fixed); returns it as the mask."""
+    makes the pixel selection at the first evaluation (then fixed); returns it as the mask.
+
+    Safeguards for any start (docs/measurement.md §11): sun-angle steps are at most
+    :data:`_SUN_STEP_MAX`, epsilon is kept in ``[-epsilon_bound, epsilon_bound]`` (a
+    solution on the bound is not a free estimate: the caller refuses it), and a step that
+    increases the loss is halved (from the second iteration on: one evaluation per
+    iteration as long as the loss decreases).
+    """
     theta = np.asarray(theta0, dtype=float).copy()
+    theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
     converged = False
     it = 0
     k_sun = 1 if zenith is not None else 2
@@ -249,6 +304,7 @@ def gauss_newton(
     else:
         post_scale = 1.0
     mask = data.mask
+    theta_prev, step, loss_prev, halvings = theta, np.zeros_like(theta), np.inf, 0
     for it in range(1, max_iterations + 1):  # noqa: B007
         r, jac, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select)
         if select is not None:
@@ -259,17 +315,32 @@ def gauss_newton(
         if r_scale != 1.0:
             r = r * r.dtype.type(r_scale)  # a common 1/sigma_L, for the robust weights
             jac = jac * jac.dtype.type(r_scale)
+        if (
+            np.isfinite(loss_prev)
+            and halvings < _HALVINGS_MAX
+            and _objective(r, loss, scale) * post_scale**2 > loss_prev * (1.0 + 1e-6)
+        ):
+            step *= 0.5  # line search: back towards the previous point
+            theta = theta_prev + step
+            theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
+            halvings += 1
+            continue
         weights, scale = _loss_weights(r, loss, n)
         jtj, jtr, rss = _normal_equations(r, jac, weights)
         jtj *= post_scale**2
         jtr *= post_scale**2
         rss *= post_scale**2
         try:
-            step = -np.linalg.solve(jtj, jtr)
+            step = _bounded_step(-np.linalg.solve(jtj, jtr), k_sun)
             jtj_inv = np.linalg.inv(jtj)
         except np.linalg.LinAlgError:
             break
+        loss_prev = rss if loss == "linear" else _objective(r, loss, scale) * post_scale**2
+        theta_prev, halvings = theta, 0
         theta = theta + step
+        if not -epsilon_bound <= theta[-1] <= epsilon_bound:
+            theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
+            step = theta - theta_prev
         # Converged when the sun step is below tol [rad], or negligible (tol_sigma sigma)
         # against the statistical uncertainty (e.g. the float32 floor of noise-free data).
         sigma_sun = np.sqrt(rss / max(n - theta.size, 1) * np.abs(np.diag(jtj_inv)[:k_sun]))
@@ -295,6 +366,20 @@ def gauss_newton(
     sun_l, _ = _sun_derivatives(theta, zenith)
     theta[0] = float(wrap_angle(theta[0]))
     return MLSolution(theta, np.asarray(cov, dtype=np.float64), sun_l, rms, it, converged, n), mask
+
+
+def sun_covariance(solution: MLSolution) -> FloatArray:
+    """Level-frame covariance ``(3, 3)`` of the unit sun of a joint ML solution:
+    ``J C_sun J^T`` with ``J`` the derivatives of the sun by ``A_l`` (and ``Z_l`` when the
+    zenith was estimated, ``theta`` of size 3)."""
+    s = solution.sun_l
+    cols = [np.array([-s[1], s[0], 0.0])]  # d sun / d A_l
+    if solution.theta.size == 3:
+        a, z = solution.theta[0], solution.theta[1]
+        cols.append(np.array([np.cos(z) * np.cos(a), np.cos(z) * np.sin(a), -np.sin(z)]))
+    jac = np.column_stack(cols)
+    k = jac.shape[1]
+    return jac @ solution.covariance[:k, :k] @ jac.T
 
 
 def ml_residuals(

@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, DTypeLike, NDArray
 
 from polins.compass.camera import pixel_rays_c
 from polins.compass.pixels import PixelSet, pixel_set
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 

@@ -22,6 +22,7 @@ The chain itself is :mod:`polins.compass.chain`; the options are
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 from numpy.typing import ArrayLike
@@ -30,20 +31,23 @@ from scipy.spatial.transform import Rotation
 from polins.compass.chain import measure_image
 from polins.compass.measurement import (
     METHODS,
+    NOISE_RATIO_BAND,
     Measurement,
     MeasurementMaps,
     MeasureOptions,
+    NoiseModelWarning,
     measure_options,
 )
 from polins.compass.paper import SWITCHES, check_switches, measure_paper
 from polins.errors import UserInputError
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 __all__ = [
     "METHODS",
     "MeasureOptions",
     "Measurement",
     "MeasurementMaps",
+    "NoiseModelWarning",
     "check_measure_options",
     "measure",
     "measure_options",
@@ -55,9 +59,10 @@ def measure(
     raw: ArrayLike,
     cam: CameraModel,
     *,
-    sun_n: ArrayLike,
-    rot_nb_prior: Rotation,
+    sun_n: ArrayLike | None = None,
+    rot_nb_prior: Rotation | None = None,
     method: str = "compensated",
+    sun_azimuth_b_prior: float | None = None,
     **options: Any,
 ) -> Measurement:
     """Heading and sun vector from one raw DoFP image (docs/model.md §7-10).
@@ -69,13 +74,20 @@ def measure(
         accepted too; their non-finite pixels are masked). Integer mosaics are processed in
         float32, float mosaics in float64.
     cam : CameraModel
-    sun_n : array_like, (3,)
-        Unit ENU sun vector from the ephemeris (apparent position).
-    rot_nb_prior : Rotation
-        Prior body -> ENU attitude. Its roll and pitch rotate the E-vectors into the level
-        frame; its yaw is used only near the horizon (180 deg choice), by ``yaw_gate`` and by
-        ``method="paper"`` (which needs it for the sunlight angle).
+    sun_n : array_like, (3,), optional
+        Unit ENU sun vector from the ephemeris (apparent position). Without it the image
+        gives the sun in the body frame only (``sun_azimuth_b``, ``sun_b``, ``yaw`` NaN;
+        docs/measurement.md §11), with the zenith estimated.
+    rot_nb_prior : Rotation, optional
+        Prior body -> ENU attitude, required with ``sun_n``. Its roll and pitch rotate the
+        E-vectors into the level frame; its yaw is used only near the horizon (180 deg
+        choice), by ``yaw_gate`` and by ``method="paper"`` (which needs it for the sunlight
+        angle). Without ``sun_n`` only its tilt is used; None means a level body.
     method : {"compensated", "traditional", "paper"}
+        ``"paper"`` needs ``sun_n``.
+    sun_azimuth_b_prior : float, optional
+        Without ``sun_n``: a prior body-frame sun azimuth [rad] (e.g. the previous image's)
+        that chooses the 180 deg branch when the elevation and the sky brightness cannot.
     **options
         Fields of :class:`~polins.compass.measurement.MeasureOptions`; with
         ``method="paper"`` also the switches of :func:`polins.compass.paper.measure_paper`.
@@ -83,7 +95,14 @@ def measure(
     Returns
     -------
     Measurement
-        ``ok=False`` with a reason when the image cannot give a heading.
+        ``ok=False`` with a reason when the image cannot give a heading. ``ok=True`` with a
+        reason when the compensated estimate fell back to ``"traditional"`` or the 180 deg
+        branch is ambiguous.
+
+    Warns
+    -----
+    NoiseModelWarning
+        The measured noise is outside :data:`NOISE_RATIO_BAND` times the camera file's.
 
     Raises
     ------
@@ -92,22 +111,25 @@ def measure(
     TypeError
         Unknown option.
     """
-    return _dispatch(raw, cam, sun_n, rot_nb_prior, method, options, maps=False)[0]
+    return _dispatch(
+        raw, cam, sun_n, rot_nb_prior, method, sun_azimuth_b_prior, options, maps=False
+    )[0]
 
 
 def measure_with_maps(
     raw: ArrayLike,
     cam: CameraModel,
     *,
-    sun_n: ArrayLike,
-    rot_nb_prior: Rotation,
+    sun_n: ArrayLike | None = None,
+    rot_nb_prior: Rotation | None = None,
     method: str = "compensated",
+    sun_azimuth_b_prior: float | None = None,
     **options: Any,
 ) -> tuple[Measurement, MeasurementMaps | None]:
     """:func:`measure` plus per-pixel images (AoP, DoP, valid mask, residual) for plots and
     diagnostics; slower. The maps are None when the image was refused before the Stokes step.
     """
-    return _dispatch(raw, cam, sun_n, rot_nb_prior, method, options, maps=True)
+    return _dispatch(raw, cam, sun_n, rot_nb_prior, method, sun_azimuth_b_prior, options, maps=True)
 
 
 def check_measure_options(method: str, options: dict[str, Any]) -> MeasureOptions:
@@ -134,9 +156,10 @@ def check_measure_options(method: str, options: dict[str, Any]) -> MeasureOption
 def _dispatch(
     raw: ArrayLike,
     cam: CameraModel,
-    sun_n: ArrayLike,
-    rot_nb_prior: Rotation,
+    sun_n: ArrayLike | None,
+    rot_nb_prior: Rotation | None,
     method: str,
+    sun_azimuth_b_prior: float | None,
     options: dict[str, Any],
     *,
     maps: bool,
@@ -144,6 +167,31 @@ def _dispatch(
     if method not in METHODS:
         raise UserInputError(f"method={method!r}: expected one of {METHODS}")
     if method == "paper":
-        return measure_paper(raw, cam, sun_n=sun_n, rot_nb_prior=rot_nb_prior, maps=maps, **options)
-    opt: MeasureOptions = measure_options(**options)
-    return measure_image(raw, cam, sun_n, rot_nb_prior, opt, method=method, maps=maps)
+        if sun_n is None or rot_nb_prior is None:
+            raise UserInputError("method='paper' needs sun_n and rot_nb_prior")
+        result = measure_paper(
+            raw, cam, sun_n=sun_n, rot_nb_prior=rot_nb_prior, maps=maps, **options
+        )
+    else:
+        opt: MeasureOptions = measure_options(**options)
+        result = measure_image(
+            raw,
+            cam,
+            sun_n,
+            rot_nb_prior,
+            opt,
+            method=method,
+            maps=maps,
+            sun_azimuth_b_prior=sun_azimuth_b_prior,
+        )
+    m = result[0]
+    low, high = NOISE_RATIO_BAND
+    # Noise-free input (a simulation: ratio zero to rounding) is not warned about.
+    if m.ok and m.noise_ratio > 1e-3 and not low <= m.noise_ratio <= high:
+        warnings.warn(
+            f"measured noise is {m.noise_ratio:.2f} x the camera file's noise model (outside "
+            f"[{low:g}, {high:g}]): check read_noise_dn, the channel gains and dark offsets",
+            NoiseModelWarning,
+            stacklevel=3,
+        )
+    return result

@@ -24,7 +24,25 @@ METHODS = ("compensated", "traditional", "paper")
 """The methods of ``polins.measure``; ``"paper"`` is the reproduction mode of
 :mod:`polins.compass.paper`."""
 
-__all__ = ["METHODS", "MeasureOptions", "Measurement", "MeasurementMaps", "measure_options"]
+
+class NoiseModelWarning(UserWarning):
+    """The noise measured in an image (redundancy residual) is far from the camera file's
+    noise model: its read noise, gains or dark offsets do not describe this camera."""
+
+
+NOISE_RATIO_BAND = (0.5, 2.0)
+"""Range of :attr:`Measurement.noise_ratio` (measured / declared noise) outside which
+``polins.measure`` warns that the camera file's noise model or calibration is off."""
+
+__all__ = [
+    "METHODS",
+    "NOISE_RATIO_BAND",
+    "MeasureOptions",
+    "Measurement",
+    "MeasurementMaps",
+    "NoiseModelWarning",
+    "measure_options",
+]
 
 
 @dataclass(frozen=True)
@@ -84,6 +102,24 @@ class MeasureOptions:
         Gauss-Newton iterations on the subsample.
     epsilon0 : float
         Starting epsilon (e.g. the previous image's estimate).
+    epsilon_max : float
+        ``"compensated"``: largest accepted ``|epsilon|`` (the physical range is about 0 to
+        0.05); the Gauss-Newton iteration is bounded to it and a solution on the bound falls
+        back to weighted ``"traditional"`` (docs/measurement.md §11).
+    separability_max : float
+        ``"compensated"``: largest accepted correlation of epsilon with the sun parameters
+        (:func:`polins.compass.jointml.epsilon_correlation`, from the Fisher information);
+        above it epsilon and the sun (mostly the zenith) are not separable and the chain
+        falls back to weighted ``"traditional"``.
+    branch_z_min : float
+        Sun-free measurement: significance [sigmas] an elevation or a brightness difference
+        needs to choose the 180 deg branch (docs/measurement.md §11).
+    branch_contrast_min : float
+        Sun-free measurement: minimum relative brightness difference between the sun side
+        and the antisun side of the image for the brightness to choose the branch [-].
+    elevation_std_max : float
+        Sun-free measurement: ``sun_elevation_b`` is reported (not NaN) when its sigma is
+        below this [rad].
     """
 
     gain_correction: bool = True
@@ -108,15 +144,31 @@ class MeasureOptions:
     gn_pixels: int = 15_000
     max_iterations: int = 10
     epsilon0: float = 0.0
+    epsilon_max: float = 0.1
+    separability_max: float = 0.98
+    branch_z_min: float = 5.0
+    branch_contrast_min: float = 0.02
+    elevation_std_max: float = float(np.radians(5.0))
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
             raise UserInputError(f"loss={self.loss!r}: expected one of {LOSSES}")
-        for name in ("kappa", "sun_exclusion", "sigma_floor", "tilt_std"):
+        for name in (
+            "kappa",
+            "sun_exclusion",
+            "sigma_floor",
+            "tilt_std",
+            "epsilon_max",
+            "branch_z_min",
+            "branch_contrast_min",
+            "elevation_std_max",
+        ):
             if not getattr(self, name) >= 0:
                 raise UserInputError(f"{name}={getattr(self, name)} must be >= 0")
         if not 0 <= self.dop_min < 1:
             raise UserInputError(f"dop_min={self.dop_min} outside [0, 1)")
+        if not 0 < self.separability_max <= 1:
+            raise UserInputError(f"separability_max={self.separability_max} outside (0, 1]")
         if self.min_pixels < 3 or self.max_iterations < 1 or self.gn_pixels < 0:
             raise UserInputError("min_pixels >= 3, max_iterations >= 1 and gn_pixels >= 0 required")
 
@@ -190,6 +242,29 @@ class Measurement:
         the sky model and the camera noise model hold; much larger for a wrong calibration).
     noise_std_est : float
         Per-channel noise [DN] estimated from the redundancy residual (docs/model.md §7.3).
+    sun_azimuth_b : float
+        Sun azimuth in the body frame [rad], FLU, counter-clockwise from body +x towards +y:
+        ``atan2(sun_b[1], sun_b[0])``; filled with and without ``sun_n``.
+    sun_azimuth_b_std : float
+        Its 1-sigma for a filter [rad], ``sqrt((kappa sigma_meas)^2 + sigma_floor^2)`` (the
+        body-frame azimuth does not depend on the prior tilt, hence no tilt term).
+    sun_elevation_b, sun_elevation_b_std : float
+        Sun elevation above the body x-y plane [rad] and its 1-sigma, where the image
+        determines it (sigma below ``elevation_std_max``), else NaN; with ``sun_n`` and
+        ``fixed_zenith`` the elevation comes from the ephemeris and the prior tilt (sigma NaN).
+    sun_azimuth_b_alt : float
+        The other 180 deg candidate [rad] when the branch is ambiguous
+        (``sun_branch == "ambiguous"``), else NaN.
+    sun_branch : str
+        What chose between the sun and the antisun (docs/measurement.md §11):
+        ``"elevation"`` (the sun is above the horizon), ``"prior yaw"`` (with ``sun_n``, near
+        the horizon), ``"brightness"`` (the sky is brighter towards the sun), ``"prior"``
+        (``sun_azimuth_b_prior``) or ``"ambiguous"`` (then ``reason`` says so and ``ok`` is
+        True); "" when refused.
+    noise_ratio : float
+        Channel noise measured by the redundancy residual over the camera file's noise model
+        (robust: MAD over the field of view); a warning is issued outside
+        :data:`NOISE_RATIO_BAND`.
     """
 
     ok: bool
@@ -209,6 +284,13 @@ class Measurement:
     eigen_gap: float
     residual_rms: float
     noise_std_est: float = float("nan")
+    sun_azimuth_b: float = float("nan")
+    sun_azimuth_b_std: float = float("nan")
+    sun_elevation_b: float = float("nan")
+    sun_elevation_b_std: float = float("nan")
+    sun_azimuth_b_alt: float = float("nan")
+    sun_branch: str = ""
+    noise_ratio: float = float("nan")
 
     @classmethod
     def refused(cls, method: str, reason: str, n_pixels: int = 0) -> Measurement:

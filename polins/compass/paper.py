@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.compass.chain import measure_image
 from polins.compass.measurement import Measurement, MeasurementMaps, measure_options
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 

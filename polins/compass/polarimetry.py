@@ -10,6 +10,11 @@ Channels come from :mod:`polins.compass.pixels`. Stokes vectors are ``(..., 3)``
 +y_c); in the ideal case S1 = I0 - I90 and S2 = I45 - I135 (0 deg *minus* 90 deg: the
 paper's Eq. 14 has both signs flipped, which turns the AoP by 90 deg; docs/errata.md §1).
 
+A camera with per-pixel maps (``CameraModel.gain_map``, ``transmission_angle_map``,
+``efficiency_map``) gets a per-pixel response ``a_pk`` and per-pixel least-squares rows
+(:class:`PixelStokes`, docs/measurement.md §1) for the pixel set it is measured on; without
+maps the calibration is one constant matrix, as before.
+
 The row kernels :func:`stokes_rows` and :func:`validity_rows` work on component-first
 arrays (``(k, n)``, one contiguous row per component), the layout of the per-image chain
 (:mod:`polins.compass.chain`); the other public functions take and return the library's
@@ -18,24 +23,27 @@ trailing-component layout.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from polins.compass.camera import pixel_rays_c
 from polins.compass.pixels import PixelSet, check_raw, gather_channels, pixel_set
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 __all__ = [
+    "PixelStokes",
     "StokesCalibration",
     "aop",
     "dop",
+    "pixel_stokes",
     "polarizer_rotation_slope",
     "relative_gradient",
     "stokes_calibration",
@@ -49,6 +57,68 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------- Stokes
+@dataclass(frozen=True, eq=False)
+class PixelStokes:
+    """Per-pixel least-squares Stokes rows of a camera with per-pixel maps, on a pixel set.
+
+    Pixel p responds ``I_pk = a_pk . S_p + o_k`` with
+    ``a_pk = g_pk/2 [1, eta_pk cos 2alpha_pk, eta_pk sin 2alpha_pk]`` (the maps, or the
+    channel values where a map is absent or NaN); its rows are the least-squares estimator
+    ``B_p = (A_p^T A_p)^-1 A_p^T`` (= ``pinv(A_p)``) and the unit null vector of ``A_p^T``
+    (docs/measurement.md §1).
+
+    Attributes
+    ----------
+    matrix : (4, 4, n) float64
+        Rows (S0, S1, S2, nu) of every pixel, component-first: ``matrix[i, k, p]``.
+    offset_rows : (4, n) float64
+        ``matrix_p @ o``: what the dark offsets contribute to each row [DN].
+    sigma_l_factor : (n,) float64
+        sigma_L / sigma of each pixel.
+    """
+
+    matrix: FloatArray
+    offset_rows: FloatArray
+    sigma_l_factor: FloatArray
+
+    @cached_property
+    def _float32(self) -> tuple[NDArray, NDArray]:
+        return self.matrix.astype(np.float32), self.offset_rows.astype(np.float32)
+
+    def arrays(self, dtype: type) -> tuple[NDArray, NDArray]:
+        """``(matrix, offset_rows)`` in ``dtype`` (the float32 copies are made once)."""
+        if np.dtype(dtype) == np.float32:
+            return self._float32
+        return self.matrix.astype(dtype, copy=False), self.offset_rows.astype(dtype, copy=False)
+
+
+def pixel_stokes(cam: CameraModel, index: ArrayLike, gain_correction: bool = True) -> PixelStokes:
+    """The per-pixel Stokes rows of ``cam`` at flat superpixel indices ``index`` ``(n,)``
+    (``i * Ws + j``), from its per-pixel maps (NaN entries and absent maps: the channel
+    values). ``gain_correction=False`` sets every gain to 1 (the uncorrected baseline)."""
+    idx = np.asarray(index, dtype=np.intp)
+    g, alpha, eta = (m.reshape(-1, 4)[idx] for m in cam.pixel_calibration())
+    if not gain_correction:
+        g = np.ones_like(g)
+    two_a = 2.0 * alpha
+    a = (
+        0.5
+        * g[..., None]
+        * np.stack([np.ones_like(g), eta * np.cos(two_a), eta * np.sin(two_a)], -1)
+    )  # (n, 4, 3)
+    cov = np.linalg.inv(np.einsum("nki,nkj->nij", a, a))  # (A^T A)^-1, (n, 3, 3)
+    b = np.einsum("nij,nkj->nik", cov, a)  # (n, 3, 4): pinv(A_p) for full column rank
+    at = a.transpose(0, 2, 1)  # (n, 3, 4)
+    # Null vector of A^T: the signed 3x3 minors (a generalised cross product of its rows).
+    null = np.stack([(-1.0) ** j * np.linalg.det(np.delete(at, j, axis=2)) for j in range(4)], -1)
+    null /= np.linalg.norm(null, axis=1, keepdims=True)
+    null *= np.where(null[:, :1] < 0, -1.0, 1.0)
+    matrix = np.ascontiguousarray(np.concatenate([b, null[:, None, :]], axis=1).transpose(1, 2, 0))
+    offset_rows = np.einsum("ikn,k->in", matrix, cam.dark_offset_dn)
+    sigma_l = np.sqrt(0.5 * (cov[:, 1, 1] + cov[:, 2, 2]))
+    return PixelStokes(matrix, offset_rows, sigma_l)
+
+
 @dataclass(frozen=True)
 class StokesCalibration:
     """Least-squares Stokes estimator of one camera (docs/model.md §7.2-7.4).
@@ -69,6 +139,9 @@ class StokesCalibration:
         sigma_L / sigma, the per-component noise of (S1, S2) (ideal: sqrt(2)/g).
     offset : (4,)
         Dark offsets o_k [DN].
+    pixel : PixelStokes or None
+        Per-pixel rows on the pixel set the calibration was made for, when the camera has
+        per-pixel maps (the fields above then hold the channel values' estimator).
     """
 
     response: FloatArray
@@ -77,17 +150,51 @@ class StokesCalibration:
     covariance: FloatArray
     sigma_l_factor: float
     offset: FloatArray
+    pixel: PixelStokes | None = None
+
+    def sigma_l_factors(self) -> FloatArray | float:
+        """sigma_L / sigma: per pixel ``(n,)`` with per-pixel maps, else one number."""
+        return self.sigma_l_factor if self.pixel is None else self.pixel.sigma_l_factor
 
 
-@lru_cache(maxsize=16)
-def stokes_calibration(cam: CameraModel, gain_correction: bool = True) -> StokesCalibration:
+def stokes_calibration(
+    cam: CameraModel, gain_correction: bool = True, pixels: PixelSet | None = None
+) -> StokesCalibration:
     """The calibrated least-squares Stokes estimator of ``cam`` (docs/model.md §7.2).
 
     Parameters
     ----------
     gain_correction : bool
         False ignores the channel gains (g_k = 1): the paper's uncorrected baseline.
+    pixels : PixelSet, optional
+        The pixel set the rows will be applied to. With it, a camera with per-pixel maps
+        gets per-pixel rows (``pixel``, cached per camera and set); without it, or without
+        maps, the channel values' one matrix.
     """
+    channel = _channel_calibration(cam, gain_correction)
+    if pixels is None or not cam.has_pixel_maps:
+        return channel
+    return _pixel_calibration(cam, gain_correction, pixels)
+
+
+@lru_cache(maxsize=8)
+def _pixel_calibration(
+    cam: CameraModel, gain_correction: bool, pixels: PixelSet
+) -> StokesCalibration:
+    channel = _channel_calibration(cam, gain_correction)
+    return dataclasses.replace(channel, pixel=pixel_stokes(cam, pixels.index, gain_correction))
+
+
+@lru_cache(maxsize=4)
+def _image_calibration(cam: CameraModel, gain_correction: bool) -> StokesCalibration:
+    """Per-pixel rows of every superpixel of the image (row-major)."""
+    channel = _channel_calibration(cam, gain_correction)
+    every = np.arange(cam.superpixel_shape[0] * cam.superpixel_shape[1])
+    return dataclasses.replace(channel, pixel=pixel_stokes(cam, every, gain_correction))
+
+
+@lru_cache(maxsize=16)
+def _channel_calibration(cam: CameraModel, gain_correction: bool) -> StokesCalibration:
     two_alpha = 2.0 * cam.transmission_angle
     gain = cam.gain if gain_correction else np.ones(4)
     a = (
@@ -109,7 +216,18 @@ def stokes_calibration(cam: CameraModel, gain_correction: bool = True) -> Stokes
 
 def stokes_rows(channels: NDArray, cal: StokesCalibration, dtype: type = np.float32) -> NDArray:
     """Stokes rows (S0, S1, S2, nu) ``(4, n)`` [DN] of component-first channels ``(4, n)``
-    (docs/model.md §7.2-7.3): the least-squares estimate and the redundancy residual."""
+    (docs/model.md §7.2-7.3): the least-squares estimate and the redundancy residual.
+    With per-pixel rows (``cal.pixel``) the channels must be those of its pixel set."""
+    if cal.pixel is not None:
+        pix_matrix, pix_offset = cal.pixel.arrays(dtype)
+        if channels.shape[1:] != pix_offset.shape[1:]:
+            raise ValueError(
+                f"channels of {channels.shape[1]} pixels for per-pixel rows of "
+                f"{pix_offset.shape[1]}: use the pixel set the calibration was made for"
+            )
+        pix_out = np.einsum("ikn,kn->in", pix_matrix, channels.astype(dtype, copy=False))
+        pix_out -= pix_offset
+        return pix_out
     matrix: NDArray = np.vstack([cal.estimator, cal.null]).astype(dtype)
     # einsum, not BLAS: a threaded gemm of this thin shape stalls on a busy machine.
     out = np.einsum("ij,jn->in", matrix, channels.astype(dtype, copy=False))
@@ -141,9 +259,21 @@ def stokes_from_channels(
     ch = np.asarray(channels, dtype=float)
     if ch.shape[-1:] != (4,):
         raise ValueError(f"channels must have shape (..., 4), got {ch.shape}")
-    cal = stokes_calibration(cam, gain_correction)
-    rows = stokes_rows(ch.reshape(-1, 4).T, cal, np.float64)
-    return rows[:3].T.reshape(*ch.shape[:-1], 3), rows[3].reshape(ch.shape[:-1])
+    if not cam.has_pixel_maps:
+        cal = _channel_calibration(cam, gain_correction)
+        rows = stokes_rows(ch.reshape(-1, 4).T, cal, np.float64)
+        return rows[:3].T.reshape(*ch.shape[:-1], 3), rows[3].reshape(ch.shape[:-1])
+    image = (*cam.superpixel_shape, 4)
+    if ch.shape[-3:] != image:
+        raise ValueError(
+            f"camera {cam.name!r} has per-pixel maps: channels must be whole superpixel images "
+            f"(..., {image[0]}, {image[1]}, 4), got {ch.shape}; or use cam.without_pixel_maps()"
+        )
+    cal = _image_calibration(cam, gain_correction)
+    per_image = ch.reshape(-1, image[0] * image[1], 4)
+    rows = np.stack([stokes_rows(c.T, cal, np.float64) for c in per_image])  # (m, 4, n)
+    stokes = rows[:, :3].transpose(0, 2, 1).reshape(*ch.shape[:-1], 3)
+    return stokes, rows[:, 3].reshape(ch.shape[:-1])
 
 
 def stokes_noise_variance(cam: CameraModel, s0: ArrayLike) -> FloatArray | float:
@@ -271,7 +401,7 @@ def validity_mask(
     arr = check_raw(raw, cam)
     pixels = pixel_set(cam)
     channels = gather_channels(arr, pixels)
-    cal = stokes_calibration(cam, gain_correction)
+    cal = stokes_calibration(cam, gain_correction, pixels)
     rows = stokes_rows(channels, cal, np.float64)
     ok = validity_rows(
         channels,
@@ -313,7 +443,7 @@ def polarizer_rotation_slope(
     if len(images) != angles.size or angles.size < 2:
         raise ValueError("need one raw image per polarizer angle, at least two")
     pixels = pixel_set(cam)
-    cal = stokes_calibration(cam)
+    cal = stokes_calibration(cam, True, pixels)
     doubled = []
     for img in images:
         rows = stokes_rows(gather_channels(img, pixels), cal, np.float64)

@@ -11,17 +11,19 @@ from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
 from polins.fusion.config import FuseConfig
+from polins.fusion.eskf.acquisition import gap_variance
 from polins.fusion.eskf.filter import ESKF, config_with_site
 from polins.fusion.eskf.propagate import advance, interpolate
 from polins.fusion.eskf.smoother import rts_smooth
 from polins.fusion.inputs import (
     PRIOR_COLUMNS,
+    ImuArrays,
     output_mask,
     validate_imu,
     validate_measurements,
 )
 from polins.fusion.items import MeasurementItem, items_from_table, records_table
-from polins.fusion.result import FusionResult
+from polins.fusion.result import FusionEvent, FusionResult, events_table
 from polins.ins.state import solution_table
 
 
@@ -78,12 +80,13 @@ def run_fusion(
         from polins.fusion.graph import fuse_graph  # gtsam: only when asked for
 
         return fuse_graph(imu, meas, rot_nb0, cfg)
-    arrays = validate_imu(imu, max_gap_s=cfg.max_gap_s)
+    arrays = validate_imu(imu, max_gap_s=cfg.max_gap_s, model=cfg.imu)
     t, W, A = arrays.t, arrays.gyro_b, arrays.accel_b
     filt = ESKF(cfg, float(t[0]), arrays.dt, rot_nb0)
     items = items_from_table(meas, use_sun=cfg.use_sun)
     if cfg.zupt_std is not None:
         items += [MeasurementItem(ts, "zupt", cfg.zupt_std) for ts in cfg.stationary]
+    items, events = bridge_gaps(arrays, items)
     filt.add_items(items)
     if not filt.ready:
         tol = cfg.time_tol_s
@@ -106,8 +109,47 @@ def run_fusion(
         solution = solution_table(interpolate(nodes, rows, slices, delta, P_s))
     info = {"imu_model": cfg.imu.name, "n_resets": filt.n_resets, "options": cfg.changes()}
     return FusionResult(
-        solution, records_table(filt.records), filtered if cfg.smooth else None, "eskf", info
-    )
+        solution, records_table(filt.records), filtered if cfg.smooth else None, "eskf", info,
+        events_table([*arrays.events, *events, *filt.events]),
+    )  # fmt: skip
+
+
+def bridge_gaps(
+    arrays: ImuArrays, items: list[MeasurementItem]
+) -> tuple[list[MeasurementItem], list[FusionEvent]]:
+    """The measurement items with the IMU gaps longer than ``max_gap_s`` handled
+    (docs/faults.md): the measurements inside a gap are rejected (invalid items with a
+    reason), and a ``"gap"`` item at the sample after it inflates the covariance
+    (:func:`~polins.fusion.eskf.acquisition.gap_variance`); an event for each.
+
+    Returns
+    -------
+    items : list of MeasurementItem
+        In the input order, the ``"gap"`` items after them.
+    events : list of FusionEvent
+    """
+    t, gaps = arrays.t, arrays.gaps
+    events: list[FusionEvent] = []
+    out = list(items)
+    if gaps.size == 0:
+        return out, events
+    t_item = np.array([it.t for it in out], dtype=float)
+    j = np.searchsorted(t[gaps], t_item, side="left") - 1  # the gap starting before
+    inside = (j >= 0) & (t_item < t[gaps[np.maximum(j, 0)] + 1])
+    for k in np.flatnonzero(inside).tolist():
+        it, i = out[k], int(gaps[j[k]])
+        if it.valid:
+            reason = f"inside an IMU gap ({t[i]:.6g} to {t[i + 1]:.6g} s)"
+            out[k] = dataclasses.replace(it, valid=False, reason=reason)
+            events.append(FusionEvent(it.t, "measurement-in-gap", f"{it.kind} skipped: {reason}"))
+    for i in gaps.tolist():
+        t_a, t_b = float(t[i]), float(t[i + 1])
+        inflation = gap_variance(t_b - t_a, (arrays.gyro_b[i], arrays.gyro_b[i + 1]),
+                                 (arrays.accel_b[i], arrays.accel_b[i + 1]))  # fmt: skip
+        events.append(FusionEvent(t_a, "imu-gap", f"IMU gap of {t_b - t_a:.3g} s until "
+                                  f"t={t_b:.6g}: propagated across, covariance inflated"))  # fmt: skip
+        out.append(MeasurementItem(t_b, "gap", t_b - t_a, inflation=inflation))
+    return out, events
 
 
 def fuse(
@@ -149,7 +191,7 @@ def fuse(
     DataFrame
         The solution table (:func:`polins.ins.state.solution_table`; docs/filter.md
         lists its columns), smoothed with ``smooth=True``. ``attrs`` carries ``updates``,
-        ``backend``, ``imu_model`` and (smoothed) ``filtered`` for compatibility; pandas
+        ``events``, ``backend``, ``imu_model`` and (smoothed) ``filtered`` for compatibility; pandas
         operations drop them: :func:`run_fusion` returns them in a ``FusionResult``.
     """
     result = run_fusion(
@@ -159,6 +201,7 @@ def fuse(
     sol.attrs["updates"] = result.updates
     sol.attrs["backend"] = result.backend
     sol.attrs["imu_model"] = result.info.get("imu_model")
+    sol.attrs["events"] = result.events
     if result.filtered is not None:
         sol.attrs["filtered"] = result.filtered
     return sol

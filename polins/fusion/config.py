@@ -84,6 +84,14 @@ class FuseConfig:
         None, "longest IMU gap bridged [s] (None: 5 median sample intervals)"
     )
     time_tol_s: float = _opt(1e-6, "measurement times this close to an IMU sample use it [s]")
+    # yaw acquisition and recovery (docs/filter.md, "Yaw acquisition and recovery")
+    acquire_k: int = _opt(
+        3, "yaw acquisition: this many of the last acquire_n headings must agree", ESKF
+    )
+    acquire_n: int = _opt(5, "yaw acquisition: headings considered for the consensus", ESKF)
+    reacquire_after: int = _opt(
+        5, "re-acquire the yaw after this many consecutive gate rejections of headings", ESKF
+    )
     # ESKF only
     scale_factors: bool = _opt(False, "estimate gyro/accel scale factors (21 states)", ESKF)
     reset_interval_s: float = _opt(
@@ -221,7 +229,7 @@ def _check(c: FuseConfig) -> None:
         raise UserInputError(f"reset_interval_s must be >= 0 [s], got {c.reset_interval_s}")
     if not c.reset_angle_rad > 0.0:
         raise UserInputError(f"reset_angle_rad must be > 0 [rad], got {c.reset_angle_rad}")
-    for name in ("max_iterations", "max_gate_rounds"):
+    for name in ("max_iterations", "max_gate_rounds", "acquire_k", "acquire_n", "reacquire_after"):
         value = getattr(c, name)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise UserInputError(f"{name} must be an integer >= 1, got {value!r}")
@@ -229,6 +237,11 @@ def _check(c: FuseConfig) -> None:
                           ("graph_output", GRAPH_OUTPUTS)):  # fmt: skip
         if getattr(c, name) not in allowed:
             raise UserInputError(f"{name}={getattr(c, name)!r}: expected one of {allowed}")
+    if c.acquire_k > c.acquire_n or c.acquire_n > c.reacquire_after:
+        raise UserInputError(
+            f"need acquire_k <= acquire_n <= reacquire_after, got {c.acquire_k}, "
+            f"{c.acquire_n}, {c.reacquire_after}"
+        )
     if c.stationary and c.zupt_std is None:
         raise UserInputError("stationary times need zupt_std [m/s]")
 

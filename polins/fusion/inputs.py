@@ -1,19 +1,24 @@
 """Validation of the fusion inputs: the IMU table and the measurements table (docs/conventions.md).
 
-Every problem raises ``ValueError`` with a message naming the column, the row and what was
-expected. Gaps in the IMU stream are reported, never bridged silently; unit mistakes that
-can be detected (gyro in deg/s, accelerometer in g or mg, yaw in degrees) are rejected.
+A mistake in a table raises ``ValueError`` with a message naming the column, the row and
+what was expected; unit mistakes that can be detected (gyro in deg/s, accelerometer in g or
+mg, yaw in degrees) are such mistakes. Faults in the data are not errors (docs/faults.md):
+impossible IMU samples are dropped and reported, IMU gaps reported to the fusion (which
+bridges or skips them), rows with an unusable sigma rejected with a reason.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
 from polins.errors import UserInputError
+from polins.fusion.result import FusionEvent
+from polins.models import ImuModel, load_imu
 
 FloatArray = NDArray[np.float64]
 
@@ -23,21 +28,23 @@ SUN_COLUMNS = ("sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny", "sun_nz", "sun_
 ZUPT_COLUMNS = ("zupt_std",)
 PRIOR_COLUMNS = ("prior_roll", "prior_pitch", "prior_yaw")
 
-# Plausibility limits for unit checks.
-GYRO_MAX_RAD_S = 35.0  # ~2000 deg/s: full scale of common gyros; larger is deg/s data
-GYRO_P99_RAD_S = 10.0  # a vehicle does not turn at > 570 deg/s for 1 % of the time
+# Plausibility limit of the unit check of the accelerometer (the gyro's: the IMU model's
+# full scale, ImuModel.full_scale).
 ACCEL_MEDIAN_RANGE = (6.0, 14.0)  # median |f| [m/s^2] of data near the Earth's surface
 
 
 @dataclass(frozen=True, eq=False)
 class ImuArrays:
     """Validated IMU samples: ``t`` (N,) [s], ``gyro_b`` (N, 3) [rad/s], ``accel_b`` (N, 3)
-    [m/s^2], and the median sample interval ``dt`` [s]."""
+    [m/s^2], the median sample interval ``dt`` [s], the events of the dropped samples, and
+    ``gaps``: the indices ``i`` where ``t[i + 1] - t[i]`` exceeds ``max_gap_s``."""
 
     t: FloatArray
     gyro_b: FloatArray
     accel_b: FloatArray
     dt: float
+    events: tuple[FusionEvent, ...] = ()
+    gaps: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, dtype=int))
 
 
 def _require_frame(df: object, what: str) -> pd.DataFrame:
@@ -74,8 +81,15 @@ def _check_times(t: FloatArray, what: str) -> None:
         )
 
 
-def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArrays:
-    """Check an IMU table and return its arrays.
+def validate_imu(
+    imu: pd.DataFrame, *, max_gap_s: float | None = None, model: ImuModel | None = None
+) -> ImuArrays:
+    """Check an IMU table and return its arrays, without the faulty samples.
+
+    Mistakes in the table (missing columns, bad times, wrong units) raise; faults in the
+    data are handled as docs/faults.md says: a sample with a NaN/inf value or beyond the
+    model's full scale (``ImuModel.full_scale``) is dropped and reported as an event, a gap
+    longer than ``max_gap_s`` is reported (``gaps``) for the fusion to handle.
 
     Parameters
     ----------
@@ -83,7 +97,9 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
         Columns ``t`` [s], ``gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2] (body FLU,
         specific force), one row per sample.
     max_gap_s : float, optional
-        Longest allowed interval between samples [s]; default 5 times the median interval.
+        Longest interval bridged by interpolation [s]; default 5 times the median interval.
+    model : ImuModel, optional
+        Its full scale bounds the samples (default: ``mems-typical``'s).
 
     Returns
     -------
@@ -92,9 +108,9 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
     Raises
     ------
     ValueError
-        Missing columns, fewer than 2 rows, NaN/inf values, duplicated or non-monotonic
-        timestamps, gaps longer than ``max_gap_s``, gyro values that look like deg/s,
-        specific force that looks like g or mg.
+        Missing columns, fewer than 2 good rows, NaN/inf times, duplicated or
+        non-monotonic timestamps, gyro values that look like deg/s (more than 1 % of the
+        samples beyond the gyro's full scale), specific force that looks like g or mg.
     """
     df = _require_frame(imu, "imu")
     missing = [c for c in IMU_COLUMNS if c not in df.columns]
@@ -105,34 +121,19 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
     data = _numeric(df, IMU_COLUMNS, "imu")
     t = data[:, 0]
     _check_times(t, "imu")
-    bad = np.argwhere(~np.isfinite(data[:, 1:]))
-    if bad.size:
-        r, c = bad[0]
+    gyro_max, accel_max = (model or load_imu("mems-typical")).full_scale()
+    with np.errstate(invalid="ignore", over="ignore"):
+        w = np.linalg.norm(data[:, 1:4], axis=1)
+        f = np.linalg.norm(data[:, 4:7], axis=1)
+    finite = np.isfinite(data[:, 1:]).all(axis=1)
+    if np.percentile(np.where(finite, w, 0.0), 99) > gyro_max:
         raise UserInputError(
-            f"imu: NaN/inf sample in column {IMU_COLUMNS[c + 1]!r} at row {r} (t={t[r]}); "
-            f"{len(bad)} bad values. Drop or repair those rows (gaps are then reported)"
+            f"imu: the gyro magnitude exceeds the full scale {gyro_max:.3g} rad/s "
+            f"({np.degrees(gyro_max):.4g} deg/s) in more than 1 % of the samples (99th "
+            f"percentile {np.percentile(np.where(finite, w, 0.0), 99):.3g}); the gyro looks "
+            "like deg/s: multiply by pi/180 (or set range_deg_per_s in the IMU model)"
         )
-    d = np.diff(t)
-    dt = float(np.median(d))
-    limit = 5.0 * dt if max_gap_s is None else float(max_gap_s)
-    gaps = np.flatnonzero(d > limit)
-    if gaps.size:
-        listing = ", ".join(f"{d[i]:.4g} s after t={t[i]:.6g}" for i in gaps[:5])
-        raise UserInputError(
-            f"imu: {gaps.size} gap(s) longer than {limit:.4g} s (median interval {dt:.4g} s): "
-            f"{listing}{' ...' if gaps.size > 5 else ''}. Gaps are not bridged; split the log "
-            "or pass a larger max_gap_s if the interpolation over them is acceptable"
-        )
-    gyro = data[:, 1:4]
-    accel = data[:, 4:7]
-    w = np.linalg.norm(gyro, axis=1)
-    if w.max() > GYRO_MAX_RAD_S or np.percentile(w, 99) > GYRO_P99_RAD_S:
-        raise UserInputError(
-            f"imu: gyro magnitudes up to {w.max():.3g} (99th percentile "
-            f"{np.percentile(w, 99):.3g}) are implausible in rad/s; the gyro looks like "
-            "deg/s: multiply by pi/180"
-        )
-    f_med = float(np.median(np.linalg.norm(accel, axis=1)))
+    f_med = float(np.median(f[finite])) if finite.any() else math.nan
     lo, hi = ACCEL_MEDIAN_RANGE
     if not lo <= f_med <= hi:
         hint = ""
@@ -144,7 +145,26 @@ def validate_imu(imu: pd.DataFrame, *, max_gap_s: float | None = None) -> ImuArr
             f"imu: median specific force |f| = {f_med:.4g} is not ~9.8 m/s^2 (expected "
             f"{lo}-{hi} m/s^2 near the Earth's surface).{hint}"
         )
-    return ImuArrays(t=t.copy(), gyro_b=gyro.copy(), accel_b=accel.copy(), dt=dt)
+    events = []
+    for i in np.flatnonzero(~finite).tolist():
+        events.append(FusionEvent(float(t[i]), "imu-nonfinite", "IMU sample with NaN/inf dropped"))
+    beyond = finite & ((w > gyro_max) | (f > accel_max))
+    for i in np.flatnonzero(beyond).tolist():
+        detail = (
+            f"IMU sample beyond the full scale dropped: |w| = {w[i]:.3g} rad/s (limit "
+            f"{gyro_max:.3g}), |f| = {f[i]:.3g} m/s^2 (limit {accel_max:.3g})"
+        )
+        events.append(FusionEvent(float(t[i]), "imu-out-of-range", detail))
+    keep = finite & ~beyond
+    if keep.sum() < 2:
+        raise UserInputError(f"imu: fewer than 2 usable samples ({int(keep.sum())} of {len(t)})")
+    t, data = t[keep], data[keep]
+    d = np.diff(t)
+    dt = float(np.median(d))
+    limit = 5.0 * dt if max_gap_s is None else float(max_gap_s)
+    gaps = np.flatnonzero(d > limit)
+    return ImuArrays(t=t.copy(), gyro_b=data[:, 1:4].copy(), accel_b=data[:, 4:7].copy(),
+                     dt=dt, events=tuple(events), gaps=gaps)  # fmt: skip
 
 
 def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
@@ -162,8 +182,9 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
     ------
     ValueError
         Missing ``t`` or incomplete column groups, duplicated or non-monotonic times,
-        yaw outside [-2 pi, 2 pi] (degrees?), non-positive sigmas, sigmas > pi, sun vectors
-        that are not unit vectors.
+        yaw outside [-2 pi, 2 pi] (degrees?), sigmas > pi, sun vectors that are not unit
+        vectors. (A non-finite or non-positive sigma is a data fault, not an error: its
+        row is rejected with a reason.)
     """
     if measurements is None:
         return pd.DataFrame({"t": np.zeros(0)})
@@ -218,11 +239,14 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
 
 
 def _check_std(std: FloatArray, name: str, upper: float) -> None:
-    bad = np.flatnonzero(np.isfinite(std) & ((std <= 0) | (std > upper)))
+    """A finite sigma above ``upper`` is a unit mistake (degrees for radians): refused. A
+    non-finite or non-positive sigma is a data fault: its row is rejected with a reason
+    (:func:`polins.fusion.items.items_from_table`, docs/faults.md)."""
+    bad = np.flatnonzero(np.isfinite(std) & (std > upper))
     if bad.size:
         raise UserInputError(
-            f"measurements: {name}={std[bad[0]]:.4g} at row {bad[0]} must be > 0"
-            + (f" and <= {upper:.4g} (radians expected)" if np.isfinite(upper) else "")
+            f"measurements: {name}={std[bad[0]]:.4g} at row {bad[0]} must be <= "
+            f"{upper:.4g} (radians expected)"
         )
 
 

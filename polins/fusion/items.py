@@ -31,7 +31,7 @@ from polins.fusion.measurement import (
 
 FloatArray = NDArray[np.float64]
 
-_KIND_ORDER = {"yaw": 0, "sun": 1, "zupt": 2, "nhc": 3}
+_KIND_ORDER = {"gap": -1, "yaw": 0, "sun": 1, "zupt": 2, "nhc": 3}
 
 
 @functools.lru_cache(maxsize=64)
@@ -44,8 +44,11 @@ def gate_limit(prob: float | None, dof: int) -> float:
 class MeasurementItem:
     """One scalar/vector measurement waiting to be applied at time ``t``.
 
-    ``kind`` is ``"yaw"``, ``"sun"``, ``"zupt"`` or ``"nhc"``; ``valid`` is False for rows
-    with NaN values (they are logged as rejected and not used).
+    ``kind`` is ``"yaw"``, ``"sun"``, ``"zupt"`` or ``"nhc"``, or ``"gap"`` (not a
+    measurement: the IMU resumes after a gap, the filter adds ``inflation`` to the
+    covariance of its navigation errors, docs/filter.md); ``valid`` is False for rows with NaN values or a
+    non-finite or non-positive sigma, or inside an IMU gap (they are logged as rejected
+    with ``reason`` and not used).
     """
 
     t: float
@@ -56,6 +59,8 @@ class MeasurementItem:
     sun_n: FloatArray | None = None
     valid: bool = True
     mat_nb_prior: FloatArray | None = None  # the prior polins.measure used (yaw rows)
+    reason: str = ""  # why an invalid item is not used
+    inflation: FloatArray | None = None  # "gap": variances added to the 9 navigation errors
 
     @property
     def order(self) -> tuple[float, int]:
@@ -120,9 +125,9 @@ def items_from_table(
         mat_prior[prior_ok] = rot_nb_from_euler(*prior[prior_ok].T).as_matrix()
     with np.errstate(invalid="ignore"):
         n_ok = np.all(np.isfinite(sun_n), axis=1)
-        sun_ok = has_sun & np.all(np.isfinite(sun_b), axis=1) & n_ok & (sun_std > 0)
-        yaw_ok = np.isfinite(yaw) & (yaw_std > 0)
-        zupt_ok = zupt_std > 0
+        sun_ok = has_sun & np.all(np.isfinite(sun_b), axis=1) & n_ok & _sigma_ok(sun_std)
+        yaw_ok = np.isfinite(yaw) & _sigma_ok(yaw_std)
+        zupt_ok = _sigma_ok(zupt_std)
     # Python scalars (lists) in the row loop: numpy scalar indexing costs more
     t_l, yaw_l, yaw_std_l, sun_std_l = t.tolist(), yaw.tolist(), yaw_std.tolist(), sun_std.tolist()
     zupt_l, sun_ok_l, yaw_ok_l, zupt_ok_l = (
@@ -149,14 +154,34 @@ def items_from_table(
                     sun_n=sun_n[i].copy() if n_ok_l[i] else None,
                     valid=ok,
                     mat_nb_prior=mat_prior[i] if prior_ok_l[i] else None,
+                    reason="" if ok else _invalid_reason("yaw", yaw_l[i], yaw_std_l[i]),
                 )
             )
         elif has_sun:
-            items.append(MeasurementItem(ti, "sun", math.nan, valid=False))
-        if has_zupt and math.isfinite(zupt_l[i]):
+            reason = _invalid_reason("sun", math.nan, sun_std_l[i])
+            items.append(MeasurementItem(ti, "sun", math.nan, valid=False, reason=reason))
+        if has_zupt and not math.isnan(zupt_l[i]):
             ok = zupt_ok_l[i]
-            items.append(MeasurementItem(ti, "zupt", zupt_l[i] if ok else math.nan, valid=ok))
+            reason = "" if ok else _invalid_reason("zupt", 0.0, zupt_l[i])
+            items.append(
+                MeasurementItem(ti, "zupt", zupt_l[i] if ok else math.nan, valid=ok, reason=reason)
+            )
     return items
+
+
+def _sigma_ok(std: FloatArray) -> NDArray[np.bool_]:
+    """Usable 1-sigmas: finite and positive (docs/faults.md: others reject their row)."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(std) & (std > 0)
+
+
+def _invalid_reason(kind: str, value: float, std: float) -> str:
+    """The reason an invalid row's item is not used (its update record)."""
+    if not math.isnan(std) and not (math.isfinite(std) and std > 0):
+        return f"invalid {kind}_std={std:g}: a 1-sigma must be finite and > 0"
+    if kind == "sun" or math.isnan(value) or math.isnan(std):
+        return f"no {kind} measurement (NaN values)"
+    return f"invalid {kind}={value:g}"
 
 
 def measurement_items(
@@ -197,7 +222,12 @@ def measurement_items(
 
 @dataclass(frozen=True)
 class UpdateRecord:
-    """Log entry of one measurement: NIS, acceptance, and the reason for a rejection."""
+    """Log entry of one measurement: NIS, acceptance, and the reason for a rejection.
+
+    ``innovation`` (``nu``, ``dim`` values) and ``innovation_var`` (``S``, ``dim x dim``
+    row-major) are the gated innovation and its covariance (ESKF updates; empty otherwise),
+    for the innovation likelihood of ``polins.tuning``.
+    """
 
     t: float
     name: str
@@ -205,10 +235,13 @@ class UpdateRecord:
     nis: float
     accepted: bool
     reason: str
+    innovation: tuple[float, ...] = ()
+    innovation_var: tuple[float, ...] = ()
 
 
 def records_table(records: Sequence[UpdateRecord]) -> pd.DataFrame:
-    """The measurement log as a table: ``t, name, dim, nis, accepted, reason``."""
+    """The measurement log as a table: ``t, name, dim, nis, accepted, reason`` and the
+    tuples ``innovation, innovation_var`` (:class:`UpdateRecord`)."""
     return pd.DataFrame(
         {
             "t": np.array([r.t for r in records], dtype=float),
@@ -217,5 +250,7 @@ def records_table(records: Sequence[UpdateRecord]) -> pd.DataFrame:
             "nis": np.array([r.nis for r in records], dtype=float),
             "accepted": np.array([r.accepted for r in records], dtype=bool),
             "reason": [r.reason for r in records],
+            "innovation": [r.innovation for r in records],
+            "innovation_var": [r.innovation_var for r in records],
         }
     )

@@ -49,7 +49,7 @@ from polins.ins.earth import (
     transport_rate_n,
 )
 from polins.ins.state import NavState
-from polins.models.loader import ImuModel
+from polins.models import ImuModel
 
 FloatArray = NDArray[np.float64]
 

@@ -65,9 +65,14 @@ from polins.fusion.config import FuseConfig, config_from_mapping, option_names
 from polins.io.atomic import atomic_path, write_text_atomic
 from polins.io.images import IMAGE_SUFFIXES, ImageIndex, read_image_index, write_image
 from polins.io.images import write_image_index as _write_index
-from polins.io.model_files import camera_model_toml, imu_model_toml, toml_dumps
+from polins.io.model_files import (
+    camera_model_toml,
+    imu_model_toml,
+    toml_dumps,
+    write_camera_file,
+)
 from polins.io.tables import ACCEL_UNITS, GYRO_UNITS, read_imu, read_table, write_imu, write_table
-from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
+from polins.models import CameraModel, ImuModel, load_camera, load_imu
 from polins.site import Site, utc_timestamp
 from polins.sky.ephemeris import sun_position, sun_vector_n
 
@@ -437,6 +442,9 @@ def read_log(
 def _model_entry(
     folder: Path, model: Any, file_name: str, kind: str, to_toml: Callable[[Any], str]
 ) -> str:
+    if isinstance(model, CameraModel) and model.has_pixel_maps:
+        write_camera_file(model, folder / file_name)  # its per-pixel maps go beside it
+        return file_name
     if isinstance(model, CameraModel | ImuModel):
         write_text_atomic(folder / file_name, to_toml(model))
         return file_name
@@ -446,6 +454,11 @@ def _model_entry(
     if p.suffix == ".toml" or p.exists():
         if not p.is_file():
             raise FileNotFoundError(f"{kind} model file not found: {p}")
+        if kind == "camera" and "_npy" in p.read_text(encoding="utf-8"):
+            # A camera file that names per-pixel maps: a plain copy would lose them (their
+            # paths are relative to the original); write it with its maps instead.
+            write_camera_file(load_camera(p), folder / file_name)
+            return file_name
         with atomic_path(folder / file_name) as tmp:
             shutil.copyfile(p, tmp)
         return file_name

@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.compass.measure import check_measure_options, measure
 from polins.io.images import ImageReadError, load_raw
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 EXECUTORS = ("inline", "thread", "process")

@@ -138,6 +138,9 @@ class FilterRunner:
         mask[: len(start)] = False
         if not self.record_solution:  # only the snapshots
             mask[len(start) :] = self.new_cells(t[len(start) :])
+        if not mask.any():  # a run inside one snapshot cell: nothing to keep
+            advance(f, t, gyro, accel)
+            return
         run = advance(f, t, gyro, accel, mask)
         assert run is not None
         states = interpolate(*run, f.layout.index)

@@ -71,7 +71,7 @@ from polins.loop.options import LoopOptions
 from polins.loop.prior import Sample, SunGrid, propagate_nominal
 from polins.loop.runner import FilterRunner
 from polins.loop.tables import EventBuffer, measurement_frame
-from polins.models.loader import CameraModel, ImuModel
+from polins.models import CameraModel, ImuModel
 from polins.site import Site, utc_timestamp
 
 FloatArray = NDArray[np.float64]

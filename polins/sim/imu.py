@@ -11,7 +11,7 @@ with ``a_n = d(v_n)/dt``, WGS-84 normal gravity ``g_n`` (gravitation plus centri
 Earth and transport rates from ``polins.ins.earth``. Row k holds the instantaneous values at
 ``t_k`` (docs/filter.md: the strapdown integrates assuming they vary linearly between rows).
 
-The error model (``polins.models.loader.ImuModel``), per axis and independently::
+The error model (``polins.models.ImuModel``), per axis and independently::
 
     measured = (1 + s) * ideal + b(t) + w_k
     b(t_k)   = b0 + sum_{j=1..k} q_j,   q_j ~ N(0, K^2 dt)      (bias random walk K)
@@ -29,7 +29,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from polins.ins.earth import earth_rate_n, gravity_n, transport_rate_n
-from polins.models.loader import ImuModel
+from polins.models import ImuModel
 from polins.sim.trajectory import Trajectory
 
 FloatArray = NDArray[np.float64]

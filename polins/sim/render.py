@@ -1,7 +1,7 @@
 """Raw DoFP sky images: the sensor model of docs/model.md §6.2 rendered into a mosaic.
 
 :func:`render_raw` turns a sun vector and an attitude into the full-resolution raw mosaic a
-division-of-focal-plane camera (``polins.models.loader.CameraModel``) would deliver:
+division-of-focal-plane camera (``polins.models.CameraModel``) would deliver:
 
 1. every sample point (the superpixel centre, or with ``ifov=True`` each channel's own
    full-resolution pixel) is back-projected to a camera ray (``polins.compass.camera``) and rotated
@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.compass.camera import doubled_aop_from_evector, pixel_rays_c, superpixel_uv, unproject
-from polins.models.loader import CameraModel
+from polins.models import CameraModel
 from polins.sky.scattering import berry_dop, berry_evector, rayleigh_dop, rayleigh_evector
 
 FloatArray = NDArray[np.float64]

@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from polins.io.log import write_log
-from polins.models.loader import CameraModel, ImuModel, load_camera, load_imu
+from polins.models import CameraModel, ImuModel, load_camera, load_imu
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.render import render_raw
 from polins.sim.reproduction import PAPER_EPOCH

@@ -1,12 +1,13 @@
-"""Self-alignment of the ESKF: levelling (with gyrocompassing) over a static window, and the yaw set by the first heading measurement.
+"""Self-alignment of the ESKF: levelling (with gyrocompassing) over a static window, and the yaw set from the heading measurements.
 
 Levelling assumes the vehicle static during the first ``align_s`` seconds: roll and pitch
 from the averaged specific force, with the tilt error's exact correlation with the
 accelerometer bias (a horizontal bias ``b`` tilts the estimate by ``b / g``); the yaw is
-unknown (reported as NaN) until the first valid yaw or sun-vector measurement, which sets
-it (:func:`align_yaw`: its variance becomes the measurement's, its correlations zero). The
-vehicle may move before that measurement only if the yaw does not matter for the velocity
-then (it stands still, or drives straight from rest: the velocity is rotated with the
+unknown (reported as NaN) until the heading measurements agree on it
+(:mod:`polins.fusion.eskf.acquisition`: each gives a :func:`yaw_offset`, the consensus
+sets the yaw with :func:`rotate_yaw`: its variance becomes the consensus', its
+correlations zero). The vehicle may move before that only if the yaw does not matter for
+the velocity then (it stands still, or drives straight from rest: the velocity is rotated with the
 frame at the alignment). When the mechanization includes the Earth rate, the levelling
 also gyrocompasses (:func:`polins.ins.alignment.gyrocompass`, with the yaw error's
 correlation with the gyro bias) if that yaw is better than ``GYROCOMPASS_MAX_STD``, so that
@@ -113,33 +114,42 @@ def level(
     return rot.as_matrix(), P
 
 
-def align_yaw(
-    item: MeasurementItem,
-    mat_nb: FloatArray,
-    vel_n: FloatArray,
-    P: FloatArray,
-    layout: Layout,
-    tilt_coupling: bool,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Attitude, velocity and covariance with the yaw of a first yaw / sun item (the error
-    state is zero: called after a reset). The yaw rotation turns the velocity and the
-    attitude/velocity covariance with it; the yaw variance becomes the item's."""
+def yaw_offset(
+    item: MeasurementItem, mat_nb: FloatArray, vel_n: FloatArray, tilt_coupling: bool
+) -> tuple[float, float]:
+    """The yaw rotation [rad] that zeroes the residual of a yaw / sun ``item`` at the
+    attitude ``mat_nb``, and its 1-sigma [rad] (the item's, for a sun vector divided by
+    the cosine of the sun elevation)."""
     if item.kind == "yaw":
-        # the yaw that zeroes the residual: one step for the yaw of body x (exact), three
-        # Newton steps with the tilt coupling (the model depends on the prior's tilt)
+        # one step for the yaw of body x (exact), three Newton steps with the tilt
+        # coupling (the model depends on the prior's tilt)
         delta, std = 0.0, item.std
         coupled = tilt_coupling and item.sun_n is not None
         for _ in range(3 if coupled else 1):
             mat = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix() @ mat_nb
             lin = item_model(item, mat, vel_n, tilt_coupling)
             delta += float(lin.residual[0] / lin.H[0, 2])
-    else:
-        s_n = np.asarray(item.sun_n, dtype=float)
-        s_n = s_n / np.linalg.norm(s_n)
-        rot0 = Rotation.from_matrix(mat_nb)
-        yaw_meas = yaw_from_sun(rot0, item.sun_b, s_n)  # type: ignore[arg-type]
-        std = item.std / max(float(np.hypot(s_n[0], s_n[1])), 1e-3)
-        delta = float(wrap_angle(yaw_meas - yaw_from_rot_nb(rot0)))
+        return float(wrap_angle(delta)), std
+    s_n = np.asarray(item.sun_n, dtype=float)
+    s_n = s_n / np.linalg.norm(s_n)
+    rot0 = Rotation.from_matrix(mat_nb)
+    yaw_meas = yaw_from_sun(rot0, item.sun_b, s_n)  # type: ignore[arg-type]
+    std = item.std / max(float(np.hypot(s_n[0], s_n[1])), 1e-3)
+    return float(wrap_angle(yaw_meas - yaw_from_rot_nb(rot0))), std
+
+
+def rotate_yaw(
+    delta: float,
+    std: float,
+    mat_nb: FloatArray,
+    vel_n: FloatArray,
+    P: FloatArray,
+    layout: Layout,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Attitude, velocity and covariance with the yaw turned by ``delta`` [rad] (the error
+    state is zero: called after a reset). The rotation turns the velocity and the
+    attitude/velocity covariance with it; the yaw variance becomes ``std**2`` [rad^2], its
+    correlations zero."""
     rz = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix()
     att, vel = layout["att"], layout["vel"]
     T = np.eye(layout.n)

@@ -35,6 +35,19 @@ FloatArray = NDArray[np.float64]
 NAV = 9  # attitude, velocity, position: the error states of the navigation dynamics
 
 
+@dataclass
+class StepSums:
+    """Sums over the IMU intervals of the covariance step in progress (streaming)."""
+
+    n: int = 0
+    dt: float = 0.0
+    mat: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C dt
+    dv: FloatArray = field(default_factory=lambda: np.zeros(3))  # sum int C f dt
+    mat_omega: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(phi)
+    mat_force: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(f) dt
+    start: tuple[FloatArray, float, float] = (np.zeros(3), 0.0, 0.0)  # vel, lat, alt
+
+
 @dataclass(eq=False)
 class StepNominal:
     """The nominal quantities of covariance steps that the error dynamics need (S steps).

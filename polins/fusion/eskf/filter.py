@@ -28,8 +28,9 @@ zero-velocity update. The non-holonomic Jacobian depends on the nominal velocity
 sigma must also cover the linearisation error (0.05 m/s is a sound default for a car).
 
 Alignment: ``rot_nb0`` given, or self-alignment (:mod:`polins.fusion.eskf.alignment`): the
-vehicle static for ``align_s``, the yaw unknown (NaN) until the first valid yaw or sun
-measurement sets it.
+vehicle static for ``align_s``, the yaw unknown (NaN) until ``acquire_k`` headings agree;
+after ``reacquire_after`` consecutive rejections it is re-acquired, and a ``"gap"`` item
+inflates the covariance (:mod:`polins.fusion.eskf.acquisition`, docs/filter.md 7.1-7.2).
 """
 
 from __future__ import annotations
@@ -39,7 +40,6 @@ import logging
 import math
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 from filterpy.kalman import update as kf_update
@@ -48,9 +48,10 @@ from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
 from polins.fusion.config import FuseConfig
-from polins.fusion.eskf.alignment import align_yaw, level
+from polins.fusion.eskf.acquisition import Acquisition, hold_heading
+from polins.fusion.eskf.alignment import level
 from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav
-from polins.fusion.eskf.dynamics import StepNominal, discretize, step_nominal
+from polins.fusion.eskf.dynamics import StepNominal, StepSums, discretize, step_nominal
 from polins.fusion.eskf.propagate import advance
 from polins.fusion.items import (
     MeasurementItem,
@@ -60,6 +61,7 @@ from polins.fusion.items import (
     measurement_items,
 )
 from polins.fusion.measurement import Linearized
+from polins.fusion.result import FusionEvent
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown_increment
 from polins.site import PAPER_SITE
@@ -81,19 +83,6 @@ def config_with_site(config: FuseConfig | None, *, stacklevel: int = 3) -> FuseC
         stacklevel=stacklevel,
     )
     return FuseConfig.from_options(config, site=PAPER_SITE)
-
-
-@dataclass
-class _StepSums:
-    """Sums over the IMU intervals of the covariance step in progress (streaming)."""
-
-    n: int = 0
-    dt: float = 0.0
-    mat: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C dt
-    dv: FloatArray = field(default_factory=lambda: np.zeros(3))  # sum int C f dt
-    mat_omega: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(phi)
-    mat_force: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(f) dt
-    start: tuple[FloatArray, float, float] = (np.zeros(3), 0.0, 0.0)  # vel, lat, alt
 
 
 class ESKF:
@@ -151,7 +140,10 @@ class ESKF:
         self.x = np.zeros(self.n)
         self.P = self.layout.initial_covariance(self.model, config)
         self.records: list[UpdateRecord] = []
+        self.events: list[FusionEvent] = []  # yaw re-acquisitions
         self.yaw_aligned = rot_nb0 is not None
+        self.yaw_epoch = 0  # (re-)acquisitions of the yaw: a new smoother chain each
+        self.acquisition = Acquisition(config.acquire_k, config.acquire_n, config.reacquire_after)
         self.t_reset = float(t0)
         self.n_resets = 0
         self.count = 0  # real IMU samples consumed
@@ -163,7 +155,7 @@ class ESKF:
         self._align_buffer: list[tuple[float, FloatArray, FloatArray]] | None = (
             None if rot_nb0 is not None else []
         )
-        self._sums = _StepSums()
+        self._sums = StepSums()
 
     # ------------------------------------------------------------------ properties
     @property
@@ -187,12 +179,14 @@ class ESKF:
         return tuple(self._pending)
 
     def copy(self) -> ESKF:
-        """A cheap copy: arrays copied, model/config/layout shared, an empty update log."""
+        """A cheap copy: arrays copied, model/config/layout shared, an empty update log
+        and event list."""
         new = copy.copy(self)
         new.mat_nb, new.vel_n = self.mat_nb.copy(), self.vel_n.copy()
         new.errors = {k: v.copy() for k, v in self.errors.items()}
         new.x, new.P, new.correction = self.x.copy(), self.P.copy(), self.correction.copy()
-        new.records = []
+        new.records, new.events = [], []
+        new.acquisition = copy.deepcopy(self.acquisition)
         new._pending = list(self._pending)
         if self._align_buffer is not None:
             new._align_buffer = list(self._align_buffer)
@@ -402,7 +396,7 @@ class ESKF:
         """Propagate the covariance over the step in progress (streaming)."""
         if self._sums.n:
             self.predict(*self.step_matrices(self._step_nominal()))
-            self._sums = _StepSums()
+            self._sums = StepSums()
             # keep the attitude matrix orthonormal (rounding of the per-sample products)
             self.mat_nb = Rotation.from_matrix(self.mat_nb).as_matrix()
 
@@ -428,34 +422,50 @@ class ESKF:
         """Log an item as not used."""
         return self._record(item, 0, math.nan, False, reason)
 
-    def apply(self, item: MeasurementItem) -> UpdateRecord:
-        """Gate and apply one measurement at the current time; then maybe reset."""
+    def apply(self, item: MeasurementItem) -> UpdateRecord | None:
+        """Gate and apply one measurement at the current time; then maybe reset. Headings
+        before the yaw is acquired are held for it (:mod:`~polins.fusion.eskf.acquisition`);
+        a ``"gap"`` item inflates the covariance (no record)."""
         if self._sums.n:
             self.flush()
+        if item.kind == "gap":
+            assert item.inflation is not None
+            self.P[:9, :9] += np.diag(item.inflation)
+            return None
         if not item.valid:
-            return self.reject(item, "invalid measurement (NaN or non-positive std)")
+            return self.reject(item, item.reason or "invalid measurement")
         if not self.yaw_aligned and item.kind in ("yaw", "sun"):
-            return self._align_yaw(item)
+            return hold_heading(self, item, None)
         lin = item_model(item, self.mat_nb, self.vel_n, self.tilt_coupling)
         H, dim = self.layout.jacobian(item, lin), lin.residual.shape[0]
+        nu: tuple[float, ...]  # the innovation and its covariance, for the update log
+        S: tuple[float, ...]
         if dim == 1:  # scalar innovation: dot products
             h = H[0]
             y1 = float(lin.residual[0]) - float(h @ self.x)
-            nis = y1 * y1 / (float(h @ (self.P @ h)) + float(lin.R[0, 0]))
+            s1 = float(h @ (self.P @ h)) + float(lin.R[0, 0])
+            nis, nu, S = y1 * y1 / s1, (y1,), (s1,)
         else:
             y = lin.residual - H @ self.x
-            nis = float(y @ np.linalg.solve(H @ (self.P @ H.T) + lin.R, y))
+            Sm = H @ (self.P @ H.T) + lin.R
+            nis = float(y @ np.linalg.solve(Sm, y))
+            nu, S = tuple(y.tolist()), tuple(Sm.ravel().tolist())
         limit = gate_limit(self.config.gate_prob, dim)
         if nis > limit:
             reason = (
                 f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {dim} dof, p={self.config.gate_prob})"
             )
-            rec = self._record(item, dim, nis, False, reason)
+            rec = self._record(item, dim, nis, False, reason, nu, S)
+            if item.kind in ("yaw", "sun"):
+                self.acquisition.rejections += 1
+                rec = hold_heading(self, item, rec)
         else:
+            if item.kind in ("yaw", "sun") and self.acquisition.held:
+                self.acquisition.clear()
             x_before = self.x
             self.x, self.P = kf_update(self.x, self.P, lin.residual, lin.R, H)
             self.correction += self.x - x_before
-            rec = self._record(item, dim, nis, True, "")
+            rec = self._record(item, dim, nis, True, "", nu, S)
         x_att = self.x[0:3]
         if (
             self.t - self.t_reset >= self.config.reset_interval_s
@@ -495,9 +505,18 @@ class ESKF:
 
     # ------------------------------------------------------------------ internals
     def _record(
-        self, item: MeasurementItem, dim: int, nis: float, accepted: bool, reason: str
+        self,
+        item: MeasurementItem,
+        dim: int,
+        nis: float,
+        accepted: bool,
+        reason: str,
+        innovation: tuple[float, ...] = (),
+        innovation_var: tuple[float, ...] = (),
     ) -> UpdateRecord:
-        rec = UpdateRecord(item.t, item.kind, dim, nis, accepted, reason)
+        rec = UpdateRecord(
+            item.t, item.kind, dim, nis, accepted, reason, innovation, innovation_var
+        )
         self.records.append(rec)
         if not accepted:
             log.info("t=%.6f %s rejected: %s", item.t, item.kind, reason)
@@ -573,12 +592,3 @@ class ESKF:
             np.array([alt]), self.mech, self.divisors(),
             s.mat_omega[None] if sf else None, s.mat_force[None] if sf else None,
         )  # fmt: skip
-
-    def _align_yaw(self, item: MeasurementItem) -> UpdateRecord:
-        """Set the yaw from the first yaw / sun measurement (:func:`align_yaw`)."""
-        self.reset()
-        self.mat_nb, self.vel_n, self.P = align_yaw(
-            item, self.mat_nb, self.vel_n, self.P, self.layout, self.tilt_coupling
-        )
-        self.yaw_aligned = True
-        return self._record(item, 1, math.nan, True, "used for the yaw alignment")

@@ -60,6 +60,7 @@ class Filter(Protocol):
     correction: FloatArray  # sum of the update corrections since the last node
     errors: dict[str, FloatArray]
     yaw_aligned: bool
+    yaw_epoch: int  # (re-)acquisitions of the yaw
     t: float
     mat_nb: FloatArray
     vel_n: FloatArray
@@ -75,7 +76,7 @@ class Filter(Protocol):
     ) -> tuple[FloatArray, FloatArray]: ...
     def divisors(self) -> tuple[FloatArray, FloatArray]: ...
     def predict(self, Phi: FloatArray, Q: FloatArray) -> None: ...
-    def apply(self, item: MeasurementItem) -> UpdateRecord: ...
+    def apply(self, item: MeasurementItem) -> UpdateRecord | None: ...
     def reject(self, item: MeasurementItem, reason: str) -> UpdateRecord: ...
     def take_items(self, t_end: float) -> list[MeasurementItem]: ...
     def finish_run(self, t: float, gyro_b: FloatArray, accel_b: FloatArray, count: int) -> None: ...
@@ -89,7 +90,7 @@ class Nodes:
     them (and after a reset); ``var_pre``/``var_post`` (G, n) and ``att_pre``/``att_post``
     (G, 3, 3): covariance diagonals and attitude blocks. ``dx`` (G, n): the update
     corrections at the node (before any reset); ``linked`` (G,): False where a new chain
-    starts (node 0, the yaw alignment). With ``full``: ``P_pre``, ``P_post`` and the step
+    starts (node 0, a yaw (re-)acquisition). With ``full``: ``P_pre``, ``P_post`` and the step
     transitions ``Phi`` (into the node) (G, n, n), for the smoother.
     """
 
@@ -352,11 +353,11 @@ def _segment(
         x_pre, P_pre = filt.x, filt.P
         filt.t, filt.mat_nb, filt.vel_n = t_l[i], mat[i], vel[i]
         filt.lat, filt.lon, filt.alt_m = lat_l[i], lon_l[i], alt_l[i]
-        was_aligned = filt.yaw_aligned
+        epoch = filt.yaw_epoch
         for it in epochs.get(s + i, ()):
             filt.apply(it)
         if rec is not None:
-            rec.node(filt, x_pre, P_pre, Phi[j % _CHUNK], was_aligned == filt.yaw_aligned)
+            rec.node(filt, x_pre, P_pre, Phi[j % _CHUNK], epoch == filt.yaw_epoch)
         if filt.n_resets != resets:
             done = j + 1
             break

@@ -157,7 +157,7 @@ def fuse_graph(
     if rot_nb0 is not None and (not isinstance(rot_nb0, Rotation) or not rot_nb0.single):
         raise UserInputError("rot_nb0 must be a single scipy Rotation (body FLU -> ENU) or None")
     config = config_with_site(config, stacklevel=3)
-    arrays = validate_imu(imu, max_gap_s=config.max_gap_s)
+    arrays = validate_imu(imu, max_gap_s=config.max_gap_s, model=config.imu)
     meas = validate_measurements(measurements)
     tilt = config.tilt_coupling
     if tilt is None:
@@ -165,7 +165,7 @@ def fuse_graph(
     items = items_from_table(meas, use_sun=config.use_sun)
     prob = Problem(config, tilt, arrays.t, arrays.gyro_b, arrays.accel_b, items, rot_nb0)
     records = [
-        UpdateRecord(it.t, it.kind, 0, math.nan, False, "invalid measurement (NaN)")
+        UpdateRecord(it.t, it.kind, 0, math.nan, False, it.reason or "invalid measurement")
         for it in items
         if not it.valid
     ]

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.frames import skew
 from polins.fusion.measurement import ATT, VEL, as_mat_nb, non_holonomic_kernel, yaw_kernel
-from polins.models.loader import ImuModel
+from polins.models import ImuModel
 
 FloatArray = NDArray[np.float64]
 

@@ -1,0 +1,81 @@
+"""The ``polins tune`` command: the filter's noise fitted to a log by maximum likelihood of its innovations."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from polins.cli.common import ArgumentError, check, finite
+from polins.cli.fuse import filter_changes, filter_options_text
+from polins.errors import UserInputError
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from polins.fusion.config import FuseConfig
+    from polins.io import read_log, write_text_atomic
+    from polins.io.model_files import imu_model_toml
+    from polins.loop import LoopOptions, run_log
+    from polins.models import load_imu
+    from polins.tuning import tune
+    from polins.tuning.likelihood import check_params
+
+    out = Path(args.out)
+    check(out.suffix == ".toml", f"--out {out}: the tuned IMU model file must end in .toml")
+    check(not out.is_dir(), f"--out {out} is a folder; give a .toml file name")
+    check(args.workers is None or args.workers >= 1, f"--workers {args.workers}: expected >= 1")
+    try:
+        params = check_params([p.strip() for p in args.params.split(",") if p.strip()])
+    except UserInputError as exc:
+        raise ArgumentError(f"--params {args.params}: {exc}") from None
+    changes = filter_changes(args)
+    imu = None if args.imu is None else load_imu(args.imu)
+    log = read_log(args.manifest, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit,
+                   imu_model=imu)  # fmt: skip
+    config = FuseConfig.from_options(log.config, **changes)
+    config.check_backend("eskf")
+    # every image measured with the filter's prior (the loop), then the likelihood
+    options = LoopOptions(method=args.method)
+    first = run_log(log, options=options, config=config, workers=args.workers,
+                    progress=not args.quiet)  # fmt: skip
+    result = tune(log.imu, first.measurements, options.filter_config(config), params)
+    model = dataclasses.replace(result.config.imu, name=out.stem,
+                                description=f"{log.imu_model.name} tuned on {args.manifest}")  # fmt: skip
+    write_text_atomic(out, imu_model_toml(model, comments=result.comment_lines()))
+    print(result.report())
+    print(f"wrote {out}")
+    return 0
+
+
+def add_tune(sub: Any) -> None:
+    """Register ``polins tune``."""
+    p = sub.add_parser(
+        "tune", help="tune the filter's noise on a log (maximum likelihood of the innovations)",
+        epilog=filter_options_text(),
+    )  # fmt: skip
+    p.add_argument("manifest", help="manifest.toml of the log (or its folder)")
+    p.add_argument("--params", default="gyro_arw,yaw_floor_deg",
+                   help="comma-separated noise parameters: gyro_arw, gyro_bias_rw, accel_vrw, "
+                   "accel_bias_rw, yaw_floor_deg, yaw_std_scale, sun_floor_deg, sun_std_scale "
+                   "(docs/tuning.md)")  # fmt: skip
+    p.add_argument("--out", required=True, help="tuned IMU model TOML to write")
+    p.add_argument("--imu", default=None,
+                   help="IMU model name or .toml path to start from (None: the manifest's)")  # fmt: skip
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", default=None,
+                   help="filter option (polins fuse --list-options); repeatable")  # fmt: skip
+    p.add_argument("--scale-factors", action="store_true",
+                   help="estimate gyro/accel scale factors (= --set scale_factors=true)")  # fmt: skip
+    p.add_argument("--smooth", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--nhc", type=finite, default=None,
+                   help="non-holonomic constraint sigma [m/s] (None: off)")  # fmt: skip
+    p.add_argument("--method", choices=["compensated", "traditional", "paper"],
+                   default="compensated", help="heading estimator")  # fmt: skip
+    p.add_argument("--workers", type=int, default=None, help="image processes (None: all cores)")
+    p.add_argument("--gyro-unit", choices=["rad/s", "deg/s"], default=None,
+                   help="unit of gx, gy, gz (None: the file's or the manifest's, else rad/s)")  # fmt: skip
+    p.add_argument("--accel-unit", choices=["m/s^2", "g"], default=None,
+                   help="unit of ax, ay, az (None: the file's or the manifest's, else m/s^2)")  # fmt: skip
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=cmd_tune)

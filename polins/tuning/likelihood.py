@@ -1,0 +1,354 @@
+"""Maximum-likelihood tuning of named noise parameters from the filter's innovation likelihood, with identifiability.
+
+The innovations of a Kalman filter are independent Gaussians ``nu_k ~ N(0, S_k)`` when its
+noise model is right, so the negative log-likelihood of a log under noise parameters
+``theta`` is (docs/tuning.md)::
+
+    L(theta) = 1/2 sum_k [ log det(2 pi S_k) + nu_k' S_k^-1 nu_k ]
+
+summed over the accepted updates of :func:`polins.fusion.run_fusion` run without a gate
+(a gate would make ``L`` jump where an update crosses it). :func:`tune` minimizes ``L`` over
+the logarithms of the parameters (bounded L-BFGS-B), and judges each parameter by its
+Cramér-Rao sigma in log space from the observed Fisher information, the numerical Hessian
+of ``L`` at the optimum (``scipy.differentiate.hessian``): a parameter whose log-sigma
+exceeds ``max_log_sigma`` (default log 2: the log cannot tell it from half or double) is
+unidentifiable. Unidentifiable parameters keep their starting values; the identifiable ones
+are refitted with the others held there.
+
+Parameters (:data:`PARAMETERS`): the white-noise and random-walk densities of the IMU model
+(SI, :class:`polins.models.ImuModel` fields), ``yaw_floor_deg`` / ``sun_floor_deg``, a
+floor [deg] added in quadrature to every ``yaw_std`` / ``sun_std`` of the measurements, and
+``yaw_std_scale`` / ``sun_std_scale``, a factor on them (applied before the floor).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+from scipy.differentiate import hessian
+from scipy.optimize import minimize
+
+from polins.errors import UserInputError
+from polins.fusion import FuseConfig, FusionResult, run_fusion
+from polins.tuning.innovations import InnovationStats, innovation_arrays, innovation_stats
+
+FloatArray = NDArray[np.float64]
+
+PARAMETERS: dict[str, str] = {
+    "gyro_arw": "gyro angle random walk [rad/sqrt(s)]",
+    "gyro_bias_rw": "gyro bias random walk [rad/s/sqrt(s)]",
+    "accel_vrw": "accelerometer velocity random walk [m/s/sqrt(s)]",
+    "accel_bias_rw": "accelerometer bias random walk [m/s^2/sqrt(s)]",
+    "yaw_floor_deg": "floor added in quadrature to every yaw_std [deg]",
+    "sun_floor_deg": "floor added in quadrature to every sun_std [deg]",
+    "yaw_std_scale": "factor on every yaw_std [-]",
+    "sun_std_scale": "factor on every sun_std [-]",
+}
+_FLOOR_COLUMNS = {"yaw_floor_deg": "yaw_std", "sun_floor_deg": "sun_std"}
+_SCALE_COLUMNS = {"yaw_std_scale": "yaw_std", "sun_std_scale": "sun_std"}
+_TABLE_PARAMS = {**_FLOOR_COLUMNS, **_SCALE_COLUMNS}
+_FLOOR_START_DEG = 0.05  # a floor's start when none is given and the log asks for none
+
+
+def check_params(params: Sequence[str]) -> tuple[str, ...]:
+    """``params`` as a tuple, each a key of :data:`PARAMETERS` (else ``UserInputError``)."""
+    unknown = [p for p in params if p not in PARAMETERS]
+    if unknown or not params:
+        raise UserInputError(
+            f"unknown noise parameter(s) {unknown or '(none given)'}: expected some of "
+            f"{', '.join(PARAMETERS)}"
+        )
+    if len(set(params)) != len(params):
+        raise UserInputError(f"noise parameters given twice: {list(params)}")
+    return tuple(params)
+
+
+def with_values(
+    config: FuseConfig, measurements: pd.DataFrame, values: Mapping[str, float]
+) -> tuple[FuseConfig, pd.DataFrame]:
+    """The configuration and measurements table with the noise ``values`` (:data:`PARAMETERS`).
+
+    IMU terms replace the model's (``dataclasses.replace`` of the frozen ``ImuModel``);
+    a sigma column is first multiplied by its scale, then its floor is added in quadrature.
+    """
+    imu_values: dict[str, Any] = {k: float(v) for k, v in values.items() if k not in _TABLE_PARAMS}
+    if imu_values:
+        model = dataclasses.replace(config.imu, **imu_values)
+        config = dataclasses.replace(config, imu_model=model)
+    if any(k in _TABLE_PARAMS for k in values):
+        measurements = measurements.copy()
+        for col in ("yaw_std", "sun_std"):
+            if col not in measurements.columns:
+                continue
+            std = measurements[col].to_numpy(dtype=float)
+            for name, value in values.items():
+                if _SCALE_COLUMNS.get(name) == col:
+                    std = std * value
+            for name, value in values.items():
+                if _FLOOR_COLUMNS.get(name) == col:
+                    std = np.hypot(std, math.radians(value))
+            measurements[col] = std
+    return config, measurements
+
+
+def negative_log_likelihood(updates: pd.DataFrame) -> float:
+    """``1/2 sum [log det(2 pi S) + nu' S^-1 nu]`` over the accepted updates with an
+    innovation (the ``updates`` table of :class:`polins.fusion.FusionResult`)."""
+    total = 0.0
+    for kind in pd.unique(updates["name"]):
+        _, nu, S = innovation_arrays(updates, str(kind))
+        if nu.shape[0] == 0:
+            continue
+        _, logdet = np.linalg.slogdet(2.0 * np.pi * S)
+        nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S, nu[..., None])[..., 0])
+        total += 0.5 * float(np.sum(logdet + nis))
+    return total
+
+
+@dataclass(frozen=True, eq=False)
+class TuneResult:
+    """What :func:`tune` returns.
+
+    Attributes
+    ----------
+    params : tuple of str
+        The tuned parameters (:data:`PARAMETERS`).
+    initial, estimate, values : dict of str to float
+        Start values; the maximum-likelihood estimates (of every parameter, identifiable or
+        not); the values of the tuned run (the estimate if identifiable, else the start).
+    cr_sigma_log : dict of str to float
+        Cramér-Rao sigma of each parameter's natural logarithm (inf: no information).
+    identifiable : dict of str to bool
+        ``cr_sigma_log <= max_log_sigma``.
+    nll_before, nll_after : float
+        Negative log-likelihood (ungated) at the start and at ``values``.
+    stats_before, stats_after : dict of str to InnovationStats
+        Innovation statistics per kind with the start and the tuned values (gated as
+        ``config``).
+    config : FuseConfig
+        The tuned configuration (its IMU model carries the tuned densities).
+    measurements : DataFrame
+        The measurements table with the tuned floors.
+    before, after : FusionResult
+        The two runs the statistics come from.
+    n_evaluations : int
+        Filter runs spent on the likelihood.
+    """
+
+    params: tuple[str, ...]
+    initial: dict[str, float]
+    estimate: dict[str, float]
+    values: dict[str, float]
+    cr_sigma_log: dict[str, float]
+    identifiable: dict[str, bool]
+    nll_before: float
+    nll_after: float
+    stats_before: dict[str, InnovationStats]
+    stats_after: dict[str, InnovationStats]
+    config: FuseConfig
+    measurements: pd.DataFrame
+    before: FusionResult
+    after: FusionResult
+    n_evaluations: int
+
+    @property
+    def unidentifiable(self) -> list[str]:
+        """The parameters the log cannot identify (kept at their start values)."""
+        return [p for p in self.params if not self.identifiable[p]]
+
+    def comment_lines(self) -> list[str]:
+        """The tuning as comment lines of a tuned IMU model file (``polins tune --out``)."""
+        lines = ["tuned by maximum likelihood of the filter's innovations (polins.tuning.tune):"]
+        for p in self.params:
+            state = (f"identified, Cramér-Rao x/÷ {math.exp(self.cr_sigma_log[p]):.3g}"
+                     if self.identifiable[p] else "NOT identifiable from this log: kept")  # fmt: skip
+            lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state})")
+            if p in _TABLE_PARAMS:
+                lines.append(f"    applies to every {_TABLE_PARAMS[p]} (not an IMU term)")
+        for kind, st in self.stats_after.items():
+            lines.append(f"  {kind}: mean NIS {st.nis_mean:.3g} in {st.nis_band[0]:.3g} .. "
+                         f"{st.nis_band[1]:.3g} ({st.verdict})")  # fmt: skip
+        return lines
+
+    def report(self) -> str:
+        """A few lines: per parameter start -> tuned (CR sigma), then NIS before/after."""
+        lines = ["parameter        start        tuned        CR sigma (x/÷)  identifiable"]
+        for p in self.params:
+            sigma = self.cr_sigma_log[p]
+            factor = f"{math.exp(sigma):.3g}" if sigma < math.log(1e3) else "> 1000"
+            lines.append(
+                f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} "
+                f"{factor:<15} {'yes' if self.identifiable[p] else 'no: kept at start'}"
+            )
+        lines.append(f"negative log-likelihood {self.nll_before:.1f} -> {self.nll_after:.1f}")
+        for kind, after in self.stats_after.items():
+            b = self.stats_before.get(kind)
+            start = f"{b.nis_mean:.3g} ({b.verdict})" if b else "-"
+            lines.append(
+                f"{kind} NIS mean {start} -> {after.nis_mean:.3g} ({after.verdict}); "
+                f"band {after.nis_band[0]:.3g} .. {after.nis_band[1]:.3g}; lag-1 autocorr "
+                f"{after.autocorr[0] if after.autocorr.size else math.nan:.3f} "
+                f"(white within ±{after.autocorr_band:.3f})"
+            )
+        return "\n".join(lines)
+
+
+def _start_values(
+    config: FuseConfig, params: tuple[str, ...], initial: Mapping[str, float]
+) -> dict[str, float]:
+    """Start values: ``initial``, else the IMU model's, a floor of 0.05 deg, a scale of 1."""
+    start: dict[str, float] = {}
+    for p in params:
+        value = initial.get(p)
+        if value is None and p in _TABLE_PARAMS:
+            value = _FLOOR_START_DEG if p in _FLOOR_COLUMNS else 1.0
+        elif value is None:
+            value = float(getattr(config.imu, p))
+        if not (math.isfinite(value) and value > 0):
+            raise UserInputError(
+                f"the start value of {p} must be > 0 (the search runs over its logarithm), "
+                f"got {value}"
+            )
+        start[p] = float(value)
+    return start
+
+
+def _fisher_sigma(H: FloatArray) -> FloatArray:
+    """Cramér-Rao sigmas ``sqrt(diag(H^-1))`` of a symmetric information matrix; a
+    direction without information (eigenvalue <= 0) gives inf to the parameters in it."""
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    tiny = 1e-9 * max(float(np.max(np.abs(w))), 1e-300)
+    var = np.where(w > tiny, 1.0 / np.where(w > tiny, w, 1.0), np.inf)
+    weights = V**2
+    with np.errstate(invalid="ignore"):
+        out = np.where(weights > 1e-6, weights * var, 0.0).sum(axis=1)
+    return np.sqrt(out)
+
+
+def _hessian(f: Callable[[FloatArray], float], x: FloatArray, step: float) -> FloatArray:
+    """Central-difference Hessian of ``f`` at ``x`` (``scipy.differentiate.hessian``)."""
+
+    def vectorized(xi: FloatArray) -> FloatArray:
+        out = np.empty(xi.shape[1:])
+        for idx in np.ndindex(*xi.shape[1:]):
+            out[idx] = f(xi[(slice(None), *idx)])
+        return out
+
+    res = hessian(vectorized, x, order=2, maxiter=1, initial_step=step)
+    return np.asarray(res.ddf, dtype=float)
+
+
+def tune(
+    imu: pd.DataFrame,
+    measurements: pd.DataFrame,
+    config: FuseConfig | None = None,
+    params: Sequence[str] = ("gyro_arw", "yaw_floor_deg"),
+    *,
+    initial: Mapping[str, float] | None = None,
+    rot_nb0: Any = None,
+    max_log_sigma: float = math.log(2.0),
+    search_factor: float = 100.0,
+    hessian_step: float = 0.2,
+    prob: float = 0.95,
+) -> TuneResult:
+    """Tune noise parameters by maximum likelihood of the filter's innovations.
+
+    Parameters
+    ----------
+    imu, measurements : DataFrame
+        The IMU log and measurements table of :func:`polins.fusion.run_fusion`.
+    config : FuseConfig, optional
+        The filter configuration (its IMU model gives the IMU parameters' start values).
+    params : sequence of str
+        Names of :data:`PARAMETERS` to tune.
+    initial : mapping, optional
+        Start values by name (units of :data:`PARAMETERS`); default the model's, and
+        0.05 deg for a floor.
+    rot_nb0 : Rotation, optional
+        Initial attitude (None: self-alignment), as in ``run_fusion``.
+    max_log_sigma : float
+        Largest Cramér-Rao sigma of ``log(parameter)`` of an identifiable parameter.
+    search_factor : float
+        The search stays within start ``/ search_factor .. * search_factor``.
+    hessian_step : float
+        Step of the numerical Hessian in log space.
+    prob : float
+        Probability of the NIS and whiteness bands (:func:`innovation_stats`).
+
+    Returns
+    -------
+    TuneResult
+    """
+    params = check_params(params)
+    cfg = config or FuseConfig()
+    start = _start_values(cfg, params, initial or {})
+    ungated = dataclasses.replace(cfg, gate_prob=None, smooth=False)
+    count = [0]
+
+    def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
+        c, m = with_values(base, measurements, values)
+        count[0] += 1
+        return run_fusion(imu, m, rot_nb0=rot_nb0, config=c)
+
+    def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
+        values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}
+        return negative_log_likelihood(run(values, ungated).updates)
+
+    def fit(names: tuple[str, ...], fixed: Mapping[str, float], x0: FloatArray) -> FloatArray:
+        theta0 = np.log([start[p] for p in names])
+        half = math.log(search_factor)
+        res = minimize(
+            nll, x0, args=(names, fixed), method="L-BFGS-B",
+            bounds=[(t - half, t + half) for t in theta0], options={"eps": 1e-3, "ftol": 1e-7},
+        )  # fmt: skip
+        return np.asarray(res.x, dtype=float)
+
+    theta_start = np.log([start[p] for p in params])
+    theta = fit(params, {}, theta_start)
+    H = _hessian(lambda th: nll(th, params, {}), theta, hessian_step)
+    sigma = _fisher_sigma(H)
+    ident = {p: bool(s <= max_log_sigma) for p, s in zip(params, sigma, strict=True)}
+    estimate = dict(zip(params, np.exp(theta).tolist(), strict=True))
+    values = {p: estimate[p] if ident[p] else start[p] for p in params}
+    free = tuple(p for p in params if ident[p])
+    if free and len(free) < len(params):  # refit with the unidentifiable at their start
+        fixed = {p: start[p] for p in params if not ident[p]}
+        theta_free = fit(free, fixed, np.log([estimate[p] for p in free]))
+        values.update(zip(free, np.exp(theta_free).tolist(), strict=True))
+    before = run(start, cfg)
+    after = run(values, cfg)
+    tuned_config, tuned_meas = with_values(cfg, measurements, values)
+    return TuneResult(
+        params=params,
+        initial=start,
+        estimate=estimate,
+        values=values,
+        cr_sigma_log=dict(zip(params, sigma.tolist(), strict=True)),
+        identifiable=ident,
+        nll_before=nll(theta_start, params, {}),
+        nll_after=nll(np.log([values[p] for p in params]), params, {}),
+        stats_before=innovation_stats(before.updates, prob=prob),
+        stats_after=innovation_stats(after.updates, prob=prob),
+        config=tuned_config,
+        measurements=tuned_meas,
+        before=before,
+        after=after,
+        n_evaluations=count[0],
+    )
+
+
+__all__ = [
+    "PARAMETERS",
+    "TuneResult",
+    "check_params",
+    "negative_log_likelihood",
+    "tune",
+    "with_values",
+]
