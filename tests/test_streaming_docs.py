@@ -38,7 +38,7 @@ def stream(**kwargs) -> NavigationStream:
 
 
 def feed(nav: NavigationStream, imu: np.ndarray, t_end: float) -> None:
-    for row in imu[(imu[:, 0] <= t_end + 1e-9) & (imu[:, 0] > nav._t_latest)]:
+    for row in imu[(imu[:, 0] <= t_end + 1e-9) & (imu[:, 0] > nav.t_latest)]:
         nav.add_imu(row[0], row[1:4], row[4:7])
 
 
@@ -129,7 +129,7 @@ def test_data_faults_return_false_and_report_events_never_raise():
     imu = static_imu(3.0)
     nav = stream()
     feed(nav, imu, 1.5)
-    t = nav._t_latest
+    t = nav.t_latest
     assert not nav.add_imu(t + 0.005, [np.nan, 0, 0], [0, 0, 9.8])  # imu-nonfinite
     assert not nav.add_imu(t, imu[0, 1:4], imu[0, 4:7])  # imu-out-of-order
     assert nav.add_imu(t + 0.5, imu[0, 1:4], imu[0, 4:7])  # imu-gap, propagated across
@@ -168,7 +168,7 @@ def test_buffers_are_bounded_and_count_what_they_drop():
     nav = stream(options=LoopOptions(max_table_rows=5))
     imu = static_imu(1.5)
     feed(nav, imu, 1.5)
-    t = nav._t_latest
+    t = nav.t_latest
     for _ in range(8):
         nav.add_imu(t, imu[0, 1:4], imu[0, 4:7])  # 8 out-of-order events
     assert nav.events_dropped == 3 and len(nav.drain_events()) == 5
@@ -190,3 +190,22 @@ def test_a_run_inside_one_snapshot_cell_is_filtered():
     runner.run(samples[:101])  # up to t = 0.5 s
     runner.run(samples[101:104])  # 0.505 .. 0.515 s: inside the 0.5 s cell
     assert runner.filter.t == pytest.approx(0.515)
+
+
+def test_add_imu_checks_units_like_the_cli_and_drops_out_of_range_samples():
+    """Specific force in g is a user mistake once the levelling window is full (one line,
+    before any heading); a sample beyond the full scale is dropped with an event."""
+    from polins.errors import UserInputError
+
+    imu = static_imu(3.0)
+    nav = stream()
+    gyro_max, _ = MODEL.full_scale()
+    assert nav.add_imu(imu[0, 0], imu[0, 1:4], imu[0, 4:7])
+    assert not nav.add_imu(imu[1, 0], [2.0 * gyro_max, 0.0, 0.0], imu[1, 4:7])
+    assert nav.counts["imu-out-of-range"] == 1
+    feed(nav, imu, 2.5)  # the window closes: SI data pass the check
+    assert nav.t_latest == pytest.approx(2.5)
+    in_g = stream()
+    with pytest.raises(UserInputError, match="looks like g"):
+        for row in imu:
+            in_g.add_imu(row[0], row[1:4], row[4:7] / 9.80665)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from polins.errors import UserInputError
 from polins.fusion.result import FusionEvent
@@ -126,25 +126,7 @@ def validate_imu(
         w = np.linalg.norm(data[:, 1:4], axis=1)
         f = np.linalg.norm(data[:, 4:7], axis=1)
     finite = np.isfinite(data[:, 1:]).all(axis=1)
-    if np.percentile(np.where(finite, w, 0.0), 99) > gyro_max:
-        raise UserInputError(
-            f"imu: the gyro magnitude exceeds the full scale {gyro_max:.3g} rad/s "
-            f"({np.degrees(gyro_max):.4g} deg/s) in more than 1 % of the samples (99th "
-            f"percentile {np.percentile(np.where(finite, w, 0.0), 99):.3g}); the gyro looks "
-            "like deg/s: multiply by pi/180 (or set range_deg_per_s in the IMU model)"
-        )
-    f_med = float(np.median(f[finite])) if finite.any() else math.nan
-    lo, hi = ACCEL_MEDIAN_RANGE
-    if not lo <= f_med <= hi:
-        hint = ""
-        if 0.6 <= f_med <= 1.4:
-            hint = " It looks like g: multiply by 9.80665."
-        elif 600.0 <= f_med <= 1400.0:
-            hint = " It looks like mg: multiply by 9.80665e-3."
-        raise UserInputError(
-            f"imu: median specific force |f| = {f_med:.4g} is not ~9.8 m/s^2 (expected "
-            f"{lo}-{hi} m/s^2 near the Earth's surface).{hint}"
-        )
+    check_imu_units(w[finite], f[finite], gyro_max)
     events = []
     for i in np.flatnonzero(~finite).tolist():
         events.append(FusionEvent(float(t[i]), "imu-nonfinite", "IMU sample with NaN/inf dropped"))
@@ -165,6 +147,44 @@ def validate_imu(
     gaps = np.flatnonzero(d > limit)
     return ImuArrays(t=t.copy(), gyro_b=data[:, 1:4].copy(), accel_b=data[:, 4:7].copy(),
                      dt=dt, events=tuple(events), gaps=gaps)  # fmt: skip
+
+
+def check_imu_units(gyro_norm: ArrayLike, accel_norm: ArrayLike, gyro_max: float) -> None:
+    """Raise ``UserInputError`` if IMU samples look like the wrong units.
+
+    Parameters
+    ----------
+    gyro_norm, accel_norm : (N,) array_like
+        |gyro| [rad/s] and |specific force| [m/s^2] of finite samples.
+    gyro_max : float
+        The gyro's full scale [rad/s]: more than 1 % of the samples beyond it is deg/s data.
+
+    Raises
+    ------
+    UserInputError
+        The gyro looks like deg/s, or the median |f| is not ~9.8 m/s^2 (g or mg named).
+    """
+    w = np.asarray(gyro_norm, dtype=float)
+    f = np.asarray(accel_norm, dtype=float)
+    if w.size and np.percentile(w, 99) > gyro_max:
+        raise UserInputError(
+            f"imu: the gyro magnitude exceeds the full scale {gyro_max:.3g} rad/s "
+            f"({np.degrees(gyro_max):.4g} deg/s) in more than 1 % of the samples (99th "
+            f"percentile {np.percentile(w, 99):.3g}); the gyro looks like deg/s: multiply by "
+            "pi/180 (or set range_deg_per_s in the IMU model)"
+        )
+    f_med = float(np.median(f)) if f.size else math.nan
+    lo, hi = ACCEL_MEDIAN_RANGE
+    if not lo <= f_med <= hi:
+        hint = ""
+        if 0.6 <= f_med <= 1.4:
+            hint = " It looks like g: multiply by 9.80665."
+        elif 600.0 <= f_med <= 1400.0:
+            hint = " It looks like mg: multiply by 9.80665e-3."
+        raise UserInputError(
+            f"imu: median specific force |f| = {f_med:.4g} is not ~9.8 m/s^2 (expected "
+            f"{lo}-{hi} m/s^2 near the Earth's surface).{hint}"
+        )
 
 
 def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:

@@ -66,6 +66,7 @@ from polins.fusion.eskf.filter import ESKF, config_with_site
 from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.fusion.items import UpdateRecord
 from polins.ins.state import NavState
+from polins.loop.imu_gate import ImuGate
 from polins.loop.measurer import EXECUTORS, ImageMeasurer, PendingImage, make_executor
 from polins.loop.options import LoopOptions
 from polins.loop.prior import Sample, SunGrid, propagate_nominal
@@ -201,10 +202,9 @@ class NavigationStream:
         self._by_t: dict[float, dict[str, Any]] = {}  # handed over, awaiting the verdict
         self._rows: deque[dict[str, Any]] = deque(maxlen=self.options.max_table_rows)
         self._events = EventBuffer(self.options.max_table_rows)
-        self.n_imu = 0  # accepted IMU samples
+        self._gate = ImuGate(self._events, imu_model.full_scale(), self.config.align_s,
+                             self.options.max_imu_gap_s)  # fmt: skip
         self.n_images = 0  # images added (including skipped ones)
-        self._t_latest = -math.inf  # newest accepted IMU time
-        self._t_first = math.nan  # first accepted IMU time (the filter's start)
         self._t_last_image = -math.inf
         self._head: ESKF | None = None
         self._head_valid = False
@@ -221,6 +221,11 @@ class NavigationStream:
         """The filter's snapshots (the image priors start from them)."""
         assert self._runner is not None, "no snapshots before the first IMU sample"
         return self._runner.snaps
+
+    @property
+    def t_latest(self) -> float:
+        """Time of the newest accepted IMU sample [s] (-inf before the first)."""
+        return self._gate.t_latest
 
     @property
     def counts(self) -> dict[str, int]:
@@ -283,26 +288,13 @@ class NavigationStream:
 
     def _accept(self, t: float, w: FloatArray, f: FloatArray) -> bool:
         """The IMU sample policy (module docstring); an accepted sample joins the buffer."""
-        if not (math.isfinite(t) and np.all(np.isfinite(w)) and np.all(np.isfinite(f))):
-            self._events.add(t, "imu-nonfinite", "IMU sample with NaN/inf dropped")
+        if not self._gate.accept(t, w, f):
             return False
-        if t <= self._t_latest:
-            what = "duplicated" if t == self._t_latest else "out-of-order"
-            self._events.add(t, "imu-out-of-order",
-                             f"{what} IMU sample dropped (previous t={self._t_latest!r})")  # fmt: skip
-            return False
-        if self.n_imu and t - self._t_latest > self.options.max_imu_gap_s:
-            self._events.add(t, "imu-gap",
-                             f"{t - self._t_latest:.4g} s without IMU data after "
-                             f"t={self._t_latest:.6f}; propagated across")  # fmt: skip
         if self._runner is None:
-            self._t_first = t
             self._runner = FilterRunner(self.config, t, self.imu_dt, self.rot_nb0,
                                         snapshot_every_s=self.options.snapshot_every_s,
                                         record_solution=self.options.record_solution,
                                         max_rows=self.options.max_table_rows)  # fmt: skip
-        self._t_latest = t
-        self.n_imu += 1
         sample = (t, w, f)
         self._buf.append(sample)
         if self._head is not None and self._head_valid:
@@ -353,11 +345,11 @@ class NavigationStream:
             self._skip(index, t, "image-out-of-order",
                        f"{what} time not after the previous one (t={self._t_last_image!r})")  # fmt: skip
             return False
-        if f is None or t < self._t_first - self._tol:
+        if f is None or t < self._gate.t_first - self._tol:
             self._skip(index, t, "image-outside-imu", f"{what} before the first IMU sample")
             return False
         align_s = self.config.align_s
-        if self.rot_nb0 is None and t <= self._t_first + align_s + self._tol:
+        if self.rot_nb0 is None and t <= self._gate.t_first + align_s + self._tol:
             self._skip(index, t, "image-during-alignment",
                        f"{what} inside the levelling window ({align_s} s)")  # fmt: skip
             return False
@@ -436,7 +428,7 @@ class NavigationStream:
         """The snapshot of ``img`` is final and the IMU reaches the image."""
         f = self.filter
         assert f is not None
-        if not f.ready or not self._snaps or self._t_latest < img.t - self._tol:
+        if not f.ready or not self._snaps or self._gate.t_latest < img.t - self._tol:
             return False
         # no later snapshot can be older than the limit once the next sample is past it
         return not self._buf or self._buf[0][0] >= self._snapshot_limit(img)
@@ -528,7 +520,7 @@ class NavigationStream:
         and not inside the window where a late image may still come (at least one)."""
         tol = self._tol
         t_image = self._images[0].t - tol if self._images else math.inf
-        t_wait = -math.inf if final else max(self._t_latest - self.options.max_image_delay_s,
+        t_wait = -math.inf if final else max(self._gate.t_latest - self.options.max_image_delay_s,
                                               self._t_last_image)  # fmt: skip
         n = 1
         while (
@@ -584,7 +576,11 @@ class NavigationStream:
                     self._hand_over(img)
                     progressed = True
                     continue
-                if not final and t_next > self._t_latest - delay and t_next > self._t_last_image:
+                if (
+                    not final
+                    and t_next > self._gate.t_latest - delay
+                    and t_next > self._t_last_image
+                ):
                     break  # an image up to max_image_delay_s late may still come
                 self._filter_run(self._runnable(final))
                 progressed = True

@@ -7,6 +7,7 @@ and a detail text, so a user can count and filter them. The data faults of the l
 * IMU sample with NaN/inf: dropped (``imu-nonfinite``).
 * IMU sample not after the previous accepted one (duplicate or out of order): dropped
   (``imu-out-of-order``).
+* IMU sample beyond the IMU model's full scale: dropped (``imu-out-of-range``).
 * IMU gap longer than ``max_imu_gap_s``: reported (``imu-gap``) and propagated across with
   the rates interpolated linearly (the covariance grows with the gap).
 * Image not after the previous image: skipped (``image-out-of-order``).
@@ -35,6 +36,7 @@ EVENT_KINDS = (
     "imu-nonfinite",
     "imu-out-of-order",
     "imu-gap",
+    "imu-out-of-range",
     "image-out-of-order",
     "image-late",
     "image-outside-imu",
