@@ -158,28 +158,35 @@ def concatenate(states: Sequence[NavState]) -> NavState:
 
 
 def _euler_std(yaw: FloatArray, pitch: FloatArray, att_cov: FloatArray) -> FloatArray:
-    """1-sigma of (yaw, pitch, roll) from the attitude-error covariance: sqrt diag(J P J^T)."""
-    jac = euler_jacobian(yaw, pitch)
-    var = (jac @ att_cov * jac).sum(axis=-1)
-    return np.sqrt(np.clip(var, 0.0, None))
+    """1-sigma of (yaw, pitch, roll) from the attitude-error covariance: sqrt diag(J P J^T),
+    ``(..., 3)``, with ``J`` of :func:`euler_jacobian` row by row (no batched 3x3 products:
+    this runs for every output row)."""
+    p = np.asarray(att_cov)
+    p00, p11, p22 = p[..., 0, 0], p[..., 1, 1], p[..., 2, 2]
+    p01, p02, p12 = p[..., 0, 1], p[..., 0, 2], p[..., 1, 2]
+    var = [
+        a * a * p00 + b * b * p11 + c * c * p22 + 2.0 * (a * b * p01 + a * c * p02 + b * c * p12)
+        for a, b, c in _euler_jacobian_rows(yaw, pitch)
+    ]
+    return np.sqrt(np.clip(np.stack(var, axis=-1), 0.0, None))
+
+
+def _euler_jacobian_rows(yaw: ArrayLike, pitch: ArrayLike) -> list[tuple[Any, Any, Any]]:
+    """The rows (yaw, pitch, roll) of :func:`euler_jacobian`, each as three arrays."""
+    yaw = np.asarray(yaw, dtype=float)
+    pitch = np.asarray(pitch, dtype=float)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, tp = np.cos(pitch), np.tan(pitch)
+    return [(cy * tp, sy * tp, 1.0), (-sy, cy, 0.0), (cy / cp, sy / cp, 0.0)]
 
 
 def euler_jacobian(yaw: ArrayLike, pitch: ArrayLike) -> FloatArray:
     """``d(yaw, pitch, roll) / d(dtheta)`` for ``rot_true = exp(dtheta) rot_nb`` (ENU,
     ZYX Euler angles), ``(..., 3, 3)``; singular at pitch = +-90 deg."""
-    yaw = np.asarray(yaw, dtype=float)
-    pitch = np.asarray(pitch, dtype=float)
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    cp, tp = np.cos(pitch), np.tan(pitch)
-    jac = np.zeros((*yaw.shape, 3, 3))
-    jac[..., 0, 0] = cy * tp
-    jac[..., 0, 1] = sy * tp
-    jac[..., 0, 2] = 1.0
-    jac[..., 1, 0] = -sy
-    jac[..., 1, 1] = cy
-    jac[..., 2, 0] = cy / cp
-    jac[..., 2, 1] = sy / cp
-    return jac
+    rows = _euler_jacobian_rows(yaw, pitch)
+    shape = np.shape(yaw)
+    return np.stack([np.stack(np.broadcast_arrays(*r, np.zeros(shape))[:3], axis=-1)
+                     for r in rows], axis=-2)  # fmt: skip
 
 
 def solution_table(state: NavState) -> pd.DataFrame:
@@ -231,4 +238,5 @@ def solution_table(state: NavState) -> pd.DataFrame:
         cols.update(zip((f"{c}_std" for c in _NAV_COLUMNS["pos"]), sig.T, strict=True))
     quat = state.rot_nb.as_quat()
     cols["qw"], cols["qx"], cols["qy"], cols["qz"] = quat[:, 3], quat[:, 0], quat[:, 1], quat[:, 2]
-    return pd.DataFrame(cols)
+    # the columns are arrays made for this table or the state built for it: no second copy
+    return pd.DataFrame(cols, copy=False)
