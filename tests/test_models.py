@@ -242,3 +242,14 @@ def test_calibration_kinds_match_the_estimators():
     from polins.models import CALIBRATION_KINDS
 
     assert set(KINDS) == set(CALIBRATION_KINDS)
+
+
+def test_pixel_pitch_is_optional(tmp_path):
+    """A camera file without pixel_pitch_um loads, and writes back without it."""
+    from polins.io.model_files import camera_model_toml
+
+    text = re.sub(r"pixel_pitch_um = .*\n", "", CAMERA)
+    cam = polins.load_camera(_write(tmp_path, text))
+    assert cam.pixel_pitch_um is None
+    assert "pixel_pitch_um" not in camera_model_toml(cam)
+    assert polins.load_camera("paper-table1").pixel_pitch_um > 0

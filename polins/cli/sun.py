@@ -155,7 +155,10 @@ def add_sun(sub: Any) -> None:
 def add_heading(sub: Any) -> None:
     """Register ``polins heading``."""
     p = sub.add_parser("heading", help="heading from one raw polarization image (PNG/TIFF)")
-    p.add_argument("image", help="raw DoFP mosaic, 8/16-bit unsigned PNG or TIFF, full size")
+    p.add_argument(
+        "image",
+        help="raw DoFP mosaic, full size: 8-bit, or 12/16-bit in a 16-bit unsigned PNG or TIFF (the camera file's bit_depth)",
+    )
     p.add_argument("--camera", default="paper-table1", help="camera model name or .toml path")
     add_site_args(p, required=False)
     p.add_argument("--sun-azimuth-prior", type=finite, default=None,

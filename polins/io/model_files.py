@@ -113,10 +113,10 @@ def camera_model_toml(
         "sensor": {
             "width_px": cam.width_px,
             "height_px": cam.height_px,
-            "pixel_pitch_um": cam.pixel_pitch_um,
             "bit_depth": cam.bit_depth,
             "saturation_dn": cam.saturation_dn,
             "mosaic_layout_deg": cam.nominal_angle_deg[cam.channel_at],
+            **({} if cam.pixel_pitch_um is None else {"pixel_pitch_um": cam.pixel_pitch_um}),
         },
         "polarizer": {
             "nominal_angle_deg": cam.nominal_angle_deg,

@@ -115,7 +115,7 @@ _CAMERA_SCHEMA: Schema = {
     "sensor": {
         "width_px": integer,
         "height_px": integer,
-        "pixel_pitch_um": positive,
+        "pixel_pitch_um": Optional(positive),  # informative: no computation uses it
         "bit_depth": integer,
         "saturation_dn": positive,
         "mosaic_layout_deg": matrix(2, 2),
@@ -180,7 +180,7 @@ class CameraModel:
     path: Path
     width_px: int  # full-resolution mosaic width
     height_px: int
-    pixel_pitch_um: float
+    pixel_pitch_um: float | None  # [um], optional in the file: no computation uses it
     bit_depth: int
     saturation_dn: float
     channel_at: NDArray[np.int_]  # (2, 2): channel index at mosaic position (row % 2, col % 2)
@@ -430,7 +430,7 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
         path=path,
         width_px=s["width_px"],
         height_px=s["height_px"],
-        pixel_pitch_um=s["pixel_pitch_um"],
+        pixel_pitch_um=s.get("pixel_pitch_um"),
         bit_depth=s["bit_depth"],
         saturation_dn=s["saturation_dn"],
         channel_at=channel_at,
