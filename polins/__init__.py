@@ -63,6 +63,7 @@ from polins.frames import (
     yaw_from_heading_deg,
 )
 from polins.models import CameraModel, ImuModel, load_camera, load_imu
+from polins.site import Site
 from polins.sky.ephemeris import SunPosition, sun_position, sun_vector_n
 
 __version__ = "0.1.0"
@@ -91,6 +92,7 @@ __all__ = [
     "ImuModel",
     "Measurement",
     "NavigationStream",
+    "Site",
     "SunPosition",
     "fuse",
     "heading_deg_from_yaw",
