@@ -178,8 +178,7 @@ def test_buffers_are_bounded_and_count_what_they_drop():
 def test_a_run_inside_one_snapshot_cell_is_filtered():
     """A run of several samples that starts no snapshot cell (an image handed over 10 ms
     after the previous run) is filtered, not a crash (polins.loop.runner)."""
-    from polins.fusion.config import FuseConfig
-    from polins.fusion.eskf.filter import config_with_site
+    from polins.fusion.config import FuseConfig, config_with_site
     from polins.loop.runner import FilterRunner
 
     imu = static_imu(2.0)

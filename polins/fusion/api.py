@@ -10,9 +10,9 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import FuseConfig, config_with_site
 from polins.fusion.eskf.acquisition import gap_variance
-from polins.fusion.eskf.filter import ESKF, config_with_site
+from polins.fusion.eskf.filter import ESKF
 from polins.fusion.eskf.propagate import advance, interpolate
 from polins.fusion.eskf.smoother import rts_smooth
 from polins.fusion.inputs import (

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +20,7 @@ from typing import Any
 
 from polins.errors import UnknownOptionError, UserInputError
 from polins.models import ImuModel, load_imu
-from polins.site import Site
+from polins.site import PAPER_SITE, Site
 
 BACKENDS = ("eskf", "graph")
 SOLVERS = ("batch", "isam2", "fixed_lag")
@@ -293,3 +294,18 @@ def parse_option_value(name: str, text: str) -> Any:
 def config_from_mapping(table: Mapping[str, Any], base: FuseConfig | None = None) -> FuseConfig:
     """A config from a mapping of option names (a manifest ``[filter]`` table)."""
     return FuseConfig.from_options(base, **dict(table))
+
+
+def config_with_site(config: FuseConfig | None, *, stacklevel: int = 3) -> FuseConfig:
+    """``config`` (default: all defaults) with a site: when none is given, the one
+    ``UserWarning`` that says which site is assumed (:data:`polins.site.PAPER_SITE`)."""
+    config = config or FuseConfig()
+    if config.site is not None:
+        return config
+    warnings.warn(
+        f"no site given (FuseConfig.site or lat_deg/lon_deg/alt_m); assuming the paper's "
+        f"site {PAPER_SITE} for gravity and the Earth rate",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+    return FuseConfig.from_options(config, site=PAPER_SITE)

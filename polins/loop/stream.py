@@ -61,8 +61,8 @@ from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
 from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
-from polins.fusion.config import FuseConfig
-from polins.fusion.eskf.filter import ESKF, config_with_site
+from polins.fusion.config import FuseConfig, config_with_site
+from polins.fusion.eskf.filter import ESKF
 from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.fusion.items import UpdateRecord
 from polins.ins.state import NavState

@@ -12,7 +12,7 @@ consensus and re-acquired, the covariance over an IMU gap),
 
 from polins.fusion.eskf.blocks import Block, Layout, error_blocks
 from polins.fusion.eskf.dynamics import StepNominal, discretize, nav_error_dynamics
-from polins.fusion.eskf.filter import ESKF, config_with_site
+from polins.fusion.eskf.filter import ESKF
 from polins.fusion.eskf.smoother import rts_smooth
 
 __all__ = [
@@ -20,7 +20,6 @@ __all__ = [
     "Block",
     "Layout",
     "StepNominal",
-    "config_with_site",
     "discretize",
     "error_blocks",
     "nav_error_dynamics",

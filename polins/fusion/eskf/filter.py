@@ -38,7 +38,6 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -47,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import FuseConfig, config_with_site
 from polins.fusion.eskf.acquisition import Acquisition, hold_heading
 from polins.fusion.eskf.alignment import level
 from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav
@@ -64,25 +63,9 @@ from polins.fusion.measurement import Linearized
 from polins.fusion.result import FusionEvent
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown_increment
-from polins.site import PAPER_SITE
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger("polins.fusion")
-
-
-def config_with_site(config: FuseConfig | None, *, stacklevel: int = 3) -> FuseConfig:
-    """``config`` (default: all defaults) with a site: when none is given, the one
-    ``UserWarning`` that says which site is assumed (:data:`polins.site.PAPER_SITE`)."""
-    config = config or FuseConfig()
-    if config.site is not None:
-        return config
-    warnings.warn(
-        f"no site given (FuseConfig.site or lat_deg/lon_deg/alt_m); assuming the paper's "
-        f"site {PAPER_SITE} for gravity and the Earth rate",
-        UserWarning,
-        stacklevel=stacklevel,
-    )
-    return FuseConfig.from_options(config, site=PAPER_SITE)
 
 
 class ESKF:
@@ -91,7 +74,7 @@ class ESKF:
     Parameters
     ----------
     config : FuseConfig
-        The configuration (the site must be set: :func:`config_with_site`).
+        The configuration (the site must be set: :func:`polins.fusion.config.config_with_site`).
     t0 : float
         Time of the first IMU sample [s] (the filter starts there).
     dt : float

@@ -85,8 +85,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
-from polins.fusion.config import FuseConfig
-from polins.fusion.eskf.filter import config_with_site
+from polins.fusion.config import FuseConfig, config_with_site
 from polins.fusion.graph.factors import (
     bias_from_polins,
     levelling_factor,
