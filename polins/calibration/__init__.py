@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any, Protocol
 
-from polins.calibration.camera_imu import CameraImuResult, calibrate_camera_imu
+from polins.calibration.camera_imu import CameraImuResult, HeldAxisWarning, calibrate_camera_imu
 from polins.calibration.dark import DarkResult, calibrate_dark
 from polins.calibration.flat import FlatResult, calibrate_flat
 from polins.calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
@@ -33,6 +33,7 @@ __all__ = [
     "CheckReport",
     "DarkResult",
     "FlatResult",
+    "HeldAxisWarning",
     "IntrinsicsResult",
     "NoiseResult",
     "PolarizerResult",
