@@ -88,8 +88,7 @@ def test_heading_with_the_maps_beats_the_channel_values():
     err = {"maps": [], "channels": []}
     for turn in np.linspace(0, 330, 12):
         rot = Rotation.from_euler("z", turn, degrees=True)
-        signal = mosaic(response(_scene_stokes(CAM, rot), gain, 1.0, angle, 0.0), CAM)
-        raw = np.rint(signal + 1.5 * rng.standard_normal(signal.shape)).astype(np.uint16)
+        raw = polins.sim.render_raw(true, SUN_N, rot, rng=rng, sun_disc_deg=0.0)  # the maps
         for key, cam in (("maps", true), ("channels", true.without_pixel_maps())):
             m = polins.measure(raw, cam, sun_n=SUN_N, rot_nb_prior=rot)
             assert m.ok, m.reason
@@ -97,6 +96,28 @@ def test_heading_with_the_maps_beats_the_channel_values():
     rms = {k: float(np.degrees(np.sqrt(np.mean(np.square(v))))) for k, v in err.items()}
     assert rms["maps"] < 0.05 and rms["channels"] > 0.3  # measured: 0.019 and 0.58 deg
     assert rms["maps"] < 0.1 * rms["channels"]
+
+
+def test_the_renderer_responds_through_the_maps():
+    """render_raw with per-pixel maps equals the independent forward model
+    (tests/test_calibration_scenes.py) applied to the scene seen by an ideal camera."""
+    rng = np.random.default_rng(6)
+    gain, angle = _spread_maps(CAM, rng)
+    eff = rng.uniform(0.9, 1.0, gain.shape)
+    eff[::7, ::5] = np.nan  # NaN entries: the channel's value
+    dark = np.array([12.0, 15.0, 9.0, 20.0])
+    cam = CAM.with_changes(gain_map=gain, transmission_angle_map=angle, efficiency_map=eff,
+                           efficiency=np.full(4, 0.97), dark_offset_dn=dark)  # fmt: skip
+    rot = Rotation.from_euler("ZYX", [40, 3, -2], degrees=True)
+    got = polins.sim.render_raw(cam, SUN_N, rot, rng=None, quantize=False, sun_disc_deg=0.0)
+    expected = mosaic(
+        response(_scene_stokes(CAM, rot), gain, np.where(np.isnan(eff), 0.97, eff), angle, dark),
+        CAM,
+    )
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-9)
+    plain = polins.sim.render_raw(cam.without_pixel_maps(), SUN_N, rot, rng=None, quantize=False,
+                                  sun_disc_deg=0.0)  # fmt: skip
+    assert np.abs(got - plain).max() > 5.0  # the maps matter: several DN
 
 
 def test_stokes_from_channels_with_maps_needs_whole_images():

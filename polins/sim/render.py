@@ -17,7 +17,8 @@ division-of-focal-plane camera (``polins.models.CameraModel``) would deliver:
    occluded or below the horizon);
 4. the channel response ``I_k = g_k 1/2 [S0 + eta_k (S1 cos 2 alpha_k + S2 sin 2 alpha_k)] + o_k``
    (docs/model.md §6.2) with the camera model's gains, efficiencies, transmission angles and dark
-   offsets, placed at the mosaic positions of ``cam.channel_at``;
+   offsets (per pixel where the camera has maps), placed at the mosaic positions of
+   ``cam.channel_at``;
 5. Poisson shot noise (optional, ``cam.conversion_gain_e_per_dn``) and Gaussian read noise,
    a saturated sun disc, rounding to integer DN and clipping to ``[0, cam.saturation_dn]``.
 
@@ -294,10 +295,22 @@ def add_direct_sunlight(stokes: FloatArray, sun_c: FloatArray, epsilon: float) -
 
 def channel_intensity(stokes: FloatArray, cam: CameraModel, channel: int) -> FloatArray:
     """Noise-free response [DN] of polarizer channel ``channel`` (docs/model.md §6.2):
-    ``g_k 1/2 [S0 + eta_k (S1 cos 2 alpha_k + S2 sin 2 alpha_k)] + o_k``."""
-    g = cam.gain[channel]
-    eta = cam.efficiency[channel]
-    a = cam.transmission_angle[channel]
+    ``g_k 1/2 [S0 + eta_k (S1 cos 2 alpha_k + S2 sin 2 alpha_k)] + o_k``.
+
+    A camera with per-pixel maps (``CameraModel.gain_map``, ``transmission_angle_map``,
+    ``efficiency_map``; NaN entries: the channel's value) responds pixel by pixel: then
+    ``stokes`` must be a whole superpixel image ``(Hs, Ws, 3)``.
+    """
+    g: FloatArray | float = cam.gain[channel]
+    eta: FloatArray | float = cam.efficiency[channel]
+    a: FloatArray | float = cam.transmission_angle[channel]
+    if cam.has_pixel_maps:
+        if stokes.shape[:-1] != cam.superpixel_shape:
+            raise ValueError(
+                f"camera {cam.name!r} has per-pixel maps: Stokes must be a superpixel image "
+                f"{(*cam.superpixel_shape, 3)}, got {stokes.shape}"
+            )
+        g, a, eta = (values[..., channel] for values in cam.pixel_calibration())
     return (
         g
         * 0.5
@@ -335,7 +348,8 @@ def render_raw(
     ----------
     cam : CameraModel
         Camera (sensor size, mosaic layout ``channel_at``, per-channel gain / efficiency /
-        transmission angle / dark offset, lens, mount ``mat_bc``, saturation).
+        transmission angle / dark offset, or its per-pixel maps of them, lens, mount
+        ``mat_bc``, saturation).
     sun_n : array_like, (3,)
         Unit sun vector in ENU (``polins.sun_vector_n``).
     rot_nb : scipy.spatial.transform.Rotation
