@@ -204,7 +204,8 @@ def test_noise_flat_and_intrinsics_steps_chain(tmp_path, capsys):
         (["dark", "IMG", "--out", "new.txt"], "must end in .toml"),
         (["dark", "nope.png"], "image not found: nope.png"),
         (["dark", "IMG", "--camera", "no-such-camera"], "no-such-camera"),
-        (["camera-imu", "log/manifest.toml"], "needs a recording with turns"),
+        (["camera-imu", "no-log"], "manifest not found: no-log"),
+        (["camera-imu", "no-log", "--max-offset-s", "0"], "--max-offset-s 0: expected > 0"),
         (["sky-rotation", "WRONG"], "image shape (64, 64) does not match the camera model"),
     ],
 )
@@ -217,11 +218,10 @@ def test_calibrate_mistakes_are_one_line_exit_2(tmp_path, capsys, args, message)
     argv = ["calibrate", *args]
     argv = [{"IMG": str(tmp_path / "img.png"), "WRONG": str(tmp_path / "wrong.png")}.get(a, a)
             for a in argv]  # fmt: skip
-    if args[0] != "camera-imu":
-        if "--camera" not in argv:
-            argv += ["--camera", str(base)]
-        if "--out" not in argv:
-            argv += ["--out", str(tmp_path / "new.toml")]
+    if "--camera" not in argv:
+        argv += ["--camera", str(base)]
+    if "--out" not in argv:
+        argv += ["--out", str(tmp_path / "new.toml")]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and message in err, err
@@ -251,3 +251,54 @@ def test_a_log_carries_the_camera_file_with_its_maps(tmp_path):
         log = read_log(manifest)
         np.testing.assert_allclose(log.camera.gain_map, gain, rtol=1e-6)
         assert (tmp_path / f"log{i}" / "camera.gain_map.npy").is_file()
+
+
+# ----------------------------------------------------------------------------- camera-imu
+ROT_BC = Rotation.from_euler("xyz", [0.3, -0.5, 1.2], degrees=True)
+
+
+@pytest.fixture(scope="module")
+def turning_log(tmp_path_factory):
+    """A simulated 60 s UGV log (turns, road grade and roll) whose camera is mounted
+    ``ROT_BC`` and stamps its images 10 ms early, and a base camera file with identity."""
+    import pandas as pd
+
+    from polins.io.model_files import write_camera_file
+    from polins.sim.scenario import simulate_log
+
+    folder = tmp_path_factory.mktemp("camera_imu")
+    true = polins.load_camera("paper-table1").with_changes(mat_bc=ROT_BC.as_matrix())
+    sim = simulate_log(folder / "log", scenario="ugv", duration_s=60.0, camera=true, seed=3,
+                       progress=False)  # fmt: skip
+    index = pd.read_csv(folder / "log" / "images.csv")
+    index["t"] -= 0.010  # the camera clock: images really taken 10 ms after their stamps
+    index.to_csv(folder / "log" / "images.csv", index=False)
+    write_camera_file(sim.camera.with_changes(mat_bc=np.eye(3), name="base"), folder / "base.toml")
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("extra", "mode", "tol_deg"),
+    [([], "mode: clock", 0.05), (["--no-clock"], "mode: no clock", 0.1)],
+)
+def test_calibrate_camera_imu_from_a_log(turning_log, capsys, extra, mode, tol_deg):
+    """``polins calibrate camera-imu LOG``: the clock mode with the log's truth attitude, the
+    no-clock mode with its gyro alone (the boresight's yaw there only from the road's 5 deg
+    of pitch: std 0.035 deg, hence the wider tolerance)."""
+    out = turning_log / "new.toml"
+    argv = ["calibrate", "camera-imu", str(turning_log / "log"), "--camera",
+            str(turning_log / "base.toml"), "--out", str(out), *extra]  # fmt: skip
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert mode in text and "time offset dt = " in text and "wrote" in text
+    cam = polins.load_camera(out)
+    entry = cam.calibration[-1]
+    assert entry["kind"] == "camera-imu" and entry["n_images"] > 250
+    assert abs(entry["time_offset_s"] - 0.010) <= 1e-3  # measured: 10.09 / 10.05 ms
+    err = (Rotation.from_matrix(cam.mat_bc) * ROT_BC.inv()).as_rotvec(degrees=True)
+    assert np.abs(err).max() <= tol_deg  # measured: 0.0014 / 0.036 deg
+    if extra:
+        assert "attitude: the integrated gyro" in text
+        assert abs(err[2]) < 4 * entry["boresight_std_deg"][2]
+    else:
+        assert "attitude: the log's truth table" in text

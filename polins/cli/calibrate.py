@@ -10,7 +10,8 @@ number of images, fit figures), provenance comments at its top and the per-pixel
 quantity (gain, angle, efficiency) drops the base camera's per-pixel map of it unless it
 writes a new one, so that an old map never overrides the new channel values.
 ``polins calibrate check CAMERA IMAGES...`` scores a camera file on images and writes
-nothing.
+nothing. ``polins calibrate camera-imu LOG --camera BASE.toml --out NEW.toml`` runs on a
+polins log folder instead of images (:mod:`polins.calibration.camera_imu_log`).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from polins.cli.common import ArgumentError, check, finite
 __all__ = ["CLI_KINDS", "cmd_calibrate", "cmd_check", "read_images", "summary_lines"]
 
 CLI_KINDS = ("dark", "noise", "flat", "polarizer", "sky-rotation", "intrinsics")
-"""The kinds ``polins calibrate`` runs from images (camera-imu needs a log: Python API)."""
+"""The kinds ``polins calibrate`` runs from images (camera-imu runs on a log folder)."""
 
 _MAP_SOURCES = {  # result attribute -> camera map field
     "gain_map": "gain_map",
@@ -155,6 +156,10 @@ def summary_lines(result: Any, cam: Any) -> list[str]:
             lines.append(f"fx, fy, cx, cy [superpixel]: {k[0, 0]:.4f}, {k[1, 1]:.4f}, "
                          f"{k[0, 2]:.4f}, {k[1, 2]:.4f}")  # fmt: skip
             continue
+        if key == "mat_bc":
+            rows = np.asarray(value, dtype=float)
+            lines.append("mat_bc: " + "; ".join(", ".join(f"{x:.6f}" for x in r) for r in rows))
+            continue
         arr = np.atleast_1d(np.asarray(value, dtype=float))
         text = ", ".join(f"{x:.6g}" for x in arr)
         if std is not None and np.all(np.isfinite(std)):
@@ -253,12 +258,70 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_camera_imu(args: argparse.Namespace) -> int:
-    """``polins calibrate camera-imu``: not from images; say where it is."""
-    raise ArgumentError(
-        "camera-imu needs a recording with turns (image times, measured sun vectors and the "
-        "attitude), not calibration images: use polins.calibration.calibrate_camera_imu "
-        "from Python (docs/calibrate.md#camera-imu)"
-    )
+    """``polins calibrate camera-imu LOG``: time offset and ``mat_bc`` from a log with turns,
+    written as a new camera file (the time offset has no key there: printed, and kept in
+    the ``[[calibration]]`` entry)."""
+    import warnings
+
+    from scipy.spatial.transform import Rotation
+
+    from polins.calibration import HeldAxisWarning
+    from polins.calibration.camera_imu_log import camera_imu_from_log
+    from polins.io.log import read_log
+    from polins.io.model_files import write_camera_file
+    from polins.models import load_camera
+
+    out = Path(args.out)
+    check(out.suffix == ".toml", f"--out {out}: the camera file must end in .toml")
+    check(not out.is_dir(), f"--out {out} is a folder; give a .toml file name")
+    check(args.max_offset_s > 0, f"--max-offset-s {args.max_offset_s:g}: expected > 0 [s]")
+    base = load_camera(args.camera)
+    log = read_log(args.log)
+    check(log.camera.shape == base.shape,
+          f"--camera {args.camera}: {base.shape[1]}x{base.shape[0]} pixels, but the log's "
+          f"images are {log.camera.shape[1]}x{log.camera.shape[0]}")  # fmt: skip
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", HeldAxisWarning)
+        result, how = camera_imu_from_log(log, base, attitude=args.attitude,
+                                          clock=False if args.no_clock else None,
+                                          max_offset_s=args.max_offset_s)  # fmt: skip
+    held = [str(w.message) for w in caught if issubclass(w.category, HeldAxisWarning)]
+    for w in caught:
+        if not issubclass(w.category, HeldAxisWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    cam, _ = _new_camera(base, result, args)
+    prov = result.provenance
+    change = Rotation.from_matrix(cam.mat_bc) * base.rot_bc.inv()
+    std = np.degrees(result.boresight_std_b)
+    boresight = ("boresight change from the base camera, about body x, y, z [deg]: "
+                 + ", ".join(f"{x:.4f}" for x in change.as_rotvec(degrees=True))
+                 + " (std " + ", ".join(f"{x:.2g}" for x in std) + ")")  # fmt: skip
+    offset = (f"time offset dt = {1e3 * result.time_offset_s:.2f} ms (std "
+              f"{1e3 * result.time_offset_std_s:.2g} ms): add it to the image times (the camera "
+              "file has no key for it; kept in its [[calibration]] entry)")  # fmt: skip
+    comments = [
+        "camera model written by polins calibrate camera-imu (docs/calibrate.md#camera-imu)",
+        f"base camera: {base.path}",
+        f"log: {log.manifest_path}",
+        how,
+        f"camera-imu: {prov['method']}",
+        f"date (UTC): {prov['date']}",
+        offset,
+        boresight,
+        *summary_lines(result, cam),
+        *held,
+        "the [[calibration]] entries at the end record every step of this file",
+    ]
+    written = write_camera_file(cam, out, comments=comments, maps_dir=args.maps_dir)
+    load_camera(out)  # the file reads back (a bug otherwise, not a user mistake)
+    print(f"polins calibrate camera-imu: {how}")
+    print(offset)
+    print(boresight)
+    print("\n".join(summary_lines(result, cam)))
+    for line in held:
+        print(f"warning: {line}")
+    print(f"wrote {', '.join(str(p) for p in written)}")
+    return 0
 
 
 def add_kind_parser(sub: Any, kind: str, help_text: str) -> argparse.ArgumentParser:
@@ -314,9 +377,30 @@ def add_calibrate(sub: Any) -> None:
     p.add_argument("--board", required=True, metavar="COLSxROWS",
                    help="inner corners of the checkerboard, e.g. 9x6")  # fmt: skip
     p.add_argument("--square-mm", type=finite, required=True, help="side of a square [mm]")
-    p = kinds.add_parser("camera-imu", help="not from images: see docs/calibrate.md#camera-imu")
-    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
-    p.set_defaults(handler=cmd_camera_imu)
+    p = kinds.add_parser(
+        "camera-imu", help="time offset and mat_bc from a polins log with turns",
+        description="Camera time offset and camera-to-body rotation from a log recorded "
+        "while turning (docs/calibrate.md#camera-imu). Clock mode (the ephemeris sun at the "
+        "log's epoch and site) with the log's truth attitude; no-clock mode (one unknown, "
+        "slowly drifting sun) with the integrated gyro, which needs no absolute attitude. "
+        "Without tilts during the turns the no-clock mode cannot see the boresight about "
+        "the turn axis and keeps the base camera's (it says so).",
+    )  # fmt: skip
+    p.add_argument("log", metavar="LOG", help="log folder (or its manifest.toml)")
+    p.add_argument("--camera", required=True,
+                   help="base camera: a shipped model name or a .toml path, at the images' size")  # fmt: skip
+    p.add_argument("--out", required=True, help="the new camera file (.toml) to write")
+    p.add_argument("--attitude", choices=("auto", "truth", "gyro"), default="auto",
+                   help="attitude: the log's truth table (absolute), or the integrated gyro "
+                   "(relative); auto: the truth when the log has one")  # fmt: skip
+    p.add_argument("--no-clock", action="store_true",
+                   help="do not use the ephemeris (the log's epoch is not UTC, or unknown)")  # fmt: skip
+    p.add_argument("--max-offset-s", type=finite, default=0.2,
+                   help="largest time offset searched [s]")  # fmt: skip
+    p.add_argument("--maps-dir", default=None,
+                   help="folder of the base camera's per-pixel maps (None: beside --out)")  # fmt: skip
+    p.add_argument("--name", default=None, help="model name (None: the --out file's stem)")
+    p.set_defaults(handler=cmd_camera_imu, kind="camera-imu")
     p = kinds.add_parser("check", help="score a camera file on images (writes nothing)")
     p.add_argument("camera_file", metavar="CAMERA", help="camera file (.toml) or shipped name")
     p.add_argument("images", nargs="+", metavar="IMAGES",
