@@ -6,19 +6,20 @@ heading after it. So the yaw is set only when the headings agree (docs/filter.md
 acquisition and recovery"):
 
 * every yaw / sun measurement gives the yaw rotation that zeroes its residual at the
-  estimate of its time (:func:`~polins.fusion.eskf.alignment.yaw_offset`); the gyro carries
+  estimate of its time (:func:`~polins.fusion.acquisition.yaw_offset`); the gyro carries
   the estimate between them, so the offsets of measurements at different times compare
   directly (the offset does not change while the filter only propagates);
-* :func:`consensus`: when at least ``acquire_k`` of the last ``acquire_n`` offsets agree
-  within 3 sigma with one of them (the group's seed), their weighted mean sets the yaw,
-  with the mean's sigma;
+* :func:`~polins.fusion.acquisition.consensus` (shared with the graph): when at least
+  ``acquire_k`` of the last ``acquire_n`` offsets agree within 3 sigma with one of them
+  (the group's seed), their weighted mean sets the yaw, with the mean's sigma;
 * after ``reacquire_after`` consecutive gate rejections of headings the rejected ones are
   candidates again: when ``acquire_k`` of the last ``acquire_n`` agree, the yaw is
   re-acquired from them (update reason and event ``re-acquired: N consecutive
   rejections``). Sporadic outliers (an accepted heading between them) never trigger it.
 
 An IMU gap longer than ``max_gap_s`` is propagated across with the rates interpolated
-linearly; the motion that the interpolation cannot see is covered by :func:`gap_variance`.
+linearly; the motion that the interpolation cannot see is covered by
+:func:`~polins.fusion.acquisition.gap_variance`.
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.frames import wrap_angle
-from polins.fusion.eskf.alignment import rotate_yaw, yaw_offset
+from polins.fusion.acquisition import consensus, yaw_offset
+from polins.fusion.acquisition import gap_variance as gap_variance  # api.py imports it here
+from polins.fusion.eskf.alignment import rotate_yaw
 from polins.fusion.eskf.blocks import Layout, inject_nav
 from polins.fusion.items import MeasurementItem, UpdateRecord
 from polins.fusion.result import FusionEvent
@@ -51,39 +53,6 @@ class Candidate:
     offset: float
     std: float
     record: UpdateRecord
-
-
-def consensus(
-    offsets: FloatArray, stds: FloatArray, k: int
-) -> tuple[float, float, NDArray[np.int_]] | None:
-    """The largest group of yaw offsets that agree, if it has at least ``k`` members.
-
-    Parameters
-    ----------
-    offsets, stds : (M,) ndarray
-        Yaw offsets and their 1-sigmas [rad].
-    k : int
-        Least group size.
-
-    Returns
-    -------
-    (mean, std, members) or None
-        The inverse-variance weighted mean offset [rad] (wrapped) and its 1-sigma [rad],
-        and the indices of the group: the offsets within ``3 sqrt(s_i^2 + s_j^2)`` of the
-        group's seed ``i`` (the seed giving the largest group, the earliest on a tie).
-    """
-    if offsets.size < k:
-        return None
-    diff = wrap_angle(offsets[None, :] - offsets[:, None])  # [i, j]: o_j - o_i
-    agree = np.abs(diff) <= 3.0 * np.hypot(stds[:, None], stds[None, :])
-    sizes = agree.sum(axis=1)
-    seed = int(np.argmax(sizes))
-    if sizes[seed] < k:
-        return None
-    members = np.flatnonzero(agree[seed])
-    w = 1.0 / stds[members] ** 2
-    mean = offsets[seed] + float(np.sum(w * diff[seed, members]) / np.sum(w))
-    return float(wrap_angle(mean)), float(1.0 / math.sqrt(np.sum(w))), members
 
 
 @dataclass
@@ -192,22 +161,3 @@ def _amend(records: list[UpdateRecord], rec: UpdateRecord, accepted: bool, reaso
         if records[i] is rec:
             records[i] = dataclasses.replace(rec, accepted=accepted, reason=reason)
             return
-
-
-def gap_variance(
-    gap_s: float,
-    gyro_b: tuple[FloatArray, FloatArray],
-    accel_b: tuple[FloatArray, FloatArray],
-) -> FloatArray:
-    """Variances added to the navigation error state over an IMU gap (9: attitude [rad^2],
-    velocity [m^2/s^2], position [m^2]).
-
-    The rates inside the gap are interpolated linearly between its end samples; the
-    motion that misses is taken of the size of the motion seen at the ends: a rotation of
-    ``gap_s * max |w|`` about each axis, a velocity change of ``gap_s * |f_b - f_a|`` and
-    half of that times ``gap_s`` in position (1-sigma each).
-    """
-    rate = max(float(np.linalg.norm(gyro_b[0])), float(np.linalg.norm(gyro_b[1])))
-    force = float(np.linalg.norm(accel_b[1] - accel_b[0]))
-    att, vel = gap_s * rate, gap_s * force
-    return np.repeat(np.array([att, vel, 0.5 * vel * gap_s]) ** 2, 3)

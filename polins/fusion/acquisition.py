@@ -1,0 +1,163 @@
+"""Backend-neutral robust start and data gaps: the yaw offsets of the headings, their consensus, and the measurements inside IMU gaps.
+
+Both backends acquire the yaw by consensus (docs/filter.md §7.1): each yaw / sun
+measurement gives the yaw rotation that zeroes its residual at the estimate of its time
+(:func:`yaw_offset`), and the yaw is set only when enough of them agree
+(:func:`consensus`). The ESKF runs this online (:mod:`polins.fusion.eskf.acquisition`),
+the graph on its dead-reckoned keyframes before the solve
+(:mod:`polins.fusion.graph.problem`). A measurement inside an IMU gap longer than
+``max_gap_s`` is skipped with an event (:func:`skip_in_gaps`, docs/faults.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.fusion.items import MeasurementItem, item_model
+from polins.fusion.measurement import yaw_from_sun
+from polins.fusion.result import FusionEvent
+
+FloatArray = NDArray[np.float64]
+
+
+def yaw_offset(
+    item: MeasurementItem, mat_nb: FloatArray, vel_n: FloatArray | None, tilt_coupling: bool
+) -> tuple[float, float]:
+    """The yaw rotation [rad] that zeroes the residual of a yaw / sun ``item`` at the
+    attitude ``mat_nb``, and its 1-sigma [rad] (the item's, for a sun vector divided by
+    the cosine of the sun elevation)."""
+    if item.kind == "yaw":
+        # one step for the yaw of body x (exact), three Newton steps with the tilt
+        # coupling (the model depends on the prior's tilt)
+        delta, std = 0.0, item.std
+        coupled = tilt_coupling and item.sun_n is not None
+        for _ in range(3 if coupled else 1):
+            mat = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix() @ mat_nb
+            lin = item_model(item, mat, vel_n, tilt_coupling)
+            delta += float(lin.residual[0] / lin.H[0, 2])
+        return float(wrap_angle(delta)), std
+    s_n = np.asarray(item.sun_n, dtype=float)
+    s_n = s_n / np.linalg.norm(s_n)
+    rot0 = Rotation.from_matrix(mat_nb)
+    yaw_meas = yaw_from_sun(rot0, item.sun_b, s_n)  # type: ignore[arg-type]
+    std = item.std / max(float(np.hypot(s_n[0], s_n[1])), 1e-3)
+    return float(wrap_angle(yaw_meas - yaw_from_rot_nb(rot0))), std
+
+
+def consensus(
+    offsets: FloatArray, stds: FloatArray, k: int
+) -> tuple[float, float, NDArray[np.int_]] | None:
+    """The largest group of yaw offsets that agree, if it has at least ``k`` members.
+
+    Parameters
+    ----------
+    offsets, stds : (M,) ndarray
+        Yaw offsets and their 1-sigmas [rad].
+    k : int
+        Least group size.
+
+    Returns
+    -------
+    (mean, std, members) or None
+        The inverse-variance weighted mean offset [rad] (wrapped) and its 1-sigma [rad],
+        and the indices of the group: the offsets within ``3 sqrt(s_i^2 + s_j^2)`` of the
+        group's seed ``i`` (the seed giving the largest group, the earliest on a tie).
+    """
+    if offsets.size < k:
+        return None
+    diff = wrap_angle(offsets[None, :] - offsets[:, None])  # [i, j]: o_j - o_i
+    agree = np.abs(diff) <= 3.0 * np.hypot(stds[:, None], stds[None, :])
+    sizes = agree.sum(axis=1)
+    seed = int(np.argmax(sizes))
+    if sizes[seed] < k:
+        return None
+    members = np.flatnonzero(agree[seed])
+    w = 1.0 / stds[members] ** 2
+    mean = offsets[seed] + float(np.sum(w * diff[seed, members]) / np.sum(w))
+    return float(wrap_angle(mean)), float(1.0 / math.sqrt(np.sum(w))), members
+
+
+def first_consensus(
+    offsets: FloatArray, stds: FloatArray, k: int, n: int
+) -> tuple[float, float, NDArray[np.int_], int] | None:
+    """The first consensus of a sequence of yaw offsets, as the ESKF reaches it online.
+
+    The offsets are taken in order; after each, :func:`consensus` of the last ``n`` (at
+    least ``k`` agree) is tried.
+
+    Returns
+    -------
+    (mean, std, members, last) or None
+        The consensus (indices into ``offsets``) and the index of the offset that
+        completed it; None if the sequence never reaches one.
+    """
+    for last in range(k - 1, offsets.size):
+        lo = max(0, last + 1 - n)
+        res = consensus(offsets[lo : last + 1], stds[lo : last + 1], k)
+        if res is not None:
+            mean, std, members = res
+            return mean, std, members + lo, last
+    return None
+
+
+def skip_in_gaps(
+    t_imu: FloatArray, gaps: NDArray[np.int_], items: list[MeasurementItem]
+) -> tuple[list[MeasurementItem], list[FusionEvent]]:
+    """The items with those inside an IMU gap made invalid (docs/faults.md).
+
+    Parameters
+    ----------
+    t_imu : (N,) ndarray
+        IMU sample times [s].
+    gaps : (G,) int ndarray
+        Indices ``i`` of the gaps ``t_imu[i] .. t_imu[i + 1]`` longer than ``max_gap_s``
+        (``polins.fusion.inputs.ImuArrays.gaps``).
+    items : list of MeasurementItem
+
+    Returns
+    -------
+    items : list of MeasurementItem
+        In the input order; those strictly inside a gap invalid with the reason ``inside
+        an IMU gap (a to b s)``.
+    events : list of FusionEvent
+        A ``measurement-in-gap`` event for each item made invalid.
+    """
+    out = list(items)
+    events: list[FusionEvent] = []
+    if gaps.size == 0 or not out:
+        return out, events
+    t_item = np.array([it.t for it in out], dtype=float)
+    j = np.searchsorted(t_imu[gaps], t_item, side="left") - 1  # the gap starting before
+    inside = (j >= 0) & (t_item < t_imu[gaps[np.maximum(j, 0)] + 1])
+    for k in np.flatnonzero(inside).tolist():
+        it, i = out[k], int(gaps[j[k]])
+        if it.valid:
+            reason = f"inside an IMU gap ({t_imu[i]:.6g} to {t_imu[i + 1]:.6g} s)"
+            out[k] = dataclasses.replace(it, valid=False, reason=reason)
+            events.append(FusionEvent(it.t, "measurement-in-gap", f"{it.kind} skipped: {reason}"))
+    return out, events
+
+
+def gap_variance(
+    gap_s: float,
+    gyro_b: tuple[FloatArray, FloatArray],
+    accel_b: tuple[FloatArray, FloatArray],
+) -> FloatArray:
+    """Variances added to the navigation error state over an IMU gap (9: attitude [rad^2],
+    velocity [m^2/s^2], position [m^2]).
+
+    The rates inside the gap are interpolated linearly between its end samples; the
+    motion that misses is taken of the size of the motion seen at the ends: a rotation of
+    ``gap_s * max |w|`` about each axis, a velocity change of ``gap_s * |f_b - f_a|`` and
+    half of that times ``gap_s`` in position (1-sigma each).
+    """
+    rate = max(float(np.linalg.norm(gyro_b[0])), float(np.linalg.norm(gyro_b[1])))
+    force = float(np.linalg.norm(accel_b[1] - accel_b[0]))
+    att, vel = gap_s * rate, gap_s * force
+    return np.repeat(np.array([att, vel, 0.5 * vel * gap_s]) ** 2, 3)
