@@ -146,11 +146,7 @@ def test_helpers():
     np.testing.assert_allclose(skew(a[0]) @ b[0], np.cross(a[0], b[0]))
 
 
-def test_mechanization_from_model_and_errors():
-    from polins import load_imu
-
-    assert Mechanization.from_imu_model(load_imu("fins-paper")) == Mechanization(True, True)
-    assert Mechanization.from_imu_model(load_imu("mems-typical")) == Mechanization(False, False)
+def test_strapdown_input_errors():
     s = NavState(0.0, Rotation.identity(), np.zeros(3), 0.5, 0.1, 0.0)
     with pytest.raises(ValueError, match="after the state time"):
         strapdown_step(s, np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), 0.0, Mechanization())

@@ -34,7 +34,10 @@ def test_shipped_models_load_and_convert_units():
     assert imu.gyro_bias == pytest.approx(np.radians(0.02) / 3600.0)
     assert imu.gyro_arw == pytest.approx(np.radians(0.002) / 60.0)
     assert imu.accel_bias == pytest.approx(0.02e-3 * 9.80665)
-    assert imu.earth_rate and not polins.load_imu("mems-typical").earth_rate
+    assert polins.load_imu("mems-typical").gyro_misalignment == 0.0
+    broad = polins.load_imu("broad-aktos-t")
+    assert broad.gyro_misalignment == pytest.approx(6e-3)
+    assert broad.gyro_misalignment_corr_time == pytest.approx(0.1)
 
 
 def test_unknown_name_lists_shipped_models():

@@ -49,7 +49,6 @@ from polins.ins.earth import (
     transport_rate_n,
 )
 from polins.ins.state import NavState
-from polins.models import ImuModel
 
 FloatArray = NDArray[np.float64]
 
@@ -81,11 +80,6 @@ class Mechanization:
 
     earth_rotation: bool = True
     transport_rate: bool = True
-
-    @classmethod
-    def from_imu_model(cls, model: ImuModel) -> Mechanization:
-        """Both terms on for ``model.earth_rate`` (navigation grade), both off otherwise."""
-        return cls(earth_rotation=model.earth_rate, transport_rate=model.earth_rate)
 
 
 @dataclass(frozen=True, eq=False)

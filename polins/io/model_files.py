@@ -209,7 +209,6 @@ def imu_model_toml(model: ImuModel, comments: Sequence[str] = ()) -> str:
         "name": model.name,
         "description": model.description,
         "grade": model.grade,
-        "earth_rate": model.earth_rate,
         "sample_rate_hz": model.sample_rate_hz,
         **model.toml_values(),
     }

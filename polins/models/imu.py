@@ -9,6 +9,7 @@ file and the key.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,8 @@ _SENSOR_SCHEMA = {
         "bias_rw_deg_per_h_per_sqrt_h": nonneg,
         "scale_factor_ppm": nonneg,
         "range_deg_per_s": Optional(positive),
+        "misalignment_mrad": Optional(nonneg),
+        "misalignment_corr_s": Optional(positive),
     },
     "accel": {
         "vrw_m_per_s_per_sqrt_h": nonneg,
@@ -61,7 +64,7 @@ _IMU_SCHEMA: Schema = {
     "name": string,
     "description": string,
     "grade": choice("navigation", "tactical", "mems"),
-    "earth_rate": boolean,
+    "earth_rate": Optional(boolean),  # no longer used: a warning says so
     "sample_rate_hz": positive,
     **_SENSOR_SCHEMA,
 }
@@ -130,7 +133,6 @@ class ImuModel:
     description: str
     path: Path
     grade: str
-    earth_rate: bool  # the mechanization includes Earth rate and transport rate
     sample_rate_hz: float
     gyro_arw: float  # [rad/sqrt(s)] (= rad/s/sqrt(Hz))
     gyro_bias: float  # [rad/s] turn-on 1-sigma
@@ -142,6 +144,11 @@ class ImuModel:
     accel_scale_factor: float  # [-] 1-sigma
     gyro_range: float | None = None  # [rad/s] full scale; None: the grade's default
     accel_range: float | None = None  # [m/s^2] full scale; None: the grade's default
+    # axis misalignment and cross-axis sensitivity of the gyro, 1-sigma [rad], and the
+    # correlation time of the rotation-proportional attitude noise it becomes [s]
+    # (docs/filter.md, "Rotation-proportional attitude noise")
+    gyro_misalignment: float = 0.0
+    gyro_misalignment_corr_time: float = 0.1
 
     def full_scale(self) -> tuple[float, float]:
         """``(gyro [rad/s], accel [m/s^2])`` full scale: the model's ranges, else the
@@ -172,6 +179,9 @@ class ImuModel:
                 "scale_factor_ppm": self.accel_scale_factor * 1e6,
             },
         }
+        if self.gyro_misalignment:
+            values["gyro"]["misalignment_mrad"] = self.gyro_misalignment * 1e3
+            values["gyro"]["misalignment_corr_s"] = self.gyro_misalignment_corr_time
         if self.gyro_range is not None:
             values["gyro"]["range_deg_per_s"] = float(np.degrees(self.gyro_range))
         if self.accel_range is not None:
@@ -203,6 +213,13 @@ def load_imu(name_or_path: str | Path) -> ImuModel:
     """
     path, d = read_model(name_or_path, "imus", _IMU_SCHEMA)
     _check_plausible(path, d["grade"], d)
+    if "earth_rate" in d:
+        warnings.warn(
+            f"{path}: key 'earth_rate' is no longer used and is ignored: the Earth rate is "
+            "mechanized whenever the site is known (FuseConfig.earth_rate overrides)",
+            UserWarning,
+            stacklevel=2,
+        )
     g, a = d["gyro"], d["accel"]
     sqrt_h = 60.0  # sqrt(3600 s)
     return ImuModel(
@@ -210,7 +227,6 @@ def load_imu(name_or_path: str | Path) -> ImuModel:
         description=d["description"],
         path=path,
         grade=d["grade"],
-        earth_rate=d["earth_rate"],
         sample_rate_hz=d["sample_rate_hz"],
         gyro_arw=np.radians(g["arw_deg_per_sqrt_h"]) / sqrt_h,
         gyro_bias=g["bias_deg_per_h"] * _DEG_PER_H,
@@ -222,4 +238,6 @@ def load_imu(name_or_path: str | Path) -> ImuModel:
         accel_scale_factor=a["scale_factor_ppm"] * 1e-6,
         gyro_range=float(np.radians(g["range_deg_per_s"])) if "range_deg_per_s" in g else None,
         accel_range=a["range_g"] * _G0 if "range_g" in a else None,
+        gyro_misalignment=g.get("misalignment_mrad", 0.0) * 1e-3,
+        gyro_misalignment_corr_time=g.get("misalignment_corr_s", 0.1),
     )

@@ -263,7 +263,6 @@ def imu_model_from_static(
     name: str = "static-fit",
     grade: str = "mems",
     description: str | None = None,
-    earth_rate: bool | None = None,
     gyro_bias: float | None = None,
     accel_bias: float | None = None,
     gyro_scale_factor: float | None = None,
@@ -288,8 +287,6 @@ def imu_model_from_static(
     grade : str
         ``"navigation"``, ``"tactical"`` or ``"mems"``: selects ``GRADE_TYPICAL`` and the
         plausible ranges the result is checked against.
-    earth_rate : bool, optional
-        Whether the mechanization includes the Earth rate; default ``grade != "mems"``.
     gyro_bias, accel_bias : float, optional
         Turn-on bias 1-sigma [rad/s], [m/s^2] between sessions (a datasheet's or from
         several recordings); default ``GRADE_TYPICAL``, the gyro's raised to the RMS over
@@ -357,7 +354,6 @@ def imu_model_from_static(
         or f"{grade} IMU fitted to a {n_total / rate:.0f} s static recording (Allan deviation)",
         path=Path(source) if source is not None else Path("<static recording>"),
         grade=grade,
-        earth_rate=grade != "mems" if earth_rate is None else bool(earth_rate),
         sample_rate_hz=rate,
         gyro_arw=gyro.combined.white,
         gyro_bias=float(gyro_bias),

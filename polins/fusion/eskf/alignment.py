@@ -4,8 +4,8 @@ Levelling assumes the vehicle static during the first ``align_s`` seconds: roll 
 from the averaged specific force, with the tilt error's exact correlation with the
 accelerometer bias (a horizontal bias ``b`` tilts the estimate by ``b / g``); the yaw is
 unknown (reported as NaN) until the heading measurements agree on it
-(:mod:`polins.fusion.eskf.acquisition`: each gives a :func:`yaw_offset`, the consensus
-sets the yaw with :func:`rotate_yaw`: its variance becomes the consensus', its
+(:mod:`polins.fusion.eskf.acquisition`: each gives a
+:func:`~polins.fusion.acquisition.yaw_offset`, the consensus sets the yaw with :func:`rotate_yaw`: its variance becomes the consensus', its
 correlations zero). The vehicle may move before that only if the yaw does not matter for
 the velocity then (it stands still, or drives straight from rest: the velocity is rotated with the
 frame at the alignment). When the mechanization includes the Earth rate, the levelling
@@ -25,11 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.blocks import Layout
-from polins.fusion.items import MeasurementItem, item_model
-from polins.fusion.measurement import yaw_from_sun
 from polins.ins.alignment import gyrocompass, level_from_accel
 from polins.ins.earth import OMEGA_IE, normal_gravity
 from polins.ins.strapdown import Mechanization
@@ -95,8 +92,8 @@ def level(
             yaw_var = float(var)
             P[2, bg] = j_bg @ P[bg, bg]
             P[bg, 2] = P[2, bg]
-        else:
-            log.warning(
+        else:  # the covariance carries it: the yaw variance couples into the tilt
+            log.info(
                 "self-alignment: the gyro bias (%.3g deg/h) is too large to gyrocompass "
                 "(yaw sigma %.1f deg); with the Earth rate mechanized the tilt drifts "
                 "by up to %.2g rad/s until the first yaw measurement",
@@ -112,30 +109,6 @@ def level(
     P[2, 2] = yaw_var
     P[vel, vel] = np.eye(3) * config.vel_std0**2
     return rot.as_matrix(), P
-
-
-def yaw_offset(
-    item: MeasurementItem, mat_nb: FloatArray, vel_n: FloatArray, tilt_coupling: bool
-) -> tuple[float, float]:
-    """The yaw rotation [rad] that zeroes the residual of a yaw / sun ``item`` at the
-    attitude ``mat_nb``, and its 1-sigma [rad] (the item's, for a sun vector divided by
-    the cosine of the sun elevation)."""
-    if item.kind == "yaw":
-        # one step for the yaw of body x (exact), three Newton steps with the tilt
-        # coupling (the model depends on the prior's tilt)
-        delta, std = 0.0, item.std
-        coupled = tilt_coupling and item.sun_n is not None
-        for _ in range(3 if coupled else 1):
-            mat = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix() @ mat_nb
-            lin = item_model(item, mat, vel_n, tilt_coupling)
-            delta += float(lin.residual[0] / lin.H[0, 2])
-        return float(wrap_angle(delta)), std
-    s_n = np.asarray(item.sun_n, dtype=float)
-    s_n = s_n / np.linalg.norm(s_n)
-    rot0 = Rotation.from_matrix(mat_nb)
-    yaw_meas = yaw_from_sun(rot0, item.sun_b, s_n)  # type: ignore[arg-type]
-    std = item.std / max(float(np.hypot(s_n[0], s_n[1])), 1e-3)
-    return float(wrap_angle(yaw_meas - yaw_from_rot_nb(rot0))), std
 
 
 def rotate_yaw(

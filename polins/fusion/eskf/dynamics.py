@@ -45,6 +45,7 @@ class StepSums:
     dv: FloatArray = field(default_factory=lambda: np.zeros(3))  # sum int C f dt
     mat_omega: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(phi)
     mat_force: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(f) dt
+    rate_sq: float = 0.0  # sum |omega_b|^2 dt [rad^2/s]
     start: tuple[FloatArray, float, float] = (np.zeros(3), 0.0, 0.0)  # vel, lat, alt
 
 
@@ -71,6 +72,9 @@ class StepNominal:
     mat_omega, mat_force : (S, 3, 3) ndarray or None
         Means of ``mat_nb diag(omega_b)`` [rad/s] and ``mat_nb diag(f_b)`` [m/s^2] (the
         scale-factor columns), with the corrected rate and specific force.
+    rate_sq : (S,) ndarray or None
+        Mean of ``|omega_b|^2`` over the step [rad^2/s^2] (the rotation-proportional
+        attitude noise, docs/filter.md); None: zero.
     """
 
     dt: FloatArray
@@ -84,6 +88,7 @@ class StepNominal:
     accel_divisor: FloatArray
     mat_omega: FloatArray | None = None
     mat_force: FloatArray | None = None
+    rate_sq: FloatArray | None = None
     _f_nav: FloatArray | None = field(default=None, repr=False)
 
     @property
@@ -105,13 +110,14 @@ def step_nominal(
     divisors: tuple[FloatArray, FloatArray],
     mat_omega_dt: FloatArray | None = None,
     mat_force_dt: FloatArray | None = None,
+    rate_sq_dt: FloatArray | None = None,
 ) -> StepNominal:
     """A :class:`StepNominal` from the sums over the IMU intervals of each step.
 
     ``mat_dt = sum mat_nb_mid dt``, ``dv_force_n = sum int mat_nb f_b dt`` [m/s],
     ``mat_omega_dt = sum mat_nb_mid diag(phi)`` (``phi`` the interval's rotation vector)
-    and ``mat_force_dt = sum mat_nb_mid diag(f_b) dt``; ``vel_n, lat, alt_m`` at the step
-    starts.
+    and ``mat_force_dt = sum mat_nb_mid diag(f_b) dt``, ``rate_sq_dt = sum |omega_b|^2 dt``
+    [rad^2/s]; ``vel_n, lat, alt_m`` at the step starts.
     """
     inv = 1.0 / dt
     sf = mat_omega_dt is not None and mat_force_dt is not None
@@ -127,6 +133,7 @@ def step_nominal(
         accel_divisor=divisors[1],
         mat_omega=mat_omega_dt * inv[:, None, None] if sf else None,  # type: ignore[operator]
         mat_force=mat_force_dt * inv[:, None, None] if sf else None,  # type: ignore[operator]
+        rate_sq=None if rate_sq_dt is None else rate_sq_dt * inv,
     )
 
 
@@ -186,8 +193,8 @@ def discretize(F: ArrayLike, dt: ArrayLike, qc: ArrayLike) -> tuple[FloatArray, 
         Continuous error dynamics [1/s].
     dt : (...) array_like
         Step length [s].
-    qc : (n,) array_like
-        Diagonal of the continuous process-noise density.
+    qc : (n,) or (..., n) array_like
+        Diagonal of the continuous process-noise density (one, or one per step).
 
     Returns
     -------
@@ -211,11 +218,14 @@ def discretize(F: ArrayLike, dt: ArrayLike, qc: ArrayLike) -> tuple[FloatArray, 
     half[..., r, :] += 0.5 * Ar + 0.125 * A2 + A3 * (1.0 / 48.0)
     # Simpson: Q = dt/6 (Qc + 4 Phi(dt/2) Qc Phi(dt/2)^T + Phi Qc Phi^T); in the rows and
     # columns without dynamics the terms are those of I (6 Qc on the diagonal)
-    Qr = (Phi[..., r, :] * qc) @ np.swapaxes(Phi, -1, -2)
-    Qr += 4.0 * (half[..., r, :] * qc) @ np.swapaxes(half, -1, -2)
-    Q = np.broadcast_to(np.diag(6.0 * qc), A.shape).copy()
+    qc_row = qc[..., None, :]
+    Qr = (Phi[..., r, :] * qc_row) @ np.swapaxes(Phi, -1, -2)
+    Qr += 4.0 * (half[..., r, :] * qc_row) @ np.swapaxes(half, -1, -2)
+    Q = np.zeros(A.shape)
+    diag = np.arange(n)
+    Q[..., diag, diag] = 6.0 * qc
     Q[..., r, :] = Qr
     Q[..., :, r] = np.swapaxes(Qr, -1, -2)
-    Q[..., r, r] += qc[r]
+    Q[..., r, r] += qc[..., r]
     Q *= dt[..., None, None] / 6.0
     return Phi, Q
