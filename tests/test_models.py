@@ -256,3 +256,12 @@ def test_pixel_pitch_is_optional(tmp_path):
     assert cam.pixel_pitch_um is None
     assert "pixel_pitch_um" not in camera_model_toml(cam)
     assert polins.load_camera("paper-table1").pixel_pitch_um > 0
+
+
+def test_an_old_earth_rate_key_is_ignored_with_a_warning(tmp_path):
+    text = (polins.models.shipped_folder("imus") / "mems-typical.toml").read_text()
+    old = tmp_path / "old.toml"
+    old.write_text(text.replace('grade = "mems"\n', 'grade = "mems"\nearth_rate = false\n'))
+    with pytest.warns(UserWarning, match="'earth_rate' is no longer used"):
+        model = polins.load_imu(old)
+    assert model.gyro_arw == polins.load_imu("mems-typical").gyro_arw
