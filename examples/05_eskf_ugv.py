@@ -4,8 +4,9 @@ A random ground-vehicle drive (straight runs, turns, slopes, stops; ``polins.sim
 sensed by the paper's navigation-grade FINS and by a typical MEMS IMU (their error models
 in ``models/imus``, scale factors included). The polarization compass is simulated as the
 true yaw plus N(0, 0.3 deg) at 5 Hz. ``polins.fuse`` runs the error-state Kalman filter
-(21 states: with scale factors) with self-alignment (levelling at rest, yaw from the first
-measurement) when aided, and from the true initial attitude with a 0.1 deg (1 sigma) random
+with its default options (21 states with scale factors for the MEMS IMU, 15 for the FINS;
+the Earth rate mechanized at the given site) with self-alignment (levelling at rest, yaw
+from a consensus of the first measurements) when aided, and from the true initial attitude with a 0.1 deg (1 sigma) random
 error when not.
 
 Prints a table (yaw error, final sigma, consistency, NIS, speed) and writes to --out:
@@ -48,7 +49,7 @@ def simulate(model: polins.ImuModel, duration: float, seed: int):
     """The drive (same for both IMUs), the IMU with the model's errors, yaw measurements."""
     traj = ugv_drive(duration_s=duration, rng=np.random.default_rng(seed))
     rng = np.random.default_rng([seed, len(model.name)])
-    imu, errors = imu_errors(ideal_imu(traj, earth_rotation=model.earth_rate), model, rng)
+    imu, errors = imu_errors(ideal_imu(traj), model, rng)
     truth = traj.truth_frame()
     t = np.arange(1.0 / RATE_HZ, duration, 1.0 / RATE_HZ)
     yaw = np.interp(t, truth["t"], np.unwrap(truth["yaw"]))
@@ -62,9 +63,7 @@ def run(model, traj, imu, errors, truth, meas, aided: bool) -> dict:
     """Fuse and compare with the truth at the 10 Hz output rows."""
     t0 = time.perf_counter()
     if aided:
-        sol = polins.fuse(
-            imu, meas, imu_model=model, **SITE, scale_factors=True, output_rate_hz=10.0
-        )
+        sol = polins.fuse(imu, meas, imu_model=model, **SITE, output_rate_hz=10.0)
     else:
         # initial attitude: the truth with an error drawn from the stated 0.1 deg sigma
         att_std0 = np.radians(0.1)
@@ -77,7 +76,6 @@ def run(model, traj, imu, errors, truth, meas, aided: bool) -> dict:
             att_std0=att_std0,
             imu_model=model,
             **SITE,
-            scale_factors=True,
             output_rate_hz=10.0,
         )
     seconds = time.perf_counter() - t0
