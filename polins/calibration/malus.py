@@ -101,6 +101,7 @@ def fit_turning_polarization(
     tilt_terms: bool = False,
     turn_start: ArrayLike | None = None,
     turn_prior_std: float | None = None,
+    source_factors: ArrayLike | None = None,
 ) -> TurnFit:
     """Fit channel gains, efficiencies and angles to turning polarized sources.
 
@@ -137,6 +138,10 @@ def fit_turning_polarization(
         uneven); the prior fixes that flat direction, which the channel parameters do not
         depend on. (The same holds for exposure scales wobbling at the first harmonic: with
         the tilt terms their first harmonic is set to zero.)
+    source_factors : array_like, (m, R) complex, optional
+        Known change of each source's linear polarization from image to image:
+        ``L_r`` becomes ``L_r f_jr`` in image j (a sky that changes as the sun moves;
+        :func:`polins.calibration.sky_rotation.sun_motion_factors`). Default 1.
 
     Returns
     -------
@@ -202,10 +207,16 @@ def fit_turning_polarization(
             s0r, lr = ref_s0, ref_lin
         return gain, eta, alpha, scale, theta, s0r, lr
 
+    factors = (
+        np.ones((m, n_src), dtype=complex)
+        if source_factors is None
+        else np.broadcast_to(np.asarray(source_factors, dtype=complex), (m, n_src))
+    )
+
     def model(x: FloatArray) -> FloatArray:
         gain, eta, alpha, scale, theta, s0r, lr = unpack(x)
         turn_1 = np.exp(1j * theta)[:, None]  # (m, 1)
-        lin = lr[None, :] * turn_1**2  # (m, R)
+        lin = lr[None, :] * factors * turn_1**2  # (m, R)
         s0 = np.broadcast_to(s0r[None, :], lin.shape)
         if tilt_terms:
             tb = x[cuts[-1] :].reshape(6, n_src)

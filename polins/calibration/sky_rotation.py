@@ -29,7 +29,12 @@ Pitfalls, and how they are handled:
   for a sky at infinity. ``noise_ratio`` well above 1 says the model does not hold.
 * **The sun's motion.** Its azimuth changes by up to about 0.25 deg/min; with a vertical
   turn axis this is a turn of the whole sky, absorbed in the fitted turn angles. Its
-  elevation change alters the ring means: keep the sequence within a few minutes.
+  elevation change alters the ring means: a 20-minute sequence in the morning biases the
+  channel angles by about 0.9 deg. With the clock (``times_utc`` and ``site``) the
+  ephemeris gives the sun at every image, and :func:`sun_motion_factors` the change of
+  each ring's mean polarization it causes, from a Rayleigh sky seen through the camera
+  about the turn axis ``axis_n``; the fit takes it as known. Without the clock, keep the
+  sequence within a few minutes.
 * **Exposure changes** between images are absorbed by the per-image scale ``s_j``; the dark
   offsets must be known (calibrate them first with dark frames).
 * **Turns spanning less than about 90 deg** leave the gains and the efficiencies
@@ -52,9 +57,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from polins.calibration.images import channel_stack, provenance
 from polins.calibration.malus import base_stokes, fit_turning_polarization
-from polins.compass.camera import fov_mask
+from polins.compass.camera import doubled_aop_from_evector, fov_mask, pixel_rays_c
 from polins.errors import UserInputError
 from polins.models import CameraModel
+from polins.site import Site
+from polins.sky.ephemeris import sun_position, sun_vector_n
+from polins.sky.scattering import rayleigh_dop, rayleigh_evector
 
 FloatArray = NDArray[np.float64]
 
@@ -65,6 +73,7 @@ __all__ = [
     "calibrate_sky_rotation",
     "fit_sky_rotation",
     "ring_windows",
+    "sun_motion_factors",
     "turn_span",
     "turns_modulo_2pi",
 ]
@@ -191,6 +200,48 @@ def turns_modulo_2pi(signal: FloatArray, weight: FloatArray, cam: CameraModel) -
     return np.asarray(-np.angle((first * np.conj(first[:1])).sum(axis=1)), dtype=float)
 
 
+def sun_motion_factors(
+    cam: CameraModel, weight: FloatArray, sun_n: ArrayLike, axis_n: ArrayLike = (0.0, 0.0, 1.0)
+) -> NDArray[np.complex128]:
+    """Change of each ring's mean linear polarization as the sun moves, ``(m, R)`` complex.
+
+    A Rayleigh sky (``polins.sky.scattering``) seen through ``cam`` with its optical axis
+    on the turn axis ``axis_n``: the ring means ``L_jr = sum_n w_rn d_jn exp(2i zeta_jn)``
+    [-] of the degree and angle of polarization for the sun of image j (normalised by
+    ``sum_n w_rn``), relative to the first image's (``f_jr = L_jr / L_0r``; 1 where that is
+    below 1% DoP).
+    The turn of the sky about the axis (the sun's azimuth) makes a common phase, which
+    the fitted turns take; the change that matters is the sun's angle from the axis. (The
+    direct-sunlight term of docs/model.md §6.2 is not modelled: it leaves a residual.)
+
+    Parameters
+    ----------
+    cam : CameraModel
+        Camera (lens projection and polarization model).
+    weight : (R, n)
+        Ring windows over the superpixels (:func:`ring_windows`, flattened).
+    sun_n : array_like, (m, 3)
+        Unit sun vector of each image, ENU.
+    axis_n : array_like, (3,)
+        The turn axis (the optical axis) in ENU; default the zenith.
+    """
+    axis = np.asarray(axis_n, dtype=float)
+    axis = axis / np.linalg.norm(axis)
+    ref = np.array([0.0, 1.0, 0.0]) if abs(axis[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(ref, axis)
+    x /= np.linalg.norm(x)
+    mat_an = np.stack([x, np.cross(axis, x), axis])  # rows: the axis frame's axes in ENU
+    sun_a = np.asarray(sun_n, dtype=float) @ mat_an.T  # (m, 3)
+    rays = np.nan_to_num(pixel_rays_c(cam).reshape(-1, 3))  # the camera at turn 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        evec = rayleigh_evector(sun_a[:, None, :], rays[None])  # (m, n, 3)
+        aop2 = np.nan_to_num(doubled_aop_from_evector(evec, rays[None], cam.polarization_model))
+    dop = np.nan_to_num(rayleigh_dop(sun_a[:, None, :], rays[None], 1.0))
+    ring = (dop * (aop2[..., 0] + 1j * aop2[..., 1])) @ weight.T / weight.sum(axis=1)  # (m, R)
+    usable = np.abs(ring[0]) > 0.01  # a ring mean of 1% DoP or more
+    return np.where(usable[None, :], ring / np.where(usable, ring[0], 1.0)[None, :], 1.0)
+
+
 def fit_sky_rotation(
     raws: Sequence[ArrayLike] | ArrayLike,
     cam: CameraModel,
@@ -198,6 +249,9 @@ def fit_sky_rotation(
     n_rings: int = 12,
     min_span_deg: float = 90.0,
     tilt_terms: bool = True,
+    times_utc: ArrayLike | None = None,
+    site: Site | None = None,
+    axis_n: ArrayLike = (0.0, 0.0, 1.0),
 ) -> SkyRotationResult:
     """Fit channel gains, angles and efficiencies to clear-sky images of a turning camera.
 
@@ -219,6 +273,15 @@ def fit_sky_rotation(
         (:func:`polins.calibration.malus.fit_turning_polarization`); needs about 8 images or
         more spread over a full turn. ``False`` when the axis is known to be the optical
         axis (then 4 images over 90 deg suffice).
+    times_utc : array_like, (m,), optional
+        UTC time of each image (timezone-aware datetimes, ISO strings or a
+        ``pandas.DatetimeIndex``): with ``site``, the sun's motion during the sequence is
+        taken from the ephemeris (:func:`sun_motion_factors`). Without them the sky is
+        taken as constant: keep the sequence within a few minutes.
+    site : polins.Site, optional
+        Where the images were taken.
+    axis_n : array_like, (3,)
+        The turn axis (the optical axis) in ENU, used with the clock; default the zenith.
 
     Returns
     -------
@@ -252,13 +315,29 @@ def fit_sky_rotation(
     )
     sigma = np.sqrt(var_pix / n_eff[None, :, None])
 
-    fit = fit_turning_polarization(y, sigma, cam)
+    factors = None
+    if (times_utc is None) != (site is None):
+        raise UserInputError("sky-rotation: the sun's motion needs both times_utc and site")
+    if times_utc is not None and site is not None:
+        import pandas as pd
+
+        times = pd.DatetimeIndex(np.atleast_1d(np.asarray(times_utc)))
+        if times.size != m or times.tz is None:
+            raise UserInputError(
+                f"sky-rotation: times_utc needs {m} timezone-aware times (one per image), got "
+                f"{times.size}{'' if times.tz is not None else ' without a timezone'}"
+            )
+        sun = sun_position(times, site.lat_deg, site.lon_deg, site.alt_m)
+        sun_n = sun_vector_n(sun.azimuth, sun.zenith)
+        factors = sun_motion_factors(cam, weight, sun_n, axis_n)
+    fit = fit_turning_polarization(y, sigma, cam, source_factors=factors)
     if tilt_terms:  # start from the fit without them, its turns on the right branch
         hint = turns_modulo_2pi(signal.reshape(m, -1, 4), weight, cam)
         turn_start = fit.turn + np.pi * np.round((hint - fit.turn) / np.pi)
         fit = fit_turning_polarization(
-            y, sigma, cam, tilt_terms=True, turn_start=turn_start, turn_prior_std=np.radians(1.0)
-        )
+            y, sigma, cam, tilt_terms=True, turn_start=turn_start, turn_prior_std=np.radians(1.0),
+            source_factors=factors,
+        )  # fmt: skip
     turn = -fit.turn  # the pattern turns by -phi when the camera turns by +phi
     span = np.degrees(turn_span(turn))
     if span + 0.5 < min_span_deg:  # half a degree of slack for the fitted turns
@@ -293,6 +372,7 @@ def fit_sky_rotation(
             "sky-rotation",
             "ring means of clear-sky images turning about the optical axis, Malus-law fit"
             + (" with axis-tilt terms" if tilt_terms else "")
+            + (", the sun's motion from the ephemeris" if factors is not None else "")
             + " (docs/calibrate.md#sky-rotation)",
             m,
             n_rings=int(keep.size),
