@@ -262,19 +262,29 @@ def test_crlb_reference_value_and_scaling():
 
 # ----------------------------------------------------------------------------- covariance
 def test_inflation_terms():
+    # docs/measurement.md §12: yaw_std = sqrt(noise^2 + model^2 + (cot Z tilt)^2), with the
+    # model part sqrt((model_scale sky)^2 + instrumental^2 + floor^2), the sky part the
+    # jackknife variance beyond the noise.
     rot = _level(40.0)
     raw = render(CAM4, SUN_N, rot, noise_std=1.5, rng=np.random.default_rng(15))
-    base = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, sigma_floor=0.0)
+    base = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, model_scale=0.0,
+                   instrumental_dop_std=0.0)  # fmt: skip
     assert base.yaw_std == pytest.approx(base.yaw_std_meas, rel=1e-12)
+    assert base.yaw_std_noise == base.yaw_std_meas and base.yaw_std_model == 0.0
+    assert base.yaw_std_correlated == 0.0
     kw = {"kappa": 20.0, "sigma_floor": np.radians(0.2), "tilt_std": np.radians(0.1)}
     m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, **kw)
     zen = np.arccos(SUN_N[2])
+    sky2 = 1.5**2 * max(m.yaw_std_jackknife**2 - m.yaw_std_meas**2, 0.0)
+    model = np.sqrt(sky2 + m.yaw_std_correlated**2 + np.radians(0.2) ** 2)
+    assert m.yaw_std_correlated > 0 and m.yaw_std_model == pytest.approx(model, rel=1e-12)
+    assert m.yaw_std_noise == pytest.approx(20.0 * m.yaw_std_meas, rel=1e-12)
     expected = np.sqrt(
-        (20.0 * m.yaw_std_meas) ** 2 + np.radians(0.2) ** 2 + (np.radians(0.1) / np.tan(zen)) ** 2
+        m.yaw_std_noise**2 + m.yaw_std_model**2 + (np.radians(0.1) / np.tan(zen)) ** 2
     )
     assert m.yaw_std == pytest.approx(expected, rel=1e-12)
     assert m.sun_std == pytest.approx(
-        np.sin(zen) * np.hypot(20.0 * m.yaw_std_meas, np.radians(0.2)), rel=1e-12
+        np.sin(zen) * np.hypot(m.yaw_std_noise, m.yaw_std_model), rel=1e-12
     )
     assert m.yaw == base.yaw  # inflation never changes the estimate
 

@@ -75,7 +75,7 @@ def test_sun_azimuth_matches_the_truth_within_its_sigma(method):
         sun_n, rot = _random_case(rng)
         raw = render_raw(CAM8, sun_n, rot, epsilon=0.0125 if method == "compensated" else 0.0,
                          rng=rng)  # fmt: skip
-        m = measure(raw, CAM8, method=method, rot_nb_prior=rot, sigma_floor=0.0)
+        m = measure(raw, CAM8, method=method, rot_nb_prior=rot, instrumental_dop_std=0.0)
         assert m.ok and m.reason == "" and m.method == method and m.sun_branch == "elevation"
         assert np.isnan(m.yaw) and np.isnan(m.heading_deg) and np.isnan(m.yaw_std)
         assert m.sun_azimuth_b == pytest.approx(np.arctan2(m.sun_b[1], m.sun_b[0]), abs=1e-12)

@@ -132,6 +132,25 @@ def fov_mask(cam: CameraModel) -> BoolArray:
     return mask
 
 
+@lru_cache(maxsize=8)
+def roi_mask(cam: CameraModel) -> BoolArray:
+    """The superpixels the measurement uses, ``(Hs, Ws)`` bool, cached per camera:
+    :func:`fov_mask` within the camera file's region of interest (``[roi]``: ray angle up
+    to ``cam.roi_max_field_angle`` and inside any of ``cam.roi_polygons``;
+    docs/measurement.md §4)."""
+    mask = np.array(fov_mask(cam))
+    if cam.roi_max_field_angle is not None:
+        with np.errstate(invalid="ignore"):
+            mask &= pixel_rays_c(cam)[..., 2] >= np.cos(cam.roi_max_field_angle)
+    if cam.roi_polygons:
+        inside = np.zeros(cam.superpixel_shape, dtype=np.uint8)
+        polys = [np.round(p).astype(np.int32) for p in cam.roi_polygons]
+        cv2.fillPoly(inside, polys, color=1)
+        mask &= inside == 1
+    mask.setflags(write=False)
+    return mask
+
+
 # ------------------------------------------------------------------ lens polarization
 def _meridian_basis(rays_c: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Unit ``exp(2i alpha)`` of the ray azimuth as (cos 2alpha, sin 2alpha), and the ray's

@@ -11,8 +11,9 @@ One function, :func:`measure_image`, runs every method of ``polins.measure``
 3. ``"compensated"``: Gauss-Newton of the joint ML on the subsample, then one step on all
    valid pixels (docs/model.md §9.2, docs/measurement.md §5); otherwise the eigen solution
    on all valid pixels with its eigen-gap sandwich covariance (docs/model.md §10.2);
-4. the heading, its 180 deg choice and the filter sigma, inflated by
-   ``kappa^2 sigma^2 + sigma_floor^2 + cot^2(Z) tilt_std^2`` (docs/model.md §10).
+4. the heading, its 180 deg choice and the filter sigma: the pixel noise, the model error
+   from a jackknife over sky sectors and the camera-fixed polarization, and the tilt term
+   (docs/measurement.md §12).
 
 Without an ephemeris (``sun_n=None``) the zenith is estimated, the yaw is NaN and the sun is
 reported in the body frame, its 180 deg branch chosen by :mod:`polins.compass.branch`. A
@@ -60,6 +61,7 @@ from polins.compass.jointml import (
 from polins.compass.kernels import dot, dot_rows
 from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import METHODS, Measurement, MeasurementMaps, MeasureOptions
+from polins.compass.modelerror import instrumental_sensitivity
 from polins.compass.pixels import check_raw, gather_channels
 from polins.compass.polarimetry import (
     stokes_calibration,
@@ -68,6 +70,7 @@ from polins.compass.polarimetry import (
     validity_rows,
 )
 from polins.compass.prediction import PixelData, pixel_data
+from polins.compass.sectors import eigen_jackknife, jackknife_variance, sector_runs
 from polins.compass.selection import Selection, selection_mask
 from polins.errors import UserInputError
 from polins.frames import heading_deg_from_yaw, wrap_angle
@@ -79,6 +82,10 @@ Compensation = Callable[[NDArray, CameraModel, NDArray], tuple[NDArray, NDArray]
 """A per-pixel replacement of the Stokes estimate: ``(channels (4, n), cam, sun_c_prior (3,))
 -> (rows (3, n) = (S0, S1, S2) [DN], epsilon (n,))``, with ``epsilon`` the per-pixel
 direct-sunlight coefficient it estimated (its median over the used pixels is reported)."""
+
+
+_SECTOR_MIN = 50
+"""Fewest used pixels for a sector to count in the jackknife."""
 
 
 def _excluded_sun(sun_c: NDArray, rays: NDArray, cos_excl: float) -> NDArray:
@@ -216,6 +223,8 @@ def measure_image(
         gradient_max=opt.gradient_max,
         finite_check=dtype == np.float64,
     )
+    if opt.max_field_angle is not None:
+        valid &= cache.rays[2] >= dtype(np.cos(opt.max_field_angle))
     sigma_l2 = sigma2 * cal.sigma_l_factors() ** 2
     inv_sigma_l2: NDArray | float
     if isinstance(sigma_l2, np.ndarray):
@@ -245,6 +254,21 @@ def measure_image(
     np.copyto(rows[3], dtype(0.0), where=invalid)
     if isinstance(inv_sigma_l2, np.ndarray):
         np.copyto(inv_sigma_l2, dtype(1.0), where=invalid)
+
+    # Weights of the estimators: the pixel noise, plus a model error of the AoP that grows
+    # with the field angle when model_aop_std > 0 (docs/measurement.md §4).
+    inv_weight_l2 = inv_sigma_l2
+    if opt.model_aop_std > 0:
+        field = np.arccos(np.clip(cache.rays[2], -1.0, 1.0)) * (1.0 / opt.model_field_angle)
+        sigma_aop = opt.model_aop_std * (1.0 + field * field)
+        p2 = est_rows[1] * est_rows[1] + est_rows[2] * est_rows[2]
+        inv_weight_l2 = (1.0 / (1.0 / inv_sigma_l2 + 4.0 * p2 * sigma_aop**2)).astype(dtype)
+
+    def inv_weight_at(idx: NDArray | None) -> NDArray | float:
+        w = inv_weight_l2
+        if not isinstance(w, np.ndarray):
+            return float(np.sqrt(w))
+        return np.sqrt(w if idx is None else w.take(idx))
 
     def inv_sigma_at(idx: NDArray | None) -> NDArray | float:
         if not isinstance(inv_sigma_l2, np.ndarray):
@@ -300,7 +324,7 @@ def measure_image(
         rows_sub[1],
         rows_sub[2],
         sub.forward,
-        inv_sigma_at(sub.index),
+        inv_weight_at(sub.index),
         packed=True,
         rays=sub.lens_rays,
     )
@@ -312,7 +336,7 @@ def measure_image(
         est_rows[1],
         est_rows[2],
         cache.forward,
-        inv_sigma_at(None),
+        inv_weight_at(None),
         packed=True,
         rays=cache.lens_rays,
     )
@@ -347,6 +371,7 @@ def measure_image(
                 max_iterations=1 if stride > 1 else opt.max_iterations,
                 select=full_select,
                 epsilon_bound=opt.epsilon_max,
+                sectors=sector_runs(cam),
             )
             fallback = _ml_problem(ml, opt, converged=stride == 1)
         if fallback:
@@ -359,6 +384,9 @@ def measure_image(
             sun_l = ml.sun_l
             cov_sun_l = sun_covariance(ml)
             var_yaw = float(ml.covariance[0, 0])
+            var_jack = float("nan")
+            if ml.jackknife is not None and ml.sector_counts is not None:
+                var_jack = jackknife_variance(ml.jackknife[:, 0], ml.sector_counts, _SECTOR_MIN)
             epsilon, epsilon_std = float(theta[-1]), float(np.sqrt(ml.covariance[-1, -1]))
             residual_rms = ml.residual_rms
     if used_method != "compensated":
@@ -367,7 +395,7 @@ def measure_image(
         eig, e, omega = eigen_level_rows(
             est_rows[1],
             est_rows[2],
-            inv_sigma_l2,
+            inv_weight_l2,
             cache.basis,
             cache.projection,
             mat_lc,
@@ -381,6 +409,8 @@ def measure_image(
         middle = sandwich_middle(e, omega, mat_cl @ sun_l)
         cov_sun_l = sandwich_covariance(eig, mat_lc @ middle @ mat_lc.T)
         var_yaw = yaw_variance_from_sun_covariance(sun_l, cov_sun_l)
+        deltas, counts = eigen_jackknife(e, omega, sector_runs(cam), mat_lc, sun_l)
+        var_jack = jackknife_variance(deltas, counts, _SECTOR_MIN)
         theta = np.array([np.arctan2(sun_l[1], sun_l[0]), np.arccos(np.clip(sun_l[2], -1, 1)), 0.0])
         zen_arg = None
         epsilon, epsilon_std = float("nan"), float("nan")
@@ -393,6 +423,15 @@ def measure_image(
         n_sub = max(int(np.count_nonzero(valid_sub)), 1)
         residual_rms = float(np.sqrt(dot(r_sub, r_sub) / n_sub))
 
+    # The camera-fixed polarization's effect, on the subsample (a ratio of sums, §12).
+    mask_sub = selection_mask(data_sub, sel_sub, mat_cl @ sun_l)
+    std_instrumental = opt.instrumental_dop_std * instrumental_sensitivity(
+        dataclasses.replace(data_sub, mask=mask_sub),
+        theta,
+        zen_arg,
+        mat_cl,
+        with_epsilon=used_method == "compensated",
+    )
     n_pixels = int(np.count_nonzero(mask))
     if n_pixels < opt.min_pixels:
         reason = f"too few valid pixels ({n_pixels} < {opt.min_pixels})"
@@ -450,7 +489,14 @@ def measure_image(
         return Measurement.refused(used_method, "singular covariance", n_pixels), mapped
 
     std_meas = float(np.sqrt(var_yaw))
-    yaw_std, sun_std = filter_sigmas(std_meas, zenith, opt.kappa, opt.sigma_floor, opt.tilt_std)
+    # Model error: the jackknife's variance beyond the pixel noise, calibrated (§12).
+    var_model = max(var_jack - var_yaw, 0.0) if np.isfinite(var_jack) else 0.0
+    std_sky = opt.model_scale * np.sqrt(var_model)
+    if not np.isfinite(std_instrumental):
+        std_instrumental = 0.0
+    std_model = float(np.sqrt(std_sky**2 + std_instrumental**2 + opt.sigma_floor**2))
+    std_noise = opt.kappa * std_meas
+    yaw_std, sun_std = filter_sigmas(std_noise, std_model, zenith, opt.tilt_std)
     sun_b = mat_lb.T @ sun_l
     var_az_b, var_el_b = sun_angle_variances(sun_b, mat_lb.T @ cov_sun_l @ mat_lb)
     azimuth_b = float(np.arctan2(sun_b[1], sun_b[0]))
@@ -482,12 +528,16 @@ def measure_image(
         residual_rms=float(residual_rms),
         noise_std_est=noise_std_est,
         sun_azimuth_b=azimuth_b,
-        sun_azimuth_b_std=float(np.hypot(opt.kappa * np.sqrt(var_az_b), opt.sigma_floor)),
+        sun_azimuth_b_std=float(np.hypot(opt.kappa * np.sqrt(var_az_b), std_model)),
         sun_elevation_b=elevation_b,
         sun_elevation_b_std=elevation_b_std,
         sun_azimuth_b_alt=azimuth_b_alt,
         sun_branch=branch,
         noise_ratio=noise_ratio,
+        yaw_std_noise=std_noise,
+        yaw_std_model=std_model,
+        yaw_std_correlated=float(std_instrumental),
+        yaw_std_jackknife=float(np.sqrt(var_jack)),
     )
     return result, mapped
 

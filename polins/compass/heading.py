@@ -107,33 +107,32 @@ def resolve_sun_sign(
 
 
 def filter_sigmas(
-    yaw_std_meas: float, zenith: float, kappa: float, sigma_floor: float, tilt_std: float
+    yaw_std_noise: float, yaw_std_model: float, zenith: float, tilt_std: float
 ) -> tuple[float, float]:
-    """The 1-sigmas a filter needs from a measurement sigma (docs/model.md §10.2).
+    """The 1-sigmas a filter needs from the parts of a heading sigma (docs/model.md §10.2,
+    docs/measurement.md §12).
 
     Parameters
     ----------
-    yaw_std_meas : float
-        Un-inflated yaw sigma of the estimator [rad].
+    yaw_std_noise : float
+        Pixel-noise part (inflated by ``kappa``) [rad].
+    yaw_std_model : float
+        Model-error part (jackknife over sky sectors, calibrated) [rad].
     zenith : float
         Sun zenith [rad].
-    kappa : float
-        Correlated-error inflation factor.
-    sigma_floor : float
-        Model-error floor of the heading [rad].
     tilt_std : float
         Roll/pitch sigma about the horizontal axis towards the sun [rad].
 
     Returns
     -------
     yaw_std : float
-        ``sqrt((kappa yaw_std_meas)^2 + sigma_floor^2 + (cot Z tilt_std)^2)`` [rad].
+        ``sqrt(yaw_std_noise^2 + yaw_std_model^2 + (cot Z tilt_std)^2)`` [rad].
     sun_std : float
-        Sun-direction sigma along the azimuth, ``sin Z sqrt((kappa yaw_std_meas)^2 +
-        sigma_floor^2)`` [rad] (the tilt belongs in the filter's Jacobian of a vector
+        Sun-direction sigma along the azimuth, ``sin Z sqrt(yaw_std_noise^2 +
+        yaw_std_model^2)`` [rad] (the tilt belongs in the filter's Jacobian of a vector
         measurement).
     """
     sin_z, cot_z = np.sin(zenith), np.cos(zenith) / np.sin(zenith)
-    yaw_std = np.sqrt((kappa * yaw_std_meas) ** 2 + sigma_floor**2 + (cot_z * tilt_std) ** 2)
-    sun_std = np.sqrt((kappa * sin_z * yaw_std_meas) ** 2 + (sin_z * sigma_floor) ** 2)
-    return float(yaw_std), float(sun_std)
+    azimuth_std = float(np.hypot(yaw_std_noise, yaw_std_model))
+    yaw_std = np.hypot(azimuth_std, cot_z * tilt_std)
+    return float(yaw_std), float(sin_z * azimuth_std)

@@ -28,6 +28,7 @@ from polins.compass.prediction import (
     image_plane_evector,
     pixel_data,
 )
+from polins.compass.sectors import SectorRuns, ml_jackknife, sector_sums
 from polins.compass.selection import Selection, select_pixels
 from polins.compass.sunlight import sunlight_direction, sunlight_unpolarized
 from polins.frames import wrap_angle
@@ -253,6 +254,11 @@ class MLSolution:
     converged : bool
     n : int
         Pixels used.
+    jackknife : (G, k) or None
+        Leave-one-sector-out deviations of theta (:func:`polins.compass.sectors.ml_jackknife`)
+        when sectors were given.
+    sector_counts : (G,) or None
+        Pixels used per sector.
     """
 
     theta: FloatArray
@@ -262,6 +268,8 @@ class MLSolution:
     iterations: int
     converged: bool
     n: int = 0
+    jackknife: FloatArray | None = None
+    sector_counts: FloatArray | None = None
 
 
 def gauss_newton(
@@ -276,6 +284,7 @@ def gauss_newton(
     tol_sigma: float = 1e-2,
     select: Selection | None = None,
     epsilon_bound: float = np.inf,
+    sectors: SectorRuns | None = None,
 ) -> tuple[MLSolution, NDArray | None]:
     """Gauss-Newton (IRLS for robust losses) on ``data``; with ``max_iterations=1`` it is the
     single full-set step of the subsample-then-full scheme (docs/measurement.md). ``select``
@@ -286,6 +295,9 @@ def gauss_newton(
     solution on the bound is not a free estimate: the caller refuses it), and a step that
     increases the loss is halved (from the second iteration on: one evaluation per
     iteration as long as the loss decreases).
+
+    With ``sectors`` (full pixel set only) the solution carries the leave-one-sector-out
+    deviations of the last accepted linearization (docs/measurement.md §12).
     """
     theta = np.asarray(theta0, dtype=float).copy()
     theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
@@ -305,6 +317,7 @@ def gauss_newton(
         post_scale = 1.0
     mask = data.mask
     theta_prev, step, loss_prev, halvings = theta, np.zeros_like(theta), np.inf, 0
+    sector_parts: tuple[FloatArray, FloatArray, FloatArray] | None = None
     for it in range(1, max_iterations + 1):  # noqa: B007
         r, jac, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select)
         if select is not None:
@@ -330,6 +343,9 @@ def gauss_newton(
         jtj *= post_scale**2
         jtr *= post_scale**2
         rss *= post_scale**2
+        if sectors is not None:
+            sun_c = mat_cl @ _sun_derivatives(theta, zenith)[0]
+            sector_parts = _sector_normal_equations(r, jac, weights, mask, sectors, sun_c)
         try:
             step = _bounded_step(-np.linalg.solve(jtj, jtr), k_sun)
             jtj_inv = np.linalg.inv(jtj)
@@ -365,7 +381,38 @@ def gauss_newton(
         cov = np.full((dof, dof), np.nan)
     sun_l, _ = _sun_derivatives(theta, zenith)
     theta[0] = float(wrap_angle(theta[0]))
-    return MLSolution(theta, np.asarray(cov, dtype=np.float64), sun_l, rms, it, converged, n), mask
+    jackknife = counts = None
+    if sector_parts is not None:
+        sector_h, sector_b, counts = sector_parts
+        try:
+            jackknife = ml_jackknife(jtj, jtr, sector_h * post_scale**2, sector_b * post_scale**2)
+        except np.linalg.LinAlgError:
+            jackknife = None
+    solution = MLSolution(
+        theta, np.asarray(cov, dtype=np.float64), sun_l, rms, it, converged, n, jackknife, counts
+    )
+    return solution, mask
+
+
+def _sector_normal_equations(
+    r: NDArray,
+    jac: NDArray,
+    weights: NDArray | None,
+    mask: NDArray | None,
+    sectors: SectorRuns,
+    sun_c: NDArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per-sector ``H_g (G, k, k)``, ``b_g (G, k)`` and pixel counts ``(G,)``."""
+    k = jac.shape[0]
+    jw = jac if weights is None else jac * weights
+    pairs = [(a, b) for a in range(k) for b in range(a, k)]
+    rows = [jw[a] * jac[b] for a, b in pairs] + [jw[a] * r for a in range(k)]
+    used = np.ones_like(r) if mask is None else mask.astype(r.dtype)
+    sums = sector_sums(np.stack([*rows, used]), sectors, sun_c)
+    h = np.empty((sums.shape[0], k, k))
+    for j, (a, b) in enumerate(pairs):
+        h[:, a, b] = h[:, b, a] = sums[:, j]
+    return h, sums[:, len(pairs) : len(pairs) + k], sums[:, -1]
 
 
 def sun_covariance(solution: MLSolution) -> FloatArray:

@@ -71,7 +71,24 @@ class MeasureOptions:
     kappa : float
         Correlated-error inflation factor, ``kappa^2 = N/N_eff`` (docs/model.md §10.2).
     sigma_floor : float
-        Model-error floor of the heading [rad].
+        An extra model-error floor of the heading [rad], added in quadrature to the model
+        part (default 0: the model part comes from the data, docs/measurement.md §12).
+    model_scale : float
+        Calibration factor of the sky-model part: the jackknife's variance beyond the pixel
+        noise times ``model_scale^2`` (1.5, calibrated on realistic skies; §12).
+    instrumental_dop_std : float
+        1-sigma per component of the camera-fixed polarization the channel calibration
+        leaves [-] (0.002 for gains good to +-0.5 %; 0 for a perfect calibration); gives
+        :attr:`Measurement.yaw_std_correlated` (§12).
+    max_field_angle : float or None
+        Region of interest: largest ray angle from the optical axis used [rad] (None: the
+        camera file's ``[roi]`` and field of view only).
+    model_aop_std : float
+        Model error of the AoP on the optical axis [rad] in the pixel weights (0: weights
+        from the pixel noise only); it grows as ``1 + (theta / model_field_angle)^2`` with
+        the field angle theta (docs/measurement.md §4).
+    model_field_angle : float
+        Field angle [rad] at which the AoP model error has doubled.
     tilt_std : float
         1-sigma roll/pitch error about the horizontal axis towards the sun [rad]; adds
         ``cot(Z) tilt_std`` to the heading sigma.
@@ -130,7 +147,12 @@ class MeasureOptions:
     dop_min: float = 0.03
     snr_min: float = 3.0
     kappa: float = 1.0
-    sigma_floor: float = float(np.radians(0.1))
+    sigma_floor: float = 0.0
+    model_scale: float = 1.5
+    instrumental_dop_std: float = 0.002
+    max_field_angle: float | None = None
+    model_aop_std: float = 0.0
+    model_field_angle: float = float(np.radians(60.0))
     tilt_std: float = 0.0
     yaw_gate: float | None = None
     gradient_max: float | None = 0.05
@@ -157,6 +179,9 @@ class MeasureOptions:
             "kappa",
             "sun_exclusion",
             "sigma_floor",
+            "model_scale",
+            "instrumental_dop_std",
+            "model_aop_std",
             "tilt_std",
             "epsilon_max",
             "branch_z_min",
@@ -167,6 +192,10 @@ class MeasureOptions:
                 raise UserInputError(f"{name}={getattr(self, name)} must be >= 0")
         if not 0 <= self.dop_min < 1:
             raise UserInputError(f"dop_min={self.dop_min} outside [0, 1)")
+        if self.max_field_angle is not None and not 0 < self.max_field_angle <= np.pi / 2:
+            raise UserInputError(f"max_field_angle={self.max_field_angle} outside (0, pi/2] rad")
+        if not self.model_field_angle > 0:
+            raise UserInputError(f"model_field_angle={self.model_field_angle} must be > 0 [rad]")
         if not 0 < self.separability_max <= 1:
             raise UserInputError(f"separability_max={self.separability_max} outside (0, 1]")
         if self.min_pixels < 3 or self.max_iterations < 1 or self.gn_pixels < 0:
@@ -218,9 +247,10 @@ class Measurement:
     yaw : float
         ENU yaw of body x [rad], counter-clockwise from East, in (-pi, pi].
     yaw_std : float
-        1-sigma for a filter [rad]: ``sqrt(kappa^2 yaw_std_meas^2 + floor^2 + cot^2 Z tilt^2)``.
+        1-sigma for a filter [rad]: ``sqrt(yaw_std_noise^2 + yaw_std_model^2 + cot^2 Z
+        tilt_std^2)`` (docs/measurement.md §12).
     yaw_std_meas : float
-        Un-inflated measurement sigma [rad] (Gauss-Newton or eigen-gap sandwich).
+        Un-inflated pixel-noise sigma [rad] (Gauss-Newton or eigen-gap sandwich).
     heading_deg : float
         Compass heading of body x [deg], clockwise from North, in [0, 360).
     sun_b, sun_l, sun_c : (3,)
@@ -228,7 +258,7 @@ class Measurement:
     sun_std : float
         1-sigma of the sun direction along the azimuth [rad], inflated like yaw_std (without
         the tilt term, which belongs in the filter's Jacobian for a vector measurement):
-        ``sqrt(kappa^2 (sin Z yaw_std_meas)^2 + (sin Z floor)^2)``. With ``fixed_zenith`` the
+        ``sin Z sqrt(yaw_std_noise^2 + yaw_std_model^2)``. With ``fixed_zenith`` the
         elevation of sun_b comes from the ephemeris and the prior tilt, not from the image.
     epsilon, epsilon_std : float
         Direct-sunlight coefficient and its sigma ("compensated"; "paper": median per-pixel
@@ -246,8 +276,8 @@ class Measurement:
         Sun azimuth in the body frame [rad], FLU, counter-clockwise from body +x towards +y:
         ``atan2(sun_b[1], sun_b[0])``; filled with and without ``sun_n``.
     sun_azimuth_b_std : float
-        Its 1-sigma for a filter [rad], ``sqrt((kappa sigma_meas)^2 + sigma_floor^2)`` (the
-        body-frame azimuth does not depend on the prior tilt, hence no tilt term).
+        Its 1-sigma for a filter [rad], ``sqrt((kappa sigma_meas)^2 + yaw_std_model^2)``
+        (the body-frame azimuth does not depend on the prior tilt, hence no tilt term).
     sun_elevation_b, sun_elevation_b_std : float
         Sun elevation above the body x-y plane [rad] and its 1-sigma, where the image
         determines it (sigma below ``elevation_std_max``), else NaN; with ``sun_n`` and
@@ -265,6 +295,23 @@ class Measurement:
         Channel noise measured by the redundancy residual over the camera file's noise model
         (robust: MAD over the field of view); a warning is issued outside
         :data:`NOISE_RATIO_BAND`.
+    yaw_std_noise : float
+        Pixel-noise part of ``yaw_std`` [rad], ``kappa yaw_std_meas`` (uncorrelated from
+        image to image).
+    yaw_std_model : float
+        Model-error part [rad]: ``sqrt((model_scale sky)^2 + yaw_std_correlated^2 +
+        sigma_floor^2)``, ``sky^2`` the jackknife variance over sky sectors beyond the pixel
+        noise. Also part of ``sun_azimuth_b_std`` and ``sun_std``; filled with and without
+        ``sun_n``.
+    yaw_std_correlated : float
+        The camera-fixed part of ``yaw_std_model`` [rad] (``instrumental_dop_std`` times the
+        heading's sensitivity to a camera-fixed polarization): the same error in every
+        image of the same sun-camera geometry, for a filter's measurement-bias state. The
+        rest of the model part follows the sky (clouds, neutral points) and decorrelates as
+        the sky and the attitude change.
+    yaw_std_jackknife : float
+        Jackknife sigma of the azimuth over the 16 mirror-pair sky sectors [rad]
+        (pixel noise and sky-model error; a diagnostic).
     """
 
     ok: bool
@@ -291,6 +338,10 @@ class Measurement:
     sun_azimuth_b_alt: float = float("nan")
     sun_branch: str = ""
     noise_ratio: float = float("nan")
+    yaw_std_noise: float = float("nan")
+    yaw_std_model: float = float("nan")
+    yaw_std_correlated: float = float("nan")
+    yaw_std_jackknife: float = float("nan")
 
     @classmethod
     def refused(cls, method: str, reason: str, n_pixels: int = 0) -> Measurement:

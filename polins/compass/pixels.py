@@ -18,7 +18,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from polins.compass.camera import fov_mask
+from polins.compass.camera import roi_mask
 from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
@@ -148,12 +148,13 @@ def _build_pixel_set(cam: CameraModel, mask: BoolArray) -> PixelSet:
 
 @lru_cache(maxsize=8)
 def _fov_pixel_set(cam: CameraModel) -> PixelSet:
-    return _build_pixel_set(cam, np.asarray(fov_mask(cam)))
+    return _build_pixel_set(cam, np.asarray(roi_mask(cam)))
 
 
 def pixel_set(cam: CameraModel, mask: ArrayLike | None = None) -> PixelSet:
-    """The superpixels of ``mask`` (default: the camera's field of view and static occlusion
-    mask, :func:`polins.compass.camera.fov_mask`, cached per camera)."""
+    """The superpixels of ``mask`` (default: the camera's field of view, static occlusion
+    mask and region of interest, :func:`polins.compass.camera.roi_mask`, cached per
+    camera)."""
     if mask is None:
         return _fov_pixel_set(cam)
     return _build_pixel_set(cam, np.asarray(mask, dtype=bool))

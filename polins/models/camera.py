@@ -141,6 +141,7 @@ _CAMERA_SCHEMA: Schema = {
     },
     "mount": {"mat_bc": matrix(3, 3)},
     "occlusion": {"polygons_superpixel": polygons},
+    "roi": Optional({"max_field_angle_deg": Optional(positive), "polygons_px": Optional(polygons)}),
     "calibration": TableArray(
         _CALIBRATION_ENTRY,
         extra=_figure,
@@ -198,6 +199,8 @@ class CameraModel:
     fov_max: float  # [rad] largest ray angle from the optical axis that is used
     mat_bc: FloatArray  # (3, 3) camera -> body
     occlusion_polygons: tuple[FloatArray, ...] = field(default=())
+    roi_max_field_angle: float | None = None  # [rad] region of interest: field-angle limit
+    roi_polygons: tuple[FloatArray, ...] = ()  # region of interest, superpixel [u, v]
     gain_map: FloatArray | None = None  # (Hs, Ws, 4) per-pixel g [-], NaN: channel value
     transmission_angle_map: FloatArray | None = None  # (Hs, Ws, 4) per-pixel alpha [rad]
     efficiency_map: FloatArray | None = None  # (Hs, Ws, 4) per-pixel eta [-]
@@ -276,6 +279,7 @@ class CameraModel:
             height_px=self.height_px // factor,
             camera_matrix=k,
             occlusion_polygons=tuple((p + 0.5) / factor - 0.5 for p in self.occlusion_polygons),
+            roi_polygons=tuple((p + 0.5) / factor - 0.5 for p in self.roi_polygons),
             **self._binned_maps(factor),
         )
 
@@ -317,6 +321,15 @@ class CameraModel:
             raise TypeError(f"CameraModel has no field(s) {sorted(unknown)}")
         fields.update(changes)
         return CameraModel(**fields)
+
+
+def _roi(roi: Mapping[str, Any]) -> tuple[float | None, tuple[FloatArray, ...]]:
+    """The file's optional ``[roi]`` table: the field-angle limit [deg -> rad] and the
+    polygons in full-resolution pixel coordinates ``[x, y]`` (pixel centres at integers)
+    -> superpixel ``[u, v] = ([x, y] - 0.5) / 2``."""
+    limit = roi.get("max_field_angle_deg")
+    polys = tuple((p - 0.5) / 2.0 for p in roi.get("polygons_px", ()))
+    return (None if limit is None else float(np.radians(limit))), polys
 
 
 def _check_maps(path: Path, maps: dict[str, FloatArray], pol: Mapping[str, Any]) -> None:
@@ -424,6 +437,7 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
             )
             maps[name].setflags(write=False)
     _check_maps(path, maps, pol)
+    roi_limit, roi_polygons = _roi(d.get("roi", {}))
     return CameraModel(
         name=d["name"],
         description=d["description"],
@@ -448,6 +462,8 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
         fov_max=float(np.radians(lens["fov_max_deg"])),
         mat_bc=mat_bc,
         occlusion_polygons=d["occlusion"]["polygons_superpixel"],
+        roi_max_field_angle=roi_limit,
+        roi_polygons=roi_polygons,
         calibration=tuple(d.get("calibration", [])),  # plain dicts: a model pickles
         **maps,
     )

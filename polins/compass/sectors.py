@@ -1,0 +1,176 @@
+"""Sky sectors and the delete-one-sector jackknife: the data-driven part of the heading sigma.
+
+The pixel-noise covariance of an estimate (docs/measurement.md §6) assumes independent
+pixels. Model errors (neutral points, clouds, a channel-gain residual, a sky that is not
+Rayleigh) are smooth over the sky, hence correlated over thousands of pixels, and do not
+average down. The jackknife over G contiguous sectors of the image sees them: removing one
+sector moves the estimate by what that sector's error contributed
+(docs/measurement.md §12)::
+
+    var_J = (G - 1)/G sum_g (d_g - mean d)^2,      d_g = theta_(g) - theta
+
+The leave-one-out estimates are one linearized step from the full-set normal equations
+(``H = J^T W J``, ``b = J^T W r``; per sector ``H_g``, ``b_g``)::
+
+    theta_(g) - theta = -(H - H_g)^-1 (b - b_g) + H^-1 b
+
+and for the eigen solution the smallest eigenvector of ``M - M_g``. The per-sector sums
+run over the pixels in index order as ``np.add.reduceat`` over runs of equal sector
+(sectors are contiguous in the image, so a row holds few runs).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+from polins.compass.lens import camera_constants
+from polins.models import CameraModel
+
+FloatArray = NDArray[np.float64]
+
+__all__ = [
+    "SECTOR_AZIMUTHS",
+    "SECTOR_RINGS",
+    "SectorRuns",
+    "eigen_jackknife",
+    "jackknife_variance",
+    "ml_jackknife",
+    "sector_runs",
+    "sector_sums",
+]
+
+SECTOR_AZIMUTHS = 8
+"""Jackknife groups per ring: mirror pairs of azimuth slices about the sun's image azimuth."""
+SECTOR_RINGS = 2
+"""Field-angle rings (split at the median field angle of the field of view)."""
+_FINE = 4 * SECTOR_AZIMUTHS  # fixed image slices per ring, grouped per image
+
+
+@dataclass(frozen=True, eq=False)
+class SectorRuns:
+    """Sectors of a camera's field-of-view pixel set as runs of equal label in index order.
+
+    Attributes
+    ----------
+    starts : (m,) int
+        First pixel of every run.
+    labels : (m,) int
+        Sector of every run.
+    n_sectors : int
+        Fixed image sectors (``4 SECTOR_AZIMUTHS`` slices per ring).
+    azimuth : (n_sectors,)
+        Centre azimuth of every sector about the optical axis [rad].
+    ring : (n_sectors,) int
+    """
+
+    starts: NDArray[np.intp]
+    labels: NDArray[np.intp]
+    n_sectors: int
+    azimuth: FloatArray
+    ring: NDArray[np.intp]
+
+    def mirror_groups(self, sun_c: NDArray) -> NDArray[np.intp]:
+        """Jackknife group ``(n_sectors,)`` of every sector for a camera-frame sun ``(3,)``:
+        the :data:`SECTOR_AZIMUTHS` bands of ``|azimuth - sun azimuth|`` in [0, pi] per
+        ring, so that each group holds mirror-image slices about the solar vertical."""
+        folded = np.abs(np.angle(np.exp(1j * (self.azimuth - np.arctan2(sun_c[1], sun_c[0])))))
+        band = np.minimum((folded * (SECTOR_AZIMUTHS / np.pi)).astype(np.intp), SECTOR_AZIMUTHS - 1)
+        return band + SECTOR_AZIMUTHS * self.ring
+
+
+@lru_cache(maxsize=8)
+def sector_runs(cam: CameraModel) -> SectorRuns:
+    """The fixed image sectors of the camera's field of view (``4 SECTOR_AZIMUTHS`` slices
+    x :data:`SECTOR_RINGS` rings), cached per camera."""
+    rays = camera_constants(cam, np.float64).rays
+    azimuth = np.arctan2(rays[1], rays[0])
+    field = np.arccos(np.clip(rays[2], -1.0, 1.0))
+    slice_ = np.floor((azimuth + np.pi) * (_FINE / (2 * np.pi))).astype(np.intp)
+    slice_ = np.minimum(slice_, _FINE - 1)
+    ring = np.searchsorted(np.quantile(field, np.arange(1, SECTOR_RINGS) / SECTOR_RINGS), field)
+    labels = slice_ + _FINE * ring.astype(np.intp)
+    starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
+    n = _FINE * SECTOR_RINGS
+    centre: FloatArray = np.asarray(
+        -np.pi + (np.arange(n) % _FINE + 0.5) * (2 * np.pi / _FINE), dtype=np.float64
+    )
+    return SectorRuns(starts, labels[starts], n, centre, np.arange(n) // _FINE)
+
+
+def sector_sums(rows: NDArray, runs: SectorRuns, sun_c: NDArray) -> FloatArray:
+    """Per-group sums ``(G, m)`` of rows ``(m, n)`` over the field-of-view pixel set, in
+    float64, the groups the mirror pairs of :meth:`SectorRuns.mirror_groups` for the
+    camera-frame sun ``sun_c``."""
+    run_sums = np.add.reduceat(rows, runs.starts, axis=1, dtype=np.float64)
+    groups = runs.mirror_groups(sun_c)
+    out = np.zeros((SECTOR_AZIMUTHS * SECTOR_RINGS, rows.shape[0]))
+    np.add.at(out, groups[runs.labels], run_sums.T)
+    return out
+
+
+def jackknife_variance(deltas: NDArray, counts: NDArray, min_count: int = 1) -> float:
+    """Delete-one-group jackknife variance ``(G'-1)/G' sum (d_g - mean d)^2`` of the
+    leave-one-out deviations ``deltas (G,)`` over the G' sectors holding at least
+    ``min_count`` pixels (``counts (G,)``); NaN with fewer than 3 such sectors."""
+    d = np.asarray(deltas, dtype=float)
+    use = (np.asarray(counts) >= min_count) & np.isfinite(d)
+    g = int(np.count_nonzero(use))
+    if g < 3:
+        return float("nan")
+    d = d[use]
+    return float((g - 1) / g * np.sum((d - d.mean()) ** 2))
+
+
+def ml_jackknife(jtj: NDArray, jtr: NDArray, sector_h: NDArray, sector_b: NDArray) -> FloatArray:
+    """Leave-one-sector-out deviations ``(G, k)`` of a Gauss-Newton solution from its normal
+    equations ``jtj (k, k)``, ``jtr (k,)`` and their per-sector parts ``sector_h (G, k, k)``,
+    ``sector_b (G, k)``: ``-(H - H_g)^-1 (b - b_g) + H^-1 b`` (NaN where ``H - H_g`` is
+    singular)."""
+    base = np.linalg.solve(jtj, jtr)
+    reduced = jtj[None] - sector_h
+    rhs = (jtr[None] - sector_b)[..., None]
+    out = np.full(sector_b.shape, np.nan)
+    det = np.linalg.det(reduced)
+    ok = np.abs(det) > 1e-12 * abs(float(np.linalg.det(jtj)))
+    if np.any(ok):
+        out[ok] = base[None] - np.linalg.solve(reduced[ok], rhs[ok])[..., 0]
+    return out
+
+
+def _moment_rows(e: NDArray, omega: NDArray) -> NDArray:
+    """The six distinct products ``omega e_a e_b`` ``(6, n)`` (xx, xy, xz, yy, yz, zz)."""
+    we = e * omega
+    return np.stack([we[0] * e[0], we[0] * e[1], we[0] * e[2], we[1] * e[1], we[1] * e[2],
+                     we[2] * e[2]])  # fmt: skip
+
+
+def eigen_jackknife(
+    e: NDArray, omega: NDArray, runs: SectorRuns, mat_lc: NDArray, sun_l: NDArray
+) -> tuple[FloatArray, FloatArray]:
+    """Leave-one-sector-out azimuth deviations ``(G,)`` [rad] of the eigen sun of
+    camera-frame E-vectors ``e (3, n)`` with weights ``omega (n,)`` (the moment
+    ``sum omega e e^T``), and the pixels per sector ``(G,)``.
+
+    ``sun_l`` (3,) is the full-set level-frame sun; each sector's sun is the smallest
+    eigenvector of ``M - M_g``, signed like ``sun_l``.
+    """
+    rows = _moment_rows(e, omega)
+    sums = sector_sums(
+        np.vstack([rows, (omega > 0)[None].astype(rows.dtype)]), runs, mat_lc.T @ sun_l
+    )
+    total = sums.sum(axis=0)
+    idx = ([0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2])
+    reduced = np.zeros((sums.shape[0], 3, 3))
+    reduced[:, idx[0], idx[1]] = total[None, :6] - sums[:, :6]
+    reduced[:, idx[1], idx[0]] = reduced[:, idx[0], idx[1]]
+    reduced = mat_lc @ reduced @ mat_lc.T
+    _, vec = np.linalg.eigh(reduced)
+    suns = vec[..., 0]
+    suns *= np.sign(suns @ sun_l)[:, None]
+    deltas = np.arctan2(suns[:, 1], suns[:, 0]) - np.arctan2(sun_l[1], sun_l[0])
+    deltas = (deltas + np.pi) % (2 * np.pi) - np.pi
+    return deltas, sums[:, 6]

@@ -1,0 +1,192 @@
+"""Realistic skies (polins.sim.realsky, a renderer independent of the estimator) and the
+honesty of the heading sigma on them (docs/measurement.md §12), the region of interest."""
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import polins
+from polins.compass.camera import pixel_rays_c
+from polins.compass.measure import measure, measure_with_maps
+from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.sim.realsky import (
+    RealSky,
+    berry_sky,
+    cie_relative_luminance,
+    random_real_sky,
+    render_real_raw,
+)
+
+CAM = polins.load_camera("paper-table1").with_changes(conversion_gain_e_per_dn=2.0)
+CAM4 = CAM.downscaled(4)
+
+
+# ----------------------------------------------------------------------------- renderer
+def test_renderer_rays_agree_with_the_camera_model():
+    from polins.sim.realsky import _rays_c
+
+    ours, theirs = _rays_c(CAM4), pixel_rays_c(CAM4)
+    used = np.isfinite(theirs[..., 2]) & (theirs[..., 2] >= np.cos(CAM4.fov_max))
+    assert np.max(np.abs(ours[used] - theirs[used])) < 1e-9
+
+
+def test_berry_sky_reduces_to_rayleigh_and_vanishes_at_the_neutral_points():
+    rng = np.random.default_rng(0)
+    rays = rng.normal(size=(500, 3))
+    rays[:, 2] = np.abs(rays[:, 2])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    sun = polins.sun_vector_n(1.0, np.radians(50.0))
+    evec, w_abs = berry_sky(rays, sun, 0.0)
+    cos_t = rays @ sun
+    np.testing.assert_allclose(w_abs, 1.0 - cos_t**2, atol=1e-12)  # sin^2 of the scattering angle
+    np.testing.assert_allclose(evec @ sun, 0.0, atol=1e-12)  # Rayleigh: E ~ s x p
+    np.testing.assert_allclose(np.sum(evec * rays, axis=1), 0.0, atol=1e-12)
+    # Babinet point: on the solar vertical, half the separation above the sun.
+    sep = np.radians(30.0)
+    up = np.array([0.0, 0.0, 1.0]) - sun[2] * sun
+    up /= np.linalg.norm(up)
+    babinet = np.cos(sep / 2) * sun + np.sin(sep / 2) * up
+    _, w_np = berry_sky(babinet[None], sun, sep)
+    assert w_np[0] < 1e-12
+    evec_b, _ = berry_sky(rays, sun, sep)
+    np.testing.assert_allclose(np.sum(evec_b * rays, axis=1), 0.0, atol=1e-12)
+    far = np.abs(cos_t) < 0.2  # ~90 deg from the sun the Berry sky is nearly Rayleigh
+    assert np.max(np.abs(np.abs(np.sum(evec_b[far] * evec[far], axis=1)) - 1)) < 0.02
+
+
+def test_cie_clear_sky_is_one_at_the_zenith_and_brightest_near_the_sun():
+    cos_zs = np.cos(np.radians(40.0))
+    assert cie_relative_luminance(1.0, cos_zs, cos_zs) == pytest.approx(1.0, abs=1e-12)
+    near, far = cie_relative_luminance([0.8, 0.8], [0.99, -0.6], cos_zs)
+    assert near > 3.0 * far
+
+
+# ----------------------------------------------------------------------------- honesty
+def _case(rng):
+    """Sun zenith 25-75 deg, camera tilt up to 5 deg in a random direction."""
+    sun_n = polins.sun_vector_n(rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(25, 75)))
+    tilt, direction = rng.uniform(0, np.radians(5.0)), rng.uniform(0, 2 * np.pi)
+    rot = Rotation.from_euler(
+        "ZYX", [rng.uniform(-np.pi, np.pi), tilt * np.cos(direction), tilt * np.sin(direction)]
+    )
+    return sun_n, rot
+
+
+def _honesty(cam, n_images, seed, clean=False, **options):
+    """Heading errors, yaw_std, yaw_std_noise and the sun-free azimuth errors and sigmas
+    [rad] of the default (compensated) method over seeded realistic skies."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n_images):
+        sun_n, rot = _case(rng)
+        sky = random_real_sky(rng, sun_n)
+        if clean:  # the estimator's own model: Rayleigh, no gain residual, no clouds
+            sky = RealSky(neutral_sep=0.0, vignetting=0.0, horizon_depolarization=0.0,
+                          epsilon=sky.epsilon)  # fmt: skip
+        raw = render_real_raw(cam, sun_n, rot, sky, rng)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, **options)
+            free = measure(raw, cam, rot_nb_prior=rot, **options)
+        assert m.ok and m.method == "compensated", m.reason
+        assert free.ok and free.sun_branch == "elevation", free.reason
+        true_b = rot.inv().apply(sun_n)
+        out.append(
+            (
+                float(wrap_angle(m.yaw - yaw_from_rot_nb(rot))),
+                m.yaw_std,
+                m.yaw_std_noise,
+                float(wrap_angle(free.sun_azimuth_b - np.arctan2(true_b[1], true_b[0]))),
+                free.sun_azimuth_b_std,
+            )
+        )
+    return np.array(out).T
+
+
+def _check_honest(err, sigma):
+    z = err / sigma
+    rms = float(np.sqrt(np.mean(z**2)))
+    assert 0.5 <= rms <= 1.5, rms
+    assert np.max(np.abs(z)) <= 4.0, np.max(np.abs(z))
+    return rms
+
+
+def test_sigma_is_honest_on_realistic_skies():
+    # 16 realistic skies at 1/4 resolution (the slow variant: 48): the pixel-noise sigma
+    # alone is several times too small; yaw_std and sun_azimuth_b_std cover the error.
+    err, std, std_noise, err_b, std_b = _honesty(CAM4, 16, seed=2)
+    _check_honest(err, std)
+    _check_honest(err_b, std_b)
+    assert np.sqrt(np.mean((err / std_noise) ** 2)) > 2.5
+    assert np.sqrt(np.mean(np.degrees(err) ** 2)) < 0.35  # compensated RMSE [deg]
+
+
+def test_sigma_is_honest_on_clean_model_skies():
+    # The estimator's own sky and a perfect calibration: the sigma is the noise sigma, not a
+    # floor 10x too large.
+    err, std, std_noise, err_b, std_b = _honesty(CAM4, 12, seed=3, clean=True,
+                                                 instrumental_dop_std=0.0)  # fmt: skip
+    _check_honest(err, std)
+    _check_honest(err_b, std_b)
+    assert np.median(std / std_noise) < 1.5
+
+
+@pytest.mark.slow
+def test_sigma_is_honest_on_many_realistic_skies():
+    err, std, _, err_b, std_b = _honesty(CAM4, 48, seed=2)
+    _check_honest(err, std)
+    _check_honest(err_b, std_b)
+    err, std, _, err_b, std_b = _honesty(CAM.downscaled(2), 24, seed=4)
+    _check_honest(err, std)
+    _check_honest(err_b, std_b)
+
+
+def test_gain_residual_is_the_correlated_part():
+    # Only a +-0.5 % channel-gain residual: an error common to all sky sectors, missed by
+    # the jackknife and covered by the camera-fixed (correlated) part.
+    rng = np.random.default_rng(5)
+    err, jack, std, corr = [], [], [], []
+    for _ in range(16):
+        sun_n, rot = _case(rng)
+        sky = RealSky(neutral_sep=0.0, vignetting=0.0, horizon_depolarization=0.0,
+                      gain_residual=rng.uniform(-0.005, 0.005, 4))  # fmt: skip
+        m = measure(render_real_raw(CAM4, sun_n, rot, sky, rng), CAM4, sun_n=sun_n,
+                    rot_nb_prior=rot)  # fmt: skip
+        err.append(float(wrap_angle(m.yaw - yaw_from_rot_nb(rot))))
+        jack.append(m.yaw_std_jackknife)
+        std.append(m.yaw_std)
+        corr.append(m.yaw_std_correlated)
+    err, jack, std, corr = map(np.array, (err, jack, std, corr))
+    assert np.sqrt(np.mean((err / jack) ** 2)) > 2.0
+    _check_honest(err, std)
+    assert np.all(corr > 0.5 * np.sqrt(np.maximum(std**2 - jack**2, 0.0)))
+
+
+# ----------------------------------------------------------------------------- roi
+def test_region_of_interest_from_the_camera_file_and_the_options(tmp_path):
+    text = polins.load_camera("paper-table1").path.read_text()
+    roi = "\n[roi]\nmax_field_angle_deg = 50.0\npolygons_px = [[[0, 0], [2447, 0], [2447, 1100], [0, 1100]]]\n"
+    (tmp_path / "roi.toml").write_text(text + roi)
+    cam = polins.load_camera(tmp_path / "roi.toml")
+    assert cam.roi_max_field_angle == pytest.approx(np.radians(50.0))
+    np.testing.assert_allclose(cam.roi_polygons[0][1], [1223.25, -0.25])
+    cam4 = cam.downscaled(4)
+    rng = np.random.default_rng(6)
+    sun_n, rot = _case(rng)
+    raw = render_real_raw(cam4, sun_n, rot, RealSky(), rng)
+    full, maps_full = measure_with_maps(raw, CAM4.with_changes(conversion_gain_e_per_dn=np.inf),
+                                        sun_n=sun_n, rot_nb_prior=rot)  # fmt: skip
+    m, maps = measure_with_maps(raw, cam4, sun_n=sun_n, rot_nb_prior=rot)
+    assert m.ok and full.ok and m.n_pixels < 0.5 * full.n_pixels
+    rays = pixel_rays_c(cam4)
+    used = maps.valid
+    assert np.all(rays[used, 2] >= np.cos(np.radians(50.0)) - 1e-12)
+    assert not used[cam4.superpixel_shape[0] // 2 + 20 :].any()  # below the polygon
+    opt = measure_with_maps(raw, CAM4, sun_n=sun_n, rot_nb_prior=rot,
+                            max_field_angle=np.radians(40.0))[1]  # fmt: skip
+    assert np.all(rays[opt.valid, 2] >= np.cos(np.radians(40.0)) - 1e-6)
+    assert maps_full.valid.sum() > opt.valid.sum() > 0
+    with pytest.raises(ValueError, match="max_field_angle"):
+        measure(raw, CAM4, max_field_angle=2.0)
