@@ -59,7 +59,7 @@ def sky(tmp_path_factory):
     radiance = 220.0 * rng.uniform(0.9, 1.1, 24)
     raws = np.stack([
         polins.sim.render_raw(true, SUN_N, Rotation.from_euler("z", a, degrees=True),
-                              radiance=r, rng=rng)
+                              radiance=r, rng=rng, ifov=True)
         for a, r in zip(turns, radiance, strict=True)
     ])  # fmt: skip
     _write_images(tmp / "fit", raws[::2])

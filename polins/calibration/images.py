@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
 
 from polins.errors import UserInputError
 from polins.models import CameraModel
@@ -22,7 +23,7 @@ from polins.models import CameraModel
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["ChannelStack", "channel_stack", "provenance", "zero_sum_basis"]
+__all__ = ["ChannelStack", "centred_channels", "channel_stack", "provenance", "zero_sum_basis"]
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,28 @@ def channel_stack(
         raise UserInputError(f"{label}images hold non-finite values")
     saturated = np.any(channels >= cam.saturation_dn, axis=-1)
     return ChannelStack(channels, saturated, integer)
+
+
+def centred_channels(channels: FloatArray, cam: CameraModel, *, order: int = 1) -> FloatArray:
+    """Channels ``(..., Hs, Ws, 4)`` interpolated to their superpixel centres [DN].
+
+    The four pixels of a superpixel look in slightly different directions (the DoFP
+    instantaneous-field-of-view error): the pixel at mosaic position (r, c) sits at
+    superpixel coordinates ``(u + (c - 1/2)/2, v + (r - 1/2)/2)`` (docs/model.md §5). Each
+    channel image is resampled at the centres (``scipy.ndimage.shift``, a spline of
+    ``order``; edges repeat the nearest value), so that all four see the same direction.
+    The default, bilinear, smooths the four channels alike (each moves a quarter
+    superpixel in u and in v), so the smoothing makes no channel-to-channel difference.
+    """
+    ch = np.asarray(channels, dtype=float)
+    out = np.empty_like(ch)
+    lead = (0,) * (ch.ndim - 3)
+    for r in range(2):
+        for c in range(2):
+            k = int(cam.channel_at[r, c])
+            out[..., k] = ndimage.shift(ch[..., k], (*lead, (r - 0.5) / 2, (c - 0.5) / 2),
+                                        order=order, mode="nearest")  # fmt: skip
+    return out
 
 
 def zero_sum_basis(n: int) -> FloatArray:

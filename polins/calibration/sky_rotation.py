@@ -41,9 +41,14 @@ Pitfalls, and how they are handled:
   degenerate: refused.
 * **The sun disc and saturation.** A ring that holds a saturated superpixel in any image
   is dropped, so the sun's ring never enters the fit.
-* **The DoFP IFOV error** (the four channels of a superpixel see slightly different
-  directions) fakes polarization where the intensity changes fast; averaged over a ring it
-  cancels to first order.
+* **The DoFP IFOV error.** The four pixels of a superpixel look a quarter superpixel
+  off its centre, each in its own direction, which fakes polarization wherever the sky
+  changes across the image; a ring mean does not cancel it (its gradient along the ring
+  turns with the pattern). On the test camera (153 x 128 superpixels) it biases the
+  channel angles by 0.2-0.4 deg and the efficiencies by up to 1.7% (noise ratio about 4).
+  ``ifov_correction`` (default) first interpolates each channel to the superpixel centres
+  (bilinear, the same smoothing for all four channels):
+  the errors drop to those of IFOV-free images (0.03-0.08 deg, noise ratio 0.9).
 """
 
 from __future__ import annotations
@@ -55,7 +60,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from polins.calibration.images import channel_stack, provenance
+from polins.calibration.images import centred_channels, channel_stack, provenance
 from polins.calibration.malus import base_stokes, fit_turning_polarization
 from polins.compass.camera import doubled_aop_from_evector, fov_mask, pixel_rays_c
 from polins.errors import UserInputError
@@ -252,6 +257,7 @@ def fit_sky_rotation(
     times_utc: ArrayLike | None = None,
     site: Site | None = None,
     axis_n: ArrayLike = (0.0, 0.0, 1.0),
+    ifov_correction: bool = True,
 ) -> SkyRotationResult:
     """Fit channel gains, angles and efficiencies to clear-sky images of a turning camera.
 
@@ -282,6 +288,10 @@ def fit_sky_rotation(
         Where the images were taken.
     axis_n : array_like, (3,)
         The turn axis (the optical axis) in ENU, used with the clock; default the zenith.
+    ifov_correction : bool
+        Interpolate the four channels to their superpixel centres first
+        (:func:`polins.calibration.images.centred_channels`; module docstring). Real DoFP
+        images need it; ``False`` only for images free of the IFOV error.
 
     Returns
     -------
@@ -295,7 +305,8 @@ def fit_sky_rotation(
     """
     stack = channel_stack(raws, cam, min_images=4, what="sky-rotation")
     windows, centres = ring_windows(cam, n_rings)
-    signal = stack.channels - cam.dark_offset_dn  # (m, Hs, Ws, 4)
+    channels = centred_channels(stack.channels, cam) if ifov_correction else stack.channels
+    signal = channels - cam.dark_offset_dn  # (m, Hs, Ws, 4)
     weight = windows.reshape(n_rings, -1)  # (R, n)
     saturated = stack.saturated.any(axis=0).ravel()
     keep = np.flatnonzero(~np.any((weight > 0) & saturated, axis=1) & (weight.sum(axis=1) >= 8))
@@ -373,6 +384,7 @@ def fit_sky_rotation(
             "ring means of clear-sky images turning about the optical axis, Malus-law fit"
             + (" with axis-tilt terms" if tilt_terms else "")
             + (", the sun's motion from the ephemeris" if factors is not None else "")
+            + (", channels interpolated to the superpixel centres" if ifov_correction else "")
             + " (docs/calibrate.md#sky-rotation)",
             m,
             n_rings=int(keep.size),

@@ -124,7 +124,8 @@ def _estimate(kind: str, raws: np.ndarray, base: Any, args: argparse.Namespace) 
     if kind == "sky-rotation":
         check(args.rings >= 2, f"--rings {args.rings}: expected an integer >= 2")
         return cal.fit_sky_rotation(raws, base, n_rings=args.rings, min_span_deg=args.min_span_deg,
-                                    tilt_terms=not args.aligned_axis)  # fmt: skip
+                                    tilt_terms=not args.aligned_axis,
+                                    ifov_correction=not args.no_ifov_correction)  # fmt: skip
     if kind == "intrinsics":
         check(args.square_mm > 0, f"--square-mm {args.square_mm:g}: expected a size > 0 [mm]")
         return cal.calibrate_intrinsics(raws, base, board=_board(args.board),
@@ -370,6 +371,9 @@ def add_calibrate(sub: Any) -> None:
                         "gains, angles, efficiencies from a clear sky seen while turning")  # fmt: skip
     p.add_argument("--aligned-axis", action="store_true",
                    help="the turn axis is the optical axis: no tilt terms (fewer images)")  # fmt: skip
+    p.add_argument("--no-ifov-correction", action="store_true",
+                   help="do not interpolate the channels to the superpixel centres (only for "
+                   "images free of the DoFP field-of-view mismatch, e.g. simulated without it)")  # fmt: skip
     p.add_argument("--rings", type=int, default=12, help="ring windows about the axis")
     p.add_argument("--min-span-deg", type=finite, default=90.0,
                    help="refuse turns spanning less [deg] (modulo 180)")  # fmt: skip
