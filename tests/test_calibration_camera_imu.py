@@ -133,9 +133,9 @@ def test_no_clock_recovers_the_offset_and_boresight_from_the_gyro():
     t_cam, sun_c, _ = _camera_sun(traj, rng, dt_true=0.010, rot_bc=ROT_BC)
     res = calibrate_camera_imu(t_cam, sun_c, imu["t"].to_numpy(), rot_ref)  # no sun_n: no clock
     assert res.mode == "no-clock" and res.held_axis_b is None
-    assert abs(res.time_offset_s - 0.010) <= 1e-3  # measured: 0.0101 (std 0.0001)
+    assert abs(res.time_offset_s - 0.010) <= 1e-3  # measured: 0.01003 (std 0.0001)
     err = Rotation.from_matrix(res.mat_bc) * ROT_BC.inv()
-    assert np.degrees(err.magnitude()) <= 0.05  # measured: 0.02 deg
+    assert np.degrees(err.magnitude()) <= 0.05  # measured: 0.010 deg
     # Statistically consistent: the errors within 4 standard errors, the residual at the noise.
     assert abs(res.time_offset_s - 0.010) < 4 * res.time_offset_std_s
     assert np.all(np.abs(err.as_rotvec()) < 4 * res.boresight_std_b + 1e-4)
@@ -156,7 +156,7 @@ def test_no_clock_with_an_enu_attitude_fits_the_sun_motion():
     ref = Rotation.from_euler("ZYX", [73.0, 1.0, -2.0], degrees=True) * traj.rot_nb
     res = calibrate_camera_imu(t_cam, sun_c, traj.t, ref)
     rate = np.degrees(np.arccos(sun_n[0] @ sun_n[-1])) / ((t_cam[-1] - t_cam[0]) / 60.0)
-    assert res.sun_drift_deg_per_min == pytest.approx(rate, abs=0.01)  # measured 0.2505/0.248
+    assert res.sun_drift_deg_per_min == pytest.approx(rate, abs=0.01)  # measured 0.2518/0.2481
     assert abs(res.time_offset_s - 0.010) <= 1e-3
     assert np.degrees((Rotation.from_matrix(res.mat_bc) * ROT_BC.inv()).magnitude()) <= 0.05
     still = calibrate_camera_imu(t_cam, sun_c, traj.t, ref, sun_drift=False)
