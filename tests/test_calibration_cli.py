@@ -207,6 +207,15 @@ def test_noise_flat_and_intrinsics_steps_chain(tmp_path, capsys):
         (["camera-imu", "no-log"], "manifest not found: no-log"),
         (["camera-imu", "no-log", "--max-offset-s", "0"], "--max-offset-s 0: expected > 0"),
         (["sky-rotation", "WRONG"], "image shape (64, 64) does not match the camera model"),
+        (["sky-rotation", "IMG", "--lat", "45"], "--times-utc, --lat and --lon go together"),
+        (
+            ["sky-rotation", "IMG", "--times-utc", "TIMES", "--lat", "45", "--lon", "126"],
+            "--times-utc TIMES: 2 times for 1 images",
+        ),
+        (
+            ["sky-rotation", "IMG", "--times-utc", "NAIVE", "--lat", "45", "--lon", "126"],
+            "naive datetime",
+        ),
     ],
 )
 def test_calibrate_mistakes_are_one_line_exit_2(tmp_path, capsys, args, message):
@@ -216,8 +225,12 @@ def test_calibrate_mistakes_are_one_line_exit_2(tmp_path, capsys, args, message)
     write_image(tmp_path / "img.png", np.full(cam.shape, 100, dtype=np.uint16))
     write_image(tmp_path / "wrong.png", np.full((64, 64), 100, dtype=np.uint16))
     argv = ["calibrate", *args]
-    argv = [{"IMG": str(tmp_path / "img.png"), "WRONG": str(tmp_path / "wrong.png")}.get(a, a)
-            for a in argv]  # fmt: skip
+    (tmp_path / "times.txt").write_text("2023-09-05T01:00:00Z\n2023-09-05T01:01:00Z\n")
+    (tmp_path / "naive.txt").write_text("2023-09-05T01:00:00\n")
+    names = {"IMG": tmp_path / "img.png", "WRONG": tmp_path / "wrong.png",
+             "TIMES": tmp_path / "times.txt", "NAIVE": tmp_path / "naive.txt"}  # fmt: skip
+    argv = [str(names[a]) if a in names else a for a in argv]
+    message = message.replace("TIMES", str(names["TIMES"]))
     if "--camera" not in argv:
         argv += ["--camera", str(base)]
     if "--out" not in argv:
@@ -302,3 +315,26 @@ def test_calibrate_camera_imu_from_a_log(turning_log, capsys, extra, mode, tol_d
         assert abs(err[2]) < 4 * entry["boresight_std_deg"][2]
     else:
         assert "attitude: the log's truth table" in text
+
+
+def test_calibrate_sky_rotation_with_the_clock(tmp_path, capsys):
+    """``--times-utc FILE --lat --lon``: the sun's motion over a 20-minute sequence from the
+    ephemeris, as ``fit_sky_rotation(..., times_utc=, site=)`` does."""
+    from test_calibration_sky_rotation import moving_sun_scene
+
+    from polins.io.model_files import write_camera_file
+
+    true, base, raws, times, site = moving_sun_scene()
+    _write_images(tmp_path / "sky", raws)
+    write_camera_file(base, tmp_path / "base.toml")
+    (tmp_path / "times.txt").write_text("# UTC time of each image\n"
+                                        + "\n".join(t.isoformat() for t in times) + "\n")  # fmt: skip
+    argv = ["calibrate", "sky-rotation", str(tmp_path / "sky"), "--camera",
+            str(tmp_path / "base.toml"), "--out", str(tmp_path / "new.toml"), "--times-utc",
+            str(tmp_path / "times.txt"), "--lat", str(site.lat_deg), "--lon", str(site.lon_deg),
+            "--alt", str(site.alt_m)]  # fmt: skip
+    assert main(argv) == 0
+    assert "the sun's motion from the ephemeris" in capsys.readouterr().out
+    cam = polins.load_camera(tmp_path / "new.toml")
+    d = cam.transmission_angle - true.transmission_angle
+    assert np.degrees(np.abs(d - d.mean())).max() <= 0.2  # 0.41 deg without the clock

@@ -152,10 +152,10 @@ def test_sky_rotation_refuses_a_small_turn(scene):
         fit_sky_rotation(raws, base, tilt_terms=False)  # 4 evenly spaced turns: degenerate
 
 
-def test_sky_rotation_with_the_sun_moving_for_20_minutes():
-    """12 images over 20 minutes of a morning (the sun climbs 2.7 deg and moves 5.5 deg in
-    azimuth): without the clock the channel angles come out biased and the residual shows
-    it; with the image times and the site the ephemeris takes the sun's motion out."""
+def moving_sun_scene():
+    """12 images over 20 minutes of a morning at Harbin (the sun climbs 2.7 deg and moves
+    5.5 deg in azimuth), a camera with perturbed channels turning about the vertical:
+    ``(true, base, raws, times, site)``."""
     import pandas as pd
 
     from polins.sky.ephemeris import sun_position, sun_vector_n
@@ -176,6 +176,13 @@ def test_sky_rotation_with_the_sun_moving_for_20_minutes():
             for s, a in zip(sun_n, turns, strict=True)
         ]
     )
+    return true, base, raws, times, site
+
+
+def test_sky_rotation_with_the_sun_moving_for_20_minutes():
+    """Without the clock the channel angles come out biased and the residual shows it; with
+    the image times and the site the ephemeris takes the sun's motion out."""
+    true, base, raws, times, site = moving_sun_scene()
 
     def angle_err_deg(res):
         d = res.transmission_angle - true.transmission_angle

@@ -65,7 +65,7 @@ from polins.calibration.malus import base_stokes, fit_turning_polarization
 from polins.compass.camera import doubled_aop_from_evector, fov_mask, pixel_rays_c
 from polins.errors import UserInputError
 from polins.models import CameraModel
-from polins.site import Site
+from polins.site import Site, TimeLike, to_utc_index
 from polins.sky.ephemeris import sun_position, sun_vector_n
 from polins.sky.scattering import rayleigh_dop, rayleigh_evector
 
@@ -254,7 +254,7 @@ def fit_sky_rotation(
     n_rings: int = 12,
     min_span_deg: float = 90.0,
     tilt_terms: bool = True,
-    times_utc: ArrayLike | None = None,
+    times_utc: TimeLike | None = None,
     site: Site | None = None,
     axis_n: ArrayLike = (0.0, 0.0, 1.0),
     ifov_correction: bool = True,
@@ -330,13 +330,11 @@ def fit_sky_rotation(
     if (times_utc is None) != (site is None):
         raise UserInputError("sky-rotation: the sun's motion needs both times_utc and site")
     if times_utc is not None and site is not None:
-        import pandas as pd
-
-        times = pd.DatetimeIndex(np.atleast_1d(np.asarray(times_utc)))
-        if times.size != m or times.tz is None:
+        times = to_utc_index(times_utc)
+        if times.size != m:
             raise UserInputError(
                 f"sky-rotation: times_utc needs {m} timezone-aware times (one per image), got "
-                f"{times.size}{'' if times.tz is not None else ' without a timezone'}"
+                f"{times.size}"
             )
         sun = sun_position(times, site.lat_deg, site.lon_deg, site.alt_m)
         sun_n = sun_vector_n(sun.azimuth, sun.zenith)

@@ -101,6 +101,30 @@ def _angles_deg(text: str) -> np.ndarray:
     return values
 
 
+def _sky_clock(args: argparse.Namespace, n_images: int) -> dict[str, Any]:
+    """``times_utc`` and ``site`` of ``--times-utc FILE --lat --lon [--alt]`` (or nothing)."""
+    from polins.errors import UserInputError
+    from polins.site import Site, to_utc_index
+
+    given = [args.times_utc is not None, args.lat is not None, args.lon is not None]
+    if not any(given):
+        return {}
+    check(all(given), "--times-utc, --lat and --lon go together (the sun's motion needs "
+          "the image times and the site)")  # fmt: skip
+    path = Path(args.times_utc)
+    if not path.is_file():
+        raise FileNotFoundError(f"--times-utc: file not found: {path}")
+    lines = [ln.strip() for ln in path.read_text(encoding="utf-8-sig").splitlines()]
+    times = [ln for ln in lines if ln and not ln.startswith("#")]
+    check(len(times) == n_images,
+          f"--times-utc {path}: {len(times)} times for {n_images} images")  # fmt: skip
+    try:
+        times_utc = to_utc_index(times)
+    except UserInputError as exc:
+        raise ArgumentError(f"--times-utc {path}: {exc}") from None
+    return {"times_utc": times_utc, "site": Site(args.lat, args.lon, args.alt)}
+
+
 def _estimate(kind: str, raws: np.ndarray, base: Any, args: argparse.Namespace) -> Any:
     """Run the estimator of ``kind``; its result (with ``camera_changes`` and provenance)."""
     from polins import calibration as cal
@@ -123,9 +147,10 @@ def _estimate(kind: str, raws: np.ndarray, base: Any, args: argparse.Namespace) 
                                        pixel_maps=args.pixel_maps)  # fmt: skip
     if kind == "sky-rotation":
         check(args.rings >= 2, f"--rings {args.rings}: expected an integer >= 2")
+        clock = _sky_clock(args, len(raws))
         return cal.fit_sky_rotation(raws, base, n_rings=args.rings, min_span_deg=args.min_span_deg,
                                     tilt_terms=not args.aligned_axis,
-                                    ifov_correction=not args.no_ifov_correction)  # fmt: skip
+                                    ifov_correction=not args.no_ifov_correction, **clock)  # fmt: skip
     if kind == "intrinsics":
         check(args.square_mm > 0, f"--square-mm {args.square_mm:g}: expected a size > 0 [mm]")
         return cal.calibrate_intrinsics(raws, base, board=_board(args.board),
@@ -374,6 +399,12 @@ def add_calibrate(sub: Any) -> None:
     p.add_argument("--no-ifov-correction", action="store_true",
                    help="do not interpolate the channels to the superpixel centres (only for "
                    "images free of the DoFP field-of-view mismatch, e.g. simulated without it)")  # fmt: skip
+    p.add_argument("--times-utc", default=None, metavar="FILE",
+                   help="text file of the images' timezone-aware ISO times, one a line in the "
+                   "images' order: with --lat/--lon the sun's motion comes from the ephemeris")  # fmt: skip
+    p.add_argument("--lat", type=finite, default=None, help="site latitude [deg]")
+    p.add_argument("--lon", type=finite, default=None, help="site longitude [deg]")
+    p.add_argument("--alt", type=finite, default=0.0, help="site height [m]")
     p.add_argument("--rings", type=int, default=12, help="ring windows about the axis")
     p.add_argument("--min-span-deg", type=finite, default=90.0,
                    help="refuse turns spanning less [deg] (modulo 180)")  # fmt: skip
