@@ -56,11 +56,11 @@ from polins.fusion.items import (
     MeasurementItem,
     UpdateRecord,
     gate_limit,
-    item_model,
     measurement_items,
 )
 from polins.fusion.measurement import Linearized
 from polins.fusion.result import FusionEvent
+from polins.fusion.vehicle import VehicleAiding, yaw_consider_update
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown_increment
 
@@ -114,6 +114,7 @@ class ESKF:
         self.qc = self.layout.noise_density(self.model)
         self.cov_every = max(1, int(config.cov_step_s / dt + 1e-9))
         self.nhc_every = max(1, round(1.0 / (config.nhc_rate_hz * dt)))
+        self.vehicle = VehicleAiding(config, dt)  # NHC, standstill (fusion/vehicle.py)
         self.tilt_coupling = bool(config.tilt_coupling)
         self.t = float(t0)
         self.mat_nb = (rot_nb0 or Rotation.identity()).as_matrix()
@@ -169,7 +170,7 @@ class ESKF:
         new.errors = {k: v.copy() for k, v in self.errors.items()}
         new.x, new.P, new.correction = self.x.copy(), self.P.copy(), self.correction.copy()
         new.records, new.events = [], []
-        new.acquisition = copy.deepcopy(self.acquisition)
+        new.acquisition, new.vehicle = copy.deepcopy(self.acquisition), self.vehicle.copy()
         new._pending = list(self._pending)
         if self._align_buffer is not None:
             new._align_buffer = list(self._align_buffer)
@@ -366,7 +367,8 @@ class ESKF:
 
     def step_matrices(self, step: StepNominal) -> tuple[FloatArray, FloatArray]:
         """``(Phi, Q)`` ``(n, n)`` of one covariance step."""
-        Phi, Q = discretize(self.layout.dynamics(step), step.dt, self.qc)
+        qc = self.layout.step_noise(self.qc, self.model, step)
+        Phi, Q = discretize(self.layout.dynamics(step), step.dt, qc)
         return Phi[0], Q[0]
 
     def predict(self, Phi: FloatArray, Q: FloatArray) -> None:
@@ -398,8 +400,8 @@ class ESKF:
 
     def linearize(self, item: MeasurementItem) -> Linearized:
         """The measurement model of ``item`` over all blocks, at the nominal state."""
-        lin = item_model(item, self.mat_nb, self.vel_n, self.tilt_coupling)
-        return Linearized(lin.residual, self.layout.jacobian(item, lin), lin.R, lin.name)
+        return self.layout.linearize(item, self.mat_nb, self.vel_n, self.tilt_coupling,
+                                     self.errors)  # fmt: skip
 
     def reject(self, item: MeasurementItem, reason: str) -> UpdateRecord:
         """Log an item as not used."""
@@ -419,8 +421,10 @@ class ESKF:
             return self.reject(item, item.reason or "invalid measurement")
         if not self.yaw_aligned and item.kind in ("yaw", "sun"):
             return hold_heading(self, item, None)
-        lin = item_model(item, self.mat_nb, self.vel_n, self.tilt_coupling)
-        H, dim = self.layout.jacobian(item, lin), lin.residual.shape[0]
+        if item.kind == "odo":  # the lever arm at the current rate, the scale estimate
+            item = self.vehicle.odometer(item, self.errors, self._cur)
+        lin = self.linearize(item)
+        H, dim = lin.H, lin.residual.shape[0]
         nu: tuple[float, ...]  # the innovation and its covariance, for the update log
         S: tuple[float, ...]
         if dim == 1:  # scalar innovation: dot products
@@ -446,7 +450,8 @@ class ESKF:
             if item.kind in ("yaw", "sun") and self.acquisition.held:
                 self.acquisition.clear()
             x_before = self.x
-            self.x, self.P = kf_update(self.x, self.P, lin.residual, lin.R, H)
+            update = kf_update if self.yaw_aligned else yaw_consider_update  # yaw unknown
+            self.x, self.P = update(self.x, self.P, lin.residual, lin.R, H)
             self.correction += self.x - x_before
             rec = self._record(item, dim, nis, True, "", nu, S)
         x_att = self.x[0:3]
@@ -534,9 +539,8 @@ class ESKF:
                 self._step(t, w, f)
             self._last = (t, w, f)
         self.count += 1
-        c = self.config
-        if c.nhc_std is not None and self.count > 1 and (self.count - 1) % self.nhc_every == 0:
-            self.apply(MeasurementItem(t, "nhc", c.nhc_std))
+        for _, item in self.vehicle.items(np.array([t]), w[None], f[None], self.count - 1):
+            self.apply(item)
         while self._pending and abs(self._pending[0].t - self.t) <= tol:
             self.apply(self._pending.pop(0))
 
@@ -558,6 +562,7 @@ class ESKF:
             s.mat_force += mat_h * (0.5 * (fc0 + fc1) * dt)
         s.n += 1
         s.dt += dt
+        s.rate_sq += float(np.sum((0.5 * (wc0 + wc1)) ** 2)) * dt
         s.mat += mat_h * dt
         s.dv += dv_force
         self.set_nominal(t1, mat1, v1, lat1, lon1, h1)
@@ -574,4 +579,5 @@ class ESKF:
             np.array([s.dt]), s.mat[None], s.dv[None], vel[None], np.array([lat]),
             np.array([alt]), self.mech, self.divisors(),
             s.mat_omega[None] if sf else None, s.mat_force[None] if sf else None,
+            np.array([s.rate_sq]),
         )  # fmt: skip
