@@ -20,7 +20,7 @@ from polins.io.outputs import check_output_folder
 __all__ = ["DEMO_FILES", "LOG_FILES", "add_demo", "add_simulate", "cmd_demo", "cmd_simulate"]
 
 LOG_FILES = ("manifest.toml", "imu.csv", "imu.parquet", "images.csv", "images", "truth.csv",
-             "camera.toml", "imu_model.toml")  # fmt: skip
+             "camera.toml", "imu_model.toml", "odometer.csv")  # fmt: skip
 DEMO_FILES = ("summary.csv", "images.csv", "schema.json", "paper_fig6_headings.png",
               "paper_fig7_errors.png", "occluder_fig6_headings.png", "occluder_fig7_errors.png")  # fmt: skip
 
@@ -102,6 +102,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"images            {len(sim.image_t)} at {args.image_rate:g} Hz, {cam.name}")
     print(f"image size        {cam.shape[1]} x {cam.shape[0]} px (downscale {args.downscale})")
     print(f"truth             {len(traj)} rows (attitude, velocity, position, IMU errors)")
+    if sim.vehicle is not None and sim.odometry is not None:
+        v = sim.vehicle
+        print(f"vehicle           {v['kind']}: IMU mounted at roll/pitch/yaw "
+              f"{'/'.join(f'{a:g}' for a in v['mount_rpy_deg'])} deg, lever arm "
+              f"{'/'.join(f'{a:g}' for a in v['lever_arm_b'])} m")  # fmt: skip
+        print(f"odometer          {len(sim.odometry)} speeds in {v['odometer']} "
+              f"(sigma {v['odometer_std']:g} m/s, scale error +1 %)")  # fmt: skip
     print(f"epoch (UTC)       {sim.epoch_utc.isoformat()}")
     print(f"sun elevation     {elevation.min():.2f} .. {elevation.max():.2f} deg")
     if elevation.min() <= 0.0:

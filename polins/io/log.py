@@ -10,33 +10,7 @@ Folder layout (docs/filter.md), as written by :func:`write_log`::
     camera.toml         camera model, when given as an object (self-contained log)
     imu_model.toml      IMU model, when given as an object
 
-``manifest.toml``::
-
-    [log]
-    epoch_utc = "2023-09-05T07:00:00+00:00"  # timezone-aware; t = 0 of every stream
-    camera = "paper-table1"                  # shipped model name, or a .toml path
-    imu = "mems-typical"                     # (paths are relative to the manifest)
-    lat_deg = 45.6234
-    lon_deg = 126.7264
-    alt_m = 148.74                           # optional, default 0
-    description = "..."                      # optional
-
-    [files]
-    imu = "imu.csv"          # .csv or .parquet
-    images = "images.csv"    # index CSV (t, file), or a folder of time-named images
-    truth = "truth.csv"      # optional
-    # bag = "run.bag"        # instead of imu + images: ROS 1 bag or ROS 2 bag folder/.mcap
-
-    [units]                  # optional; units of the IMU file if it does not declare them
-    gyro = "rad/s"           # or "deg/s"
-    accel = "m/s^2"          # or "g"
-
-    [ros]                    # optional, with files.bag only
-    imu_topic = "/imu/data"
-    image_topic = "/camera/image_raw"
-
-    [filter]                 # optional; polins.fusion.config.FuseConfig options
-    nhc_std = 0.05           # (an unknown key is an error naming the closest one)
+``manifest.toml``: :mod:`polins.io.manifest` describes and reads it.
 
 Every file is written atomically and the manifest last, so a folder with a manifest is a
 complete log; an interrupted :func:`write_log` leaves no manifest.
@@ -44,13 +18,9 @@ complete log; an interrupted :func:`write_log` leaves no manifest.
 
 from __future__ import annotations
 
-import datetime as dt
-import difflib
-import math
 import os
 import re
 import shutil
-import tomllib
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,26 +31,27 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from polins.errors import UserInputError
-from polins.fusion.config import FuseConfig, config_from_mapping, option_names
+from polins.fusion.config import FuseConfig, config_from_mapping
 from polins.io.atomic import atomic_path, write_text_atomic
 from polins.io.images import IMAGE_SUFFIXES, ImageIndex, read_image_index, write_image
 from polins.io.images import write_image_index as _write_index
+from polins.io.manifest import (
+    MANIFEST_NAME,
+    ManifestError,
+    number_in,
+    parse_manifest,
+    vehicle_config,
+)
 from polins.io.model_files import (
     camera_model_toml,
     imu_model_toml,
     toml_dumps,
     write_camera_file,
 )
-from polins.io.tables import ACCEL_UNITS, GYRO_UNITS, read_imu, read_table, write_imu, write_table
+from polins.io.tables import read_imu, read_table, write_imu, write_table
 from polins.models import CameraModel, ImuModel, load_camera, load_imu
 from polins.site import Site, utc_timestamp
 from polins.sky.ephemeris import sun_position, sun_vector_n
-
-MANIFEST_NAME = "manifest.toml"
-
-
-class ManifestError(UserInputError):
-    """A manifest is missing a key, has an unknown key, or a bad value (named in the message)."""
 
 
 class ImageSource(Protocol):
@@ -92,161 +63,6 @@ class ImageSource(Protocol):
     def __len__(self) -> int: ...
 
     def __iter__(self) -> Iterator[tuple[float, Any]]: ...
-
-
-# ----------------------------------------------------------------------------- manifest
-def _str(v: Any) -> str:
-    if not isinstance(v, str) or not v:
-        raise TypeError("expected a non-empty string")
-    return v
-
-
-def _num(lo: float, hi: float) -> Callable[[Any], float]:
-    def check(v: Any) -> float:
-        if isinstance(v, bool) or not isinstance(v, int | float):
-            raise TypeError("expected a number")
-        if not lo <= float(v) <= hi:
-            raise UserInputError(f"expected a number in [{lo}, {hi}] (degrees)")
-        return float(v)
-
-    return check
-
-
-def _height(v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise TypeError("expected a number [m]")
-    return float(v)
-
-
-def _epoch(v: Any) -> pd.Timestamp:
-    if not isinstance(v, str | dt.datetime):
-        raise TypeError("expected an ISO time string with a timezone")
-    return utc_timestamp(v, None)
-
-
-def _unit(table: Mapping[str, float]) -> Callable[[Any], str]:
-    def check(v: Any) -> str:
-        if v not in table:
-            raise UserInputError(f"expected one of {', '.join(repr(u) for u in table)}")
-        return str(v)
-
-    return check
-
-
-# section -> key -> (required, validator)
-_MANIFEST_SCHEMA: dict[str, dict[str, tuple[bool, Callable[[Any], Any]]]] = {
-    "log": {
-        "epoch_utc": (True, _epoch),
-        "camera": (True, _str),
-        "imu": (True, _str),
-        "lat_deg": (True, _num(-90.0, 90.0)),
-        "lon_deg": (True, _num(-180.0, 360.0)),
-        "alt_m": (False, _height),
-        "description": (False, lambda v: v if isinstance(v, str) else _str(v)),
-    },
-    "files": {
-        "imu": (False, _str),
-        "images": (False, _str),
-        "truth": (False, _str),
-        "bag": (False, _str),
-    },
-    "units": {"gyro": (False, _unit(GYRO_UNITS)), "accel": (False, _unit(ACCEL_UNITS))},
-    "ros": {"imu_topic": (False, _str), "image_topic": (False, _str)},
-}
-_REQUIRED_SECTIONS = ("log", "files")
-
-
-def _unknown(path: Path, key: str, allowed: Iterable[str]) -> ManifestError:
-    allowed = list(allowed)
-    name = key.rsplit(".", 1)[-1]
-    guess = difflib.get_close_matches(name, allowed, n=1, cutoff=0.5)
-    prefix = key[: -len(name)]
-    hint = f"; did you mean '{prefix}{guess[0]}'?" if guess else ""
-    return ManifestError(
-        f"{path}: unknown key '{key}'{hint} (allowed: {', '.join(prefix + a for a in allowed)})"
-    )
-
-
-def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
-    """Read and validate a manifest; returns ``{section: {key: value}}`` (defaults filled).
-
-    Raises
-    ------
-    FileNotFoundError
-        No such file.
-    ManifestError
-        Not TOML, unknown/missing key, wrong type or unit; the message names the key.
-    """
-    path = Path(path)
-    if path.is_dir():
-        path = path / MANIFEST_NAME
-    if not path.is_file():
-        raise FileNotFoundError(f"manifest not found: {path}")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is accepted
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ManifestError(f"{path}: not valid TOML: {exc}") from None
-    out: dict[str, dict[str, Any]] = {}
-    for section, content in data.items():
-        if section not in _MANIFEST_SCHEMA and section != "filter":
-            raise _unknown(path, section, [*_MANIFEST_SCHEMA, "filter"])
-        if not isinstance(content, dict):
-            raise ManifestError(f"{path}: '{section}' must be a table [{section}]")
-    for section, schema in _MANIFEST_SCHEMA.items():
-        content = data.get(section)
-        if content is None:
-            if section in _REQUIRED_SECTIONS:
-                raise ManifestError(f"{path}: missing table [{section}]")
-            content = {}
-        for key in content:
-            if key not in schema:
-                raise _unknown(path, f"{section}.{key}", schema)
-        values: dict[str, Any] = {}
-        for key, (required, check) in schema.items():
-            if key not in content:
-                if required:
-                    raise ManifestError(f"{path}: missing key '{section}.{key}'")
-                continue
-            try:
-                values[key] = check(content[key])
-            except (TypeError, ValueError) as exc:
-                raise ManifestError(
-                    f"{path}: key '{section}.{key}' = {content[key]!r}: {exc}"
-                ) from None
-        out[section] = values
-    out["log"].setdefault("alt_m", 0.0)
-    out["log"].setdefault("description", "")
-    files = out["files"]
-    if "bag" in files:
-        clash = [k for k in ("imu", "images") if k in files]
-        if clash:
-            raise ManifestError(
-                f"{path}: key 'files.bag' excludes 'files.{clash[0]}': give either a bag or "
-                "imu + images"
-            )
-    else:
-        for key in ("imu", "images"):
-            if key not in files:
-                raise ManifestError(
-                    f"{path}: missing key 'files.{key}' (or give 'files.bag' for a ROS bag)"
-                )
-    if out["ros"] and "bag" not in files:
-        raise ManifestError(f"{path}: table [ros] is only used with 'files.bag'")
-    out["filter"] = _filter_table(path, data.get("filter", {}))
-    return out
-
-
-def _filter_table(path: Path, table: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``[filter]`` table: ``FuseConfig`` options (the site and IMU model are in [log])."""
-    allowed = [n for n in option_names() if n not in ("imu_model", "site")]
-    for key in table:
-        if key not in allowed:
-            raise _unknown(path, f"filter.{key}", allowed)
-    try:
-        config_from_mapping(table)
-    except (UserInputError, TypeError) as exc:  # TypeError: a value of the wrong type
-        raise ManifestError(f"{path}: table [filter]: {exc}") from None
-    return dict(table)
 
 
 # ----------------------------------------------------------------------------- Log
@@ -278,6 +94,8 @@ class Log:
     events : tuple of (t, kind, detail)
         Data faults found while loading (``path-outside-log``: an image index entry outside
         the log folder, skipped); the navigation loop reports them with its own.
+    odometry : DataFrame or None
+        The wheel odometer of ``[vehicle] odometer`` (``t`` [s], ``speed`` [m/s]), if any.
     """
 
     manifest_path: Path
@@ -292,6 +110,7 @@ class Log:
     manifest: dict[str, dict[str, Any]] = field(default_factory=dict)
     config: FuseConfig = field(default_factory=FuseConfig)
     events: tuple[tuple[float, str, str], ...] = ()
+    odometry: pd.DataFrame | None = None
 
     @property
     def lat_deg(self) -> float:
@@ -423,6 +242,16 @@ def read_log(
         images, events = _images_inside(images, {folder, file("images").parent})
     truth = read_table(file("truth")) if "truth" in files else None
     site = Site(log["lat_deg"], log["lon_deg"], log["alt_m"])
+    vehicle = m["vehicle"]
+    odometry = None
+    if "odometer" in vehicle:
+        p = Path(vehicle["odometer"])
+        p = p if p.is_absolute() else folder / p
+        if not p.exists():
+            raise FileNotFoundError(f"{path}: key 'vehicle.odometer': {p} does not exist")
+        odometry = read_table(p)
+        if not {"t", "speed"} <= set(odometry.columns):
+            raise ManifestError(f"{path}: key 'vehicle.odometer': {p} needs columns t, speed")
     return Log(
         manifest_path=path,
         epoch_utc=log["epoch_utc"],
@@ -434,8 +263,11 @@ def read_log(
         truth=truth,
         description=log["description"],
         manifest=m,
-        config=config_from_mapping(m["filter"], FuseConfig(imu_model=model, site=site)),
+        config=config_from_mapping(
+            m["filter"], vehicle_config(vehicle, FuseConfig(imu_model=model, site=site))
+        ),
         events=tuple(events),
+        odometry=odometry,
     )
 
 
@@ -486,6 +318,8 @@ def write_log(
     gyro_unit: str = "rad/s",
     accel_unit: str = "m/s^2",
     description: str = "",
+    vehicle: Mapping[str, Any] | None = None,
+    odometry: pd.DataFrame | None = None,
 ) -> Path:
     """Write a log folder (layout in the module docstring); returns the manifest path.
 
@@ -513,6 +347,10 @@ def write_log(
         Units to store the IMU in (declared in the file; read back as SI).
     description : str
         Free text stored in the manifest.
+    vehicle : mapping, optional
+        The manifest's ``[vehicle]`` table (module docstring).
+    odometry : DataFrame, optional
+        Wheel-odometer ``t, speed``, written as ``odometer.csv`` (named in ``[vehicle]``).
     """
     folder = Path(folder)
     epoch = utc_timestamp(epoch_utc)
@@ -520,8 +358,8 @@ def write_log(
         raise UserInputError(f"image_format {image_format!r}: expected 'png' or 'tiff'")
     if imu_format not in ("csv", "parquet"):
         raise UserInputError(f"imu_format {imu_format!r}: expected 'csv' or 'parquet'")
-    _num(-90.0, 90.0)(lat_deg)
-    _num(-180.0, 360.0)(lon_deg)
+    number_in(-90.0, 90.0)(lat_deg)
+    number_in(-180.0, 360.0)(lon_deg)
     folder.mkdir(parents=True, exist_ok=True)
     manifest = folder / MANIFEST_NAME
     manifest.unlink(missing_ok=True)
@@ -550,6 +388,12 @@ def write_log(
     if truth is not None:
         write_table(folder / "truth.csv", truth)
         files["truth"] = "truth.csv"
+    tables: dict[str, Any] = {}
+    if vehicle is not None or odometry is not None:
+        tables["vehicle"] = dict(vehicle or {})
+    if odometry is not None:
+        write_table(folder / "odometer.csv", odometry[["t", "speed"]])
+        tables["vehicle"]["odometer"] = "odometer.csv"
     text = toml_dumps(
         {
             "log": {
@@ -563,6 +407,7 @@ def write_log(
             },
             "files": files,
             "units": {"gyro": gyro_unit, "accel": accel_unit},
+            **tables,
         },
         header="polins log manifest (see polins.io.log); t [s] counts from log.epoch_utc",
     )

@@ -51,7 +51,6 @@ import dataclasses
 import math
 from collections import deque
 from collections.abc import Iterable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -65,43 +64,19 @@ from polins.fusion.config import FuseConfig, config_with_site
 from polins.fusion.eskf.filter import ESKF
 from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.fusion.items import UpdateRecord
+from polins.fusion.vehicle import odometer_items
 from polins.ins.state import NavState
 from polins.loop.imu_gate import ImuGate
 from polins.loop.measurer import EXECUTORS, ImageMeasurer, PendingImage, make_executor
 from polins.loop.options import LoopOptions
 from polins.loop.prior import Sample, SunGrid, propagate_nominal
 from polins.loop.runner import FilterRunner
+from polins.loop.state import StreamState
 from polins.loop.tables import EventBuffer, measurement_frame
 from polins.models import CameraModel, ImuModel
 from polins.site import Site, utc_timestamp
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True, eq=False)
-class StreamState:
-    """What :meth:`NavigationStream.state` reports.
-
-    Attributes
-    ----------
-    nav : NavState or None
-        The filter's live estimate (all accepted IMU samples, all measurements known so
-        far); its ``yaw_aligned`` is False until the first heading (self-alignment), and
-        the yaw is then meaningless. None while ``aligning``.
-    aligning : bool
-        No attitude yet: no IMU sample, or the self-alignment is still levelling.
-    images_pending : int
-        Images added but not yet handed to the filter.
-    """
-
-    nav: NavState | None
-    aligning: bool
-    images_pending: int
-
-    @property
-    def heading_known(self) -> bool:
-        """The estimate has a heading (levelled, and the yaw aligned)."""
-        return self.nav is not None and bool(self.nav.yaw_aligned)
 
 
 class NavigationStream:
@@ -338,6 +313,20 @@ class NavigationStream:
         self._images.append(PendingImage(index, t, None, s_n, row=row))
         self._advance(block=False)
         return True
+
+    def add_odometry(self, t: ArrayLike, speed: ArrayLike) -> None:
+        """Wheel-odometer speeds: times ``t`` [s] and forward speeds ``speed`` [m/s] (vehicle
+        frame; one or many), forward-velocity updates with the odometer scale-factor state
+        (needs ``odometer_std``: FuseConfig or the manifest's ``[vehicle]``). They are
+        applied when the filter reaches their time; an older one is rejected (logged)."""
+        std = self.config.odometer_std
+        if std is None:
+            raise UserInputError("add_odometry needs odometer_std [m/s] (FuseConfig, [vehicle])")
+        if self._runner is None:
+            raise UserInputError("add_odometry: add the first IMU sample first")
+        items = odometer_items({"t": np.atleast_1d(t), "speed": np.atleast_1d(speed)}, std)
+        self._collect(self._runner.filter.add_items(items))
+        self._head_valid = False
 
     def _usable_time(self, index: int, t: float, what: str) -> bool:
         f = self.filter

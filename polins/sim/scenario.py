@@ -8,6 +8,10 @@ DoFP images a zenith-looking polarization camera would record along it
 with ``polins.io.log.write_log`` in the format ``polins.io.read_log`` and ``polins fuse``
 read back.
 
+The ``"ugv"`` scenario's IMU is mounted on the vehicle with a small mounting rotation and a
+lever arm, feels the road's vibration while rolling, and the log carries a wheel-odometer
+stream; the manifest's ``[vehicle]`` table says so (:mod:`polins.sim.vehicle`).
+
 Synchronization: every image is taken at an IMU sample time (the one nearest to
 ``k / image_rate_hz``), so the truth is exact at every image and every stream shares one
 clock ``t`` [s] counted from ``epoch_utc``. Randomness comes from one seed split into
@@ -34,6 +38,15 @@ from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.render import render_raw
 from polins.sim.reproduction import PAPER_EPOCH
 from polins.sim.trajectory import Trajectory, turntable, ugv_drive
+from polins.sim.vehicle import (
+    UGV_LEVER_ARM_B,
+    UGV_MOUNT_RPY_DEG,
+    UGV_ODOMETER,
+    forward_speed,
+    mounted_trajectory,
+    odometer_speeds,
+    road_vibration,
+)
 from polins.site import PAPER_SITE, to_utc_index
 from polins.sky.ephemeris import sun_position, sun_vector_n
 
@@ -68,6 +81,12 @@ class SimulatedLog:
         The (downscaled) camera the images were rendered with.
     imu_model : ImuModel
     epoch_utc : Timestamp
+    vehicle : dict or None
+        ``"ugv"``: the manifest's ``[vehicle]`` table (kind, mounting, lever arm, odometer).
+    odometry : DataFrame or None
+        ``"ugv"``: the odometer stream written (``t, speed``, :mod:`polins.sim.vehicle`).
+    vehicle_trajectory : Trajectory or None
+        ``"ugv"``: the vehicle's motion (``trajectory`` is the IMU's, mounted on it).
     """
 
     manifest: Path
@@ -81,6 +100,9 @@ class SimulatedLog:
     imu_model: ImuModel
     epoch_utc: pd.Timestamp
     render_options: dict[str, Any] = field(default_factory=dict)
+    vehicle: dict[str, Any] | None = None  # the manifest's [vehicle] table (ugv)
+    odometry: pd.DataFrame | None = None  # t, speed of the odometer (ugv)
+    vehicle_trajectory: Trajectory | None = None  # the vehicle's reference point (ugv)
 
     @property
     def truth(self) -> pd.DataFrame:
@@ -218,8 +240,8 @@ def simulate_log(
     if "rng" in options:
         raise ValueError("render_options must not contain 'rng': the seed drives the noise")
 
-    rng_traj, rng_imu, rng_img = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)
+    rng_traj, rng_imu, rng_img, rng_vib, rng_odo = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)
     )
     traj = scenario_trajectory(
         scenario,
@@ -230,7 +252,20 @@ def simulate_log(
         lon_deg=lon_deg,
         alt_m=alt_m,
     )
-    measured, errors = imu_errors(ideal_imu(traj), imu_model, rng_imu)
+    vehicle_traj, vehicle, odometry = None, None, None
+    ideal = None
+    if scenario == "ugv":  # the IMU mounted off the vehicle's axes, road vibration, odometer
+        vehicle_traj = traj
+        traj = mounted_trajectory(traj, np.radians(UGV_MOUNT_RPY_DEG), UGV_LEVER_ARM_B)
+        ideal = ideal_imu(traj)
+        gyro_vib, accel_vib = road_vibration(traj.t, forward_speed(vehicle_traj), rng_vib)
+        ideal[["gx", "gy", "gz"]] += gyro_vib
+        ideal[["ax", "ay", "az"]] += accel_vib
+        odometry = odometer_speeds(vehicle_traj, rng_odo, **UGV_ODOMETER)
+        vehicle = {"kind": "ground", "mount_rpy_deg": list(UGV_MOUNT_RPY_DEG),
+                   "lever_arm_b": list(UGV_LEVER_ARM_B), "odometer": "odometer.csv",
+                   "odometer_std": UGV_ODOMETER["noise_std"]}  # fmt: skip
+    measured, errors = imu_errors(ideal_imu(traj) if ideal is None else ideal, imu_model, rng_imu)
     idx = image_indices(traj.t, image_rate_hz)
     image_t = traj.t[idx]
     times = pd.DatetimeIndex(epoch + pd.to_timedelta(image_t, unit="s"))
@@ -259,6 +294,8 @@ def simulate_log(
         images=images(),
         truth=truth_table(traj, errors),
         imu_format=imu_format,
+        vehicle=vehicle,
+        odometry=odometry,
         description=(
             f"polins simulate: scenario={scenario} duration_s={traj.t[-1]:g} "
             f"image_rate_hz={image_rate_hz:g} downscale={downscale} imu={imu_model.name} "
@@ -277,6 +314,9 @@ def simulate_log(
         imu_model=imu_model,
         epoch_utc=epoch,
         render_options=options,
+        vehicle=vehicle,
+        odometry=odometry,
+        vehicle_trajectory=vehicle_traj,
     )
 
 

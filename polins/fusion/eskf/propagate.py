@@ -30,6 +30,7 @@ from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.blocks import Layout, inject_nav
 from polins.fusion.eskf.dynamics import StepNominal, discretize, step_nominal
 from polins.fusion.items import MeasurementItem, UpdateRecord
+from polins.fusion.vehicle import VehicleAiding
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown
 
@@ -52,6 +53,7 @@ class Filter(Protocol):
     n: int
     cov_every: int  # samples per covariance step
     nhc_every: int  # samples per non-holonomic update
+    vehicle: VehicleAiding  # the NHC and standstill pseudo-measurements
     count: int  # real samples consumed
     n_resets: int
     t_reset: float
@@ -171,10 +173,11 @@ class _Log:
 
 
 def _schedule(
-    filt: Filter, t: FloatArray, W: FloatArray, A: FloatArray, base: int
+    filt: Filter, t: FloatArray, gyro_b: FloatArray, accel_b: FloatArray, base: int
 ) -> tuple[FloatArray, FloatArray, FloatArray, IntArray, dict[int, list[MeasurementItem]]]:
     """The merged sample grid (real samples and the virtual samples of measurement times
     between them), the merged index of each real sample, and the items per merged index."""
+    W, A = gyro_b, accel_b
     tol = filt.config.time_tol_s
     N = t.shape[0]
     items = filt.take_items(float(t[-1]) + tol)
@@ -209,13 +212,15 @@ def _schedule(
         T, merged = t, np.arange(N)
     epochs: dict[int, list[MeasurementItem]] = {}
     for it, (real, i) in zip(items, where, strict=True):
-        epochs.setdefault(int(merged[i if real else N + i]), []).append(it)
-    std = filt.config.nhc_std
-    if std is not None:
-        k = np.arange(1, N)
-        for kk in k[(base + k - 1) % filt.nhc_every == 0].tolist():
-            epochs.setdefault(int(merged[kk]), []).append(MeasurementItem(float(t[kk]), "nhc", std))
+        m = int(merged[i if real else N + i])
+        epochs.setdefault(m, []).append(filt.vehicle.attach(it, W[m]) if it.kind == "odo" else it)
+    # the vehicle's pseudo-measurements (NHC, standstill) along the new samples
+    first = 0 if not filt.started else 1
+    new = slice(first, N)
+    for kk, it in filt.vehicle.items(t[new], gyro_b[new], accel_b[new], base + first - 1):
+        epochs.setdefault(int(merged[kk + first]), []).append(it)
     return T, W, A, merged[:N], epochs
+
 
 
 def advance(

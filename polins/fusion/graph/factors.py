@@ -157,8 +157,16 @@ def zero_velocity_factor(vel_key: int, std: float) -> gtsam.PriorFactorVector:
     )
 
 
-def non_holonomic_factor(pose_key: int, vel_key: int, std: float) -> gtsam.CustomFactor:
-    """Non-holonomic factor: zero lateral and vertical body velocity [m/s] (``CustomFactor``).
+def non_holonomic_factor(
+    pose_key: int,
+    vel_key: int,
+    std: float,
+    mat_vb: FloatArray | None = None,
+    lever_vel_b: FloatArray | None = None,
+) -> gtsam.CustomFactor:
+    """Non-holonomic factor: zero lateral and vertical velocity of the vehicle's reference
+    point in the vehicle frame [m/s] (``CustomFactor``; ``mat_vb`` the IMU mounting,
+    ``lever_vel_b = omega_b x lever_arm_b`` [m/s], both optional).
 
     Residual and Jacobian of :func:`polins.fusion.measurement.non_holonomic`; the attitude
     columns are mapped to GTSAM's body-right tangent (:func:`body_jacobian`), the velocity
@@ -169,7 +177,7 @@ def non_holonomic_factor(pose_key: int, vel_key: int, std: float) -> gtsam.Custo
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
         pkey, vkey = this.keys()
         mat_nb = values.atPose3(pkey).rotation().matrix()
-        lin = non_holonomic_kernel(mat_nb, values.atVector(vkey), var)
+        lin = non_holonomic_kernel(mat_nb, values.atVector(vkey), var, mat_vb, lever_vel_b)
         if jacobians is not None:
             jacobians[0] = body_jacobian(lin.H[:, ATT], mat_nb)
             jacobians[1] = np.ascontiguousarray(lin.H[:, VEL])

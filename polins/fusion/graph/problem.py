@@ -34,6 +34,7 @@ from polins.fusion.graph.factors import (
 )
 from polins.fusion.items import MeasurementItem
 from polins.fusion.measurement import N_ERROR, yaw_from_sun
+from polins.fusion.vehicle import vehicle_items
 from polins.ins.alignment import level_from_accel
 from polins.ins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
 from polins.site import Site
@@ -176,15 +177,14 @@ class Problem:
         zupts = [(it.t, it.std) for it in items if it.valid and it.kind == "zupt"]
         if config.zupt_std is not None:
             zupts += [(float(t), config.zupt_std) for t in stationary]
+        # The vehicle's NHC and standstill pseudo-measurements, at the ESKF's epochs.
+        ground = vehicle_items(config, t_imu, gyro, accel)
+        zupts += [(it.t, it.std) for it in ground if it.kind == "zupt"]
+        nhcs = [it for it in ground if it.kind == "nhc"]
         # Times within time_tol_s of an IMU sample are moved onto it (as the ESKF does).
         t_aid = snap_times([it.t for it in aiding], t_imu, config.time_tol_s).tolist()
         t_zupt = snap_times([t for t, _ in zupts], t_imu, config.time_tol_s).tolist()
-        # Non-holonomic pseudo-measurements at the ESKF's epochs: every nhc_every-th sample.
-        nhc_t = np.zeros(0)
-        if config.nhc_std is not None:
-            dt_median = float(np.median(np.diff(t_imu)))
-            every = max(1, round(1.0 / (config.nhc_rate_hz * dt_median)))
-            nhc_t = t_imu[every::every]
+        nhc_t = np.array([it.t for it in nhcs], dtype=float)
         events = np.concatenate([t_aid, t_zupt, nhc_t])
         self.t_key = keyframe_times(t0, t1, events, config.max_keyframe_dt_s)
         self.segments = imu_segments(t_imu, gyro, accel, self.t_key)
@@ -203,10 +203,12 @@ class Problem:
             k = self.key_of(t)
             if k is not None:
                 self.aux[k].append(zero_velocity_factor(V(k), std))
-        for t in nhc_t:
-            k = self.key_of(float(t))
-            if k is not None and config.nhc_std is not None:
-                self.aux[k].append(non_holonomic_factor(X(k), V(k), config.nhc_std))
+        for it in nhcs:
+            k = self.key_of(it.t)
+            if k is not None:
+                self.aux[k].append(
+                    non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b)
+                )
         self.meas_at: list[list[int]] = [[] for _ in range(n_key)]
         for i, mf in enumerate(self.meas):
             self.meas_at[mf.k].append(i)
