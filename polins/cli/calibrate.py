@@ -371,7 +371,8 @@ def add_calibrate(sub: Any) -> None:
         "calibrate", help="camera file from calibration images (dark, flat, polarizer, ...)",
         description="Fit one calibration step to raw images and write a new camera file "
         "(docs/calibrate.md). Run the steps in order: dark, noise, flat or polarizer or "
-        "sky-rotation, intrinsics; each --out becomes the next step's --camera.",
+        "sky-rotation, intrinsics, then camera-imu on a log recorded with turns; each --out "
+        "becomes the next step's --camera.",
     )  # fmt: skip
     kinds = parser.add_subparsers(dest="kind", metavar="KIND", required=True,
                                   parser_class=type(parser))  # fmt: skip
