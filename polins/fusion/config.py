@@ -60,8 +60,15 @@ class FuseConfig:
         "reported as a warning",
     )
     vel_n0: tuple[float, float, float] = _opt((0.0, 0.0, 0.0), "initial ENU velocity [m/s]")
+    site_assumed: bool = _opt(
+        False,
+        "the site is a stand-in because none was given (set by the one warning): the Earth "
+        "rate is then not mechanized and the process noise covers it (docs/filter.md)",
+    )
     earth_rate: bool | None = _opt(
-        None, "mechanize the Earth and transport rates (None: the IMU model's earth_rate)"
+        None,
+        "mechanize the Earth and transport rates (None: whenever the site is known; "
+        "false: the world does not rotate, e.g. a simulation without Earth rotation)",
     )
     gate_prob: float | None = _opt(
         0.9973, "chi-square gate probability of the innovations (None: no gate)"
@@ -121,15 +128,17 @@ class FuseConfig:
     )
     time_tol_s: float = _opt(1e-6, "measurement times this close to an IMU sample use it [s]")
     # yaw acquisition and recovery (docs/filter.md, "Yaw acquisition and recovery")
-    acquire_k: int = _opt(
-        3, "yaw acquisition: this many of the last acquire_n headings must agree", ESKF
-    )
-    acquire_n: int = _opt(5, "yaw acquisition: headings considered for the consensus", ESKF)
+    acquire_k: int = _opt(3, "yaw acquisition: this many of the last acquire_n headings must agree")
+    acquire_n: int = _opt(5, "yaw acquisition: headings considered for the consensus")
     reacquire_after: int = _opt(
         5, "re-acquire the yaw after this many consecutive gate rejections of headings", ESKF
     )
     # ESKF only
-    scale_factors: bool = _opt(False, "estimate gyro/accel scale factors (21 states)", ESKF)
+    scale_factors: bool | None = _opt(
+        None,
+        "gyro/accel scale-factor errors: ESKF states (21 states), covered by "
+        "rotation-proportional gyro noise in the graph; None: on for MEMS-grade IMU models",
+    )
     reset_interval_s: float = _opt(
         20.0, "inject and zero the error state this long after the last reset [s]", ESKF
     )
@@ -138,6 +147,35 @@ class FuseConfig:
     )
     cov_step_s: float = _opt(0.1, "longest covariance-propagation step [s]", ESKF)
     smooth: bool = _opt(False, "run the Rauch-Tung-Striebel smoother", ESKF)
+    # the sky's error states (docs/filter.md, "Approximate site", "No clock",
+    # "Heading-measurement bias")
+    site_std: float | None = _opt(
+        None,
+        "1-sigma of the site's latitude and of its longitude [rad] (approximate site): the "
+        "site error becomes two states seen by the yaw and sun updates; None: site exact",
+        ESKF,
+    )
+    no_clock: bool | None = _opt(
+        None,
+        "no-clock mode: the sun's ENU azimuth and its rate are states, the heading is "
+        "relative; None: when the measurements carry sun_azimuth_b without yaw or sun_n",
+        ESKF,
+    )
+    sun_azimuth_rate_std: float = _opt(
+        math.radians(24.0) / 3600.0,
+        "no clock: 1-sigma of the sun's azimuth rate [rad/s] (24 deg/h: Harbin's largest; "
+        "up to hundreds of deg/h near the subsolar point)",
+        ESKF,
+    )
+    heading_bias_std: float | None = _opt(
+        None,
+        "1-sigma of a Gauss-Markov heading-measurement bias [rad] (sky-model errors "
+        "correlated from image to image, e.g. yaw_std_correlated); None: no bias state",
+        ESKF,
+    )
+    heading_bias_tau_s: float = _opt(
+        300.0, "correlation time of the heading-measurement bias [s]", ESKF
+    )
     # graph only
     solver: str = _opt("batch", f"graph solver, one of {SOLVERS}", GRAPH)
     lag_s: float = _opt(10.0, "window of the fixed-lag smoother [s]", GRAPH)
@@ -183,8 +221,18 @@ class FuseConfig:
 
     @property
     def mechanize_earth_rate(self) -> bool:
-        """Whether the Earth and transport rates are mechanized."""
-        return self.imu.earth_rate if self.earth_rate is None else bool(self.earth_rate)
+        """Whether the Earth and transport rates are mechanized: whenever the site is known
+        and the heading is absolute (not ``no_clock``), unless ``earth_rate`` says otherwise."""
+        if self.earth_rate is None:
+            return self.site is not None and not self.site_assumed and not self.no_clock
+        return bool(self.earth_rate)
+
+    @property
+    def uncovered_earth_rate(self) -> bool:
+        """True when the world rotates but the Earth rate is not mechanized (no site known,
+        or no clock: the heading is relative, so the horizontal Earth rate cannot be
+        projected): the process noise then covers it (docs/filter.md, "Without a site")."""
+        return self.earth_rate is None and (self.site_assumed or bool(self.no_clock))
 
     @property
     def nhc_sigma(self) -> float | None:
@@ -197,6 +245,15 @@ class FuseConfig:
         """The zero-velocity 1-sigma at (detected) standstill [m/s], or None: off."""
         kind_default = STANDSTILL_STD if self.vehicle in ("ground", "static") else None
         return _sigma_in_use(self.standstill_std, kind_default)
+
+    @property
+    def use_scale_factors(self) -> bool:
+        """Whether the scale-factor errors are modelled (``scale_factors``; None: for a
+        MEMS-grade model whose scale factors are not both switched off)."""
+        if self.scale_factors is None:
+            model = self.imu
+            return model.grade == "mems" and (model.gyro_scale_factor + model.accel_scale_factor) > 0
+        return bool(self.scale_factors)
 
     @classmethod
     def from_options(cls, base: FuseConfig | None = None, /, **options: Any) -> FuseConfig:
@@ -270,7 +327,7 @@ def _check(c: FuseConfig) -> None:
     """Range checks of every option (one-line ``ValueError`` naming the option)."""
     positive = ("align_s", "vel_std0", "pos_std0", "nhc_rate_hz", "time_tol_s", "cov_step_s",
                 "lag_s", "max_keyframe_dt_s", "integration_std", "standstill_window_s",
-                "odometer_scale_std")  # fmt: skip
+                "odometer_scale_std", "sun_azimuth_rate_std", "heading_bias_tau_s")  # fmt: skip
     for name in positive:
         value = getattr(c, name)
         if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
@@ -281,7 +338,8 @@ def _check(c: FuseConfig) -> None:
             raise UserInputError(f"{name} must be > 0 [m/s], inf (off) or None, got {value!r}")
     if c.vehicle not in VEHICLE_KINDS:
         raise UserInputError(f"vehicle={c.vehicle!r}: expected one of {VEHICLE_KINDS}")
-    for name in ("zupt_std", "output_rate_hz", "max_gap_s", "odometer_std"):
+    for name in ("zupt_std", "output_rate_hz", "max_gap_s", "odometer_std", "site_std",
+                 "heading_bias_std"):  # fmt: skip
         value = getattr(c, name)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise UserInputError(f"{name} must be > 0 or None, got {value!r}")
@@ -367,8 +425,9 @@ def config_with_site(config: FuseConfig | None, *, stacklevel: int = 3) -> FuseC
         return config
     warnings.warn(
         f"no site given (FuseConfig.site or lat_deg/lon_deg/alt_m); assuming the paper's "
-        f"site {PAPER_SITE} for gravity and the Earth rate",
+        f"site {PAPER_SITE} for gravity; the Earth rate is not mechanized and the process "
+        "noise covers it",
         UserWarning,
         stacklevel=stacklevel,
     )
-    return FuseConfig.from_options(config, site=PAPER_SITE)
+    return FuseConfig.from_options(config, site=PAPER_SITE, site_assumed=True)

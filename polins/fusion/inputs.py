@@ -26,6 +26,10 @@ IMU_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 YAW_COLUMNS = ("yaw", "yaw_std")
 SUN_COLUMNS = ("sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny", "sun_nz", "sun_std")
 ZUPT_COLUMNS = ("zupt_std",)
+# the sun in the body frame without an ephemeris (no clock), and its elevation (optional;
+# with a sun vector its sigma gives the 2x2 direction covariance); docs/filter.md
+SUN_AZIMUTH_COLUMNS = ("sun_azimuth_b", "sun_azimuth_b_std")
+SUN_ELEVATION_COLUMNS = ("sun_elevation_b", "sun_elevation_b_std")
 PRIOR_COLUMNS = ("prior_roll", "prior_pitch", "prior_yaw")
 
 # Plausibility limit of the unit check of the accelerometer (the gyro's: the IMU model's
@@ -187,13 +191,70 @@ def check_imu_units(gyro_norm: ArrayLike, accel_norm: ArrayLike, gyro_max: float
         )
 
 
+DEG_PER_RAD = 180.0 / math.pi
+
+
+def check_gyro_against_headings(
+    imu: pd.DataFrame, measurements: pd.DataFrame, window_s: float = 1.0
+) -> None:
+    """Raise ``UserInputError`` if the gyro turns ~57x as much as the measured headings.
+
+    An undeclared deg/s gyro below the full scale (slow turns) passes
+    :func:`check_imu_units`; while the vehicle turns, the headings show it. Over windows of
+    ``window_s`` between yaw measurements, the gyro's rotation about the specific force
+    (the vertical at low dynamics), ``int w_b . f_b/|f_b| dt``, is compared with the
+    headings' change; windows turning less than 3 deg are not used. At least 5 windows
+    with a median ratio within a factor 2 of 180/pi is a deg/s gyro.
+
+    Parameters
+    ----------
+    imu : DataFrame
+        ``t, gx, gy, gz, ax, ay, az`` (checked by :func:`validate_imu`).
+    measurements : DataFrame
+        Validated measurements; only rows with a finite ``yaw`` are used.
+    window_s : float
+        Span of the compared heading pairs [s].
+    """
+    if "yaw" not in measurements.columns:
+        return
+    yaw = measurements["yaw"].to_numpy(dtype=float)
+    ok = np.isfinite(yaw)
+    if ok.sum() < 6:
+        return
+    t_m, yaw = measurements["t"].to_numpy(dtype=float)[ok], np.unwrap(yaw[ok])
+    data = imu[list(IMU_COLUMNS)].to_numpy(dtype=float)
+    data = data[np.isfinite(data).all(axis=1)]
+    f_norm = np.linalg.norm(data[:, 4:7], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate_up = np.einsum("ij,ij->i", data[:, 1:4], data[:, 4:7]) / f_norm
+    rate_up = np.where(np.isfinite(rate_up), rate_up, 0.0)
+    t = data[:, 0]
+    angle = np.concatenate([[0.0], np.cumsum(0.5 * (rate_up[1:] + rate_up[:-1]) * np.diff(t))])
+    j = np.searchsorted(t_m, t_m + window_s)
+    i = np.flatnonzero((j < t_m.size) & (t_m >= t[0]))
+    j = j[i]
+    i, j = i[t_m[j] <= t[-1]], j[t_m[j] <= t[-1]]
+    turn_m = yaw[j] - yaw[i]
+    turn_g = np.interp(t_m[j], t, angle) - np.interp(t_m[i], t, angle)
+    used = np.abs(turn_m) > np.radians(3.0)
+    if used.sum() < 5:
+        return
+    ratio = float(np.median(turn_g[used] / turn_m[used]))
+    if 0.5 * DEG_PER_RAD <= ratio <= 2.0 * DEG_PER_RAD:
+        raise UserInputError(
+            f"imu: the gyro turns {ratio:.3g} times as much as the measured headings over "
+            f"{int(used.sum())} turning windows: the gyro looks like deg/s; multiply by pi/180"
+        )
+
+
 def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
     """Check a measurements table (docs/conventions.md) and return it (an empty table for None).
 
     Columns: ``t`` [s] and at least one complete group: ``yaw, yaw_std`` [rad]; or
     ``sun_bx, sun_by, sun_bz`` (measured, body), ``sun_nx, sun_ny, sun_nz`` (reference,
-    ENU) and ``sun_std`` [rad]; or ``zupt_std`` [m/s] (zero-velocity at that time).
-    Optionally ``prior_roll, prior_pitch, prior_yaw`` [rad]: the attitude prior
+    ENU) and ``sun_std`` [rad]; or ``zupt_std`` [m/s] (zero-velocity at that time); or,
+    without a clock, ``sun_azimuth_b, sun_azimuth_b_std`` [rad] (the sun's body azimuth).
+    Optionally ``sun_elevation_b, sun_elevation_b_std`` [rad] and ``prior_roll, prior_pitch, prior_yaw`` [rad]: the attitude prior
     ``polins.measure`` used for the yaw (the ``measurements.csv`` of ``polins fuse`` has
     them; used by the tilt-coupled yaw model). NaN values mean "no measurement" (e.g. an image that ``polins.measure`` rejected) and
     are logged and skipped; a NaN time is an error.
@@ -211,7 +272,8 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
     df = _require_frame(measurements, "measurements")
     if "t" not in df.columns:
         raise UserInputError("measurements table lacks column 't'")
-    groups = {"yaw": YAW_COLUMNS, "sun": SUN_COLUMNS, "zupt": ZUPT_COLUMNS}
+    groups = {"yaw": YAW_COLUMNS, "sun": SUN_COLUMNS, "zupt": ZUPT_COLUMNS,
+              "sun_azimuth": SUN_AZIMUTH_COLUMNS}  # fmt: skip
     present = {g: [c for c in cols if c in df.columns] for g, cols in groups.items()}
     present["prior"] = [c for c in PRIOR_COLUMNS if c in df.columns]  # not a measurement
     for g, cols in {**groups, "prior": PRIOR_COLUMNS}.items():
@@ -245,6 +307,18 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
                     "sun vectors must be unit vectors"
                 )
         _check_std(sun[:, 6], "sun_std", np.pi)
+    for name, upper in (("sun_azimuth_b", 2.0 * np.pi), ("sun_elevation_b", np.pi / 2)):
+        if name in df.columns:
+            angle = _numeric(df, (name,), "measurements")[:, 0]
+            big = np.flatnonzero(np.abs(angle) > upper + 1e-9)
+            if big.size:
+                raise UserInputError(
+                    f"measurements: {name}={angle[big[0]]:.4g} at row {big[0]} is outside "
+                    f"[-{upper:.4g}, {upper:.4g}]; it must be in radians"
+                )
+    for name in ("sun_azimuth_b_std", "sun_elevation_b_std"):
+        if name in df.columns:
+            _check_std(_numeric(df, (name,), "measurements")[:, 0], name, np.pi)
     if present["zupt"]:
         _check_std(_numeric(df, ZUPT_COLUMNS, "measurements")[:, 0], "zupt_std", np.inf)
     if present["prior"]:

@@ -55,7 +55,7 @@ class Linearized:
     R : (m, m) ndarray
         Measurement noise covariance [measurement units squared].
     name : str
-        Model name: ``"yaw"``, ``"sun"``, ``"zupt"`` or ``"nhc"``.
+        Model name: ``"yaw"``, ``"sun"``, ``"sun_azimuth"``, ``"zupt"`` or ``"nhc"``.
     """
 
     residual: FloatArray
@@ -106,6 +106,13 @@ def _wrap(angle: float) -> float:
     return math.pi if out == -math.pi else out
 
 
+def wrap_residual(residual: FloatArray, name: str) -> FloatArray:
+    """A model's residual with its angles wrapped to (-pi, pi] (``"yaw"``, ``"sun_azimuth"``)."""
+    if name in ("yaw", "sun_azimuth"):
+        return np.array([_wrap(float(r)) for r in residual])
+    return residual
+
+
 # ----------------------------------------------------------------------------- kernels
 # The kernels take validated inputs (mat_nb a rotation matrix, unit vectors, variances);
 # the public functions below validate and call them. The ESKF calls the kernels directly.
@@ -146,15 +153,73 @@ def yaw_kernel(
 
 
 def sun_kernel(
-    mat_nb: FloatArray, sun_b: FloatArray, sun_n: FloatArray, var: float, basis_b: FloatArray | None
+    mat_nb: FloatArray,
+    sun_b: FloatArray,
+    sun_n: FloatArray,
+    var: float,
+    basis_b: FloatArray | None,
+    cov_b: FloatArray | None = None,
 ) -> Linearized:
-    """:func:`sun_measurement` on validated inputs (unit vectors, ``var`` = sun_std^2)."""
+    """:func:`sun_measurement` on validated inputs (unit vectors, ``var`` = sun_std^2;
+    ``cov_b`` a (3, 3) direction covariance in the body frame replacing ``var I``)."""
     s_pred_b = mat_nb.T @ sun_n
     basis = _basis(s_pred_b) if basis_b is None else basis_b
     H = np.zeros((2, N_ERROR))
     # h(dtheta) = mat_bn exp(-dtheta) sun_n ~ h + mat_bn [sun_n x] dtheta
     H[:, ATT] = (mat_nb @ basis).T @ skew(sun_n)
-    return Linearized(basis.T @ (sun_b - s_pred_b), H, np.eye(2) * var, "sun")
+    R = np.eye(2) * var if cov_b is None else basis.T @ cov_b @ basis
+    return Linearized(basis.T @ (sun_b - s_pred_b), H, R, "sun")
+
+
+def sun_direction_cov_b(sun_b: FloatArray, azimuth_std: float, elevation_std: float) -> FloatArray:
+    """The (3, 3) covariance [rad^2] of a measured body sun direction whose errors are
+    ``azimuth_std`` along the azimuth and ``elevation_std`` along the elevation [rad]
+    (tangent displacements, docs/filter.md "Sun vector"): ``azimuth_std^2 u_a u_a^T +
+    elevation_std^2 u_e u_e^T`` with ``u_a``, ``u_e`` the unit tangents of the body-frame
+    azimuth and elevation at ``sun_b``."""
+    s = sun_b / np.linalg.norm(sun_b)
+    horiz = math.hypot(float(s[0]), float(s[1]))
+    if horiz < 1e-9:  # at the body zenith the azimuth is undefined: isotropic
+        return (np.eye(3) - np.outer(s, s)) * max(azimuth_std, elevation_std) ** 2
+    u_a = np.array([-s[1], s[0], 0.0]) / horiz
+    u_e = np.cross(s, u_a)
+    return azimuth_std**2 * np.outer(u_a, u_a) + elevation_std**2 * np.outer(u_e, u_e)
+
+
+def sun_azimuth_kernel(
+    mat_nb: FloatArray,
+    azimuth_b: float,
+    var: float,
+    sun_azimuth_n: float,
+    sun_elevation_n: float,
+) -> Linearized:
+    """The sun's body-frame azimuth without a clock (docs/filter.md, "No clock").
+
+    The sun's ENU azimuth ``sun_azimuth_n`` is a filter state (not known from an
+    ephemeris); its ENU elevation ``sun_elevation_n`` is taken as known for the tilt
+    terms. With ``sun_n = (cos e cos a, cos e sin a, sin e)`` and ``b = mat_bn sun_n``::
+
+        h(x) = atan2(b_y, b_x),   H_theta = grad(b)^T mat_bn [sun_n x],
+        grad(b) = (-b_y, b_x, 0) / (b_x^2 + b_y^2)
+
+    so ``h = sun_azimuth_n - yaw`` for a level body, and ``dh / d sun_azimuth_n =
+    -H_theta[2]`` (the sun turning about the vertical is the body turning the other way).
+    """
+    ce = math.cos(sun_elevation_n)
+    sun_n = np.array(
+        [ce * math.cos(sun_azimuth_n), ce * math.sin(sun_azimuth_n), math.sin(sun_elevation_n)]
+    )
+    b = mat_nb.T @ sun_n
+    horiz2 = float(b[0] * b[0] + b[1] * b[1])
+    if horiz2 < 1e-12:
+        raise ValueError("the sun's body azimuth is undefined: the sun is on the body z axis")
+    grad = np.array([-b[1], b[0], 0.0]) / horiz2
+    H = np.zeros((1, N_ERROR))
+    H[0, ATT] = (grad @ mat_nb.T) @ skew(sun_n)
+    predicted = math.atan2(float(b[1]), float(b[0]))
+    return Linearized(
+        np.array([_wrap(azimuth_b - predicted)]), H, np.array([[var]]), "sun_azimuth"
+    )
 
 
 def zero_velocity_kernel(vel_n: FloatArray, var: FloatArray) -> Linearized:
@@ -207,8 +272,6 @@ def _vehicle_velocity(
     if lever_vel_b is not None:
         vel_v = vel_v + (lever_vel_b if mat_vb is None else mat_vb @ lever_vel_b)
     return vel_v, mat_vn
-
-
 
 
 def _basis(s_b: FloatArray) -> FloatArray:

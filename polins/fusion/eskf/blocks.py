@@ -17,7 +17,10 @@ A :class:`Block` is one named part of the error state (``att``, ``vel``, ``pos``
   ``(item, lin) -> (dim, size)`` of the item (:class:`~polins.fusion.items.MeasurementItem`)
   and that model ``lin``; None (the default): zero;
 * ``correct(gyro_b, accel_b, estimate)``: for an IMU error, the samples corrected with the
-  block's estimate (applied in block order: ``(w - bg) / (1 + sg)``); None otherwise.
+  block's estimate (applied in block order: ``(w - bg) / (1 + sg)``); None otherwise;
+* ``offset``: True when the block's estimate enters the measurement linearly through its
+  Jacobian columns, ``h = h_shared + J estimate`` (the site error, the heading bias): the
+  residual is then taken at the estimate (:meth:`Layout.linearize`).
 
 Navigation blocks (``att``, ``vel``, ``pos``) are injected into the nominal attitude,
 velocity and position; the others are *sensor-error* blocks, whose estimates the filter
@@ -29,6 +32,8 @@ capability adds a block (:func:`error_blocks`) without touching the filter (docs
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -38,9 +43,15 @@ from scipy.spatial.transform import Rotation
 
 from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.dynamics import StepNominal
-from polins.fusion.items import MeasurementItem
-from polins.fusion.measurement import BA, BG, Linearized
-from polins.ins.earth import radii_of_curvature
+from polins.fusion.items import MeasurementItem, item_model
+from polins.fusion.measurement import BA, BG, Linearized, wrap_residual
+from polins.fusion.sky_states import (
+    heading_bias_jacobian,
+    site_rotation_std,
+    sun_attitude_columns,
+    sun_azimuth_jacobian,
+)
+from polins.ins.earth import OMEGA_IE, radii_of_curvature
 from polins.models import ImuModel
 
 FloatArray = NDArray[np.float64]
@@ -65,6 +76,7 @@ class Block:
     jacobian: slice | Callable[[MeasurementItem, Linearized], FloatArray] | None = None
     navigation: bool = False
     correct: Correction | None = None
+    offset: bool = False
 
 
 def _skew_columns(v: FloatArray) -> FloatArray:
@@ -139,14 +151,63 @@ ODOMETER_SCALE = Block("so", 1, lambda step: {}, lambda m, c: c.odometer_scale_s
                        jacobian=_odometer_scale_jacobian)  # fmt: skip
 
 
+# Without a site the Earth rate (OMEGA_IE) is not mechanized: the gyro bias block covers
+# it, as a turn-on term of OMEGA_IE and a random walk that lets the horizontal part turn
+# with the heading over about EARTH_RATE_TURN_S (docs/filter.md, "Without a site").
+EARTH_RATE_TURN_S = 60.0
+
+
+def _cover_earth_rate(block: Block) -> Block:
+    """The gyro-bias block widened to cover the unmechanized Earth rate."""
+    return dataclasses.replace(
+        block,
+        sigma0=lambda m, c: math.hypot(m.gyro_bias, OMEGA_IE),
+        noise=lambda m: m.gyro_bias_rw**2 + OMEGA_IE**2 / EARTH_RATE_TURN_S,
+    )
+
+
+def sky_blocks(config: FuseConfig) -> tuple[Block, ...]:
+    """The measurement-side blocks ``config`` asks for (:mod:`polins.fusion.sky_states`;
+    docs/filter.md, "Approximate site", "No clock", "Heading-measurement bias")."""
+    out: tuple[Block, ...] = ()
+    if config.site_std is not None and config.site is not None:
+        std = site_rotation_std(config.site.lat, config.site_std)
+        out += (Block("site_rot_n", 3, lambda step: {}, lambda m, c: std,
+                      jacobian=sun_attitude_columns, offset=True),)  # fmt: skip
+    if config.no_clock:
+        rate_std = config.sun_azimuth_rate_std
+        out += (
+            Block("sun_azimuth_n", 1, lambda step: {}, lambda m, c: SUN_AZIMUTH_STD0,
+                  jacobian=sun_azimuth_jacobian),
+            Block("sun_azimuth_rate", 1,
+                  lambda step: {"sun_azimuth_n": np.ones((step.dt.shape[0], 1, 1))},
+                  lambda m, c: c.sun_azimuth_rate_std,
+                  lambda m: rate_std**2 / SUN_RATE_CHANGE_S),
+        )  # fmt: skip
+    if config.heading_bias_std is not None:
+        sig, tau = config.heading_bias_std, config.heading_bias_tau_s
+        out += (Block("heading_bias", 1,
+                      lambda step: {"heading_bias": np.full((step.dt.shape[0], 1, 1), -1.0 / tau)},
+                      lambda m, c: sig, lambda m: 2.0 * sig**2 / tau, heading_bias_jacobian,
+                      offset=True),)  # fmt: skip
+    return out
+
+
+# No clock: the sun's azimuth is unknown at the start (its first measurement sets it, with
+# the yaw's sigma); its rate may change by its own 1-sigma over SUN_RATE_CHANGE_S.
+SUN_AZIMUTH_STD0 = 10.0  # [rad], "unknown"
+SUN_RATE_CHANGE_S = 3600.0
+
+
 def error_blocks(config: FuseConfig) -> tuple[Block, ...]:
     """The blocks of the error state that ``config`` asks for, in state order."""
-    blocks: tuple[Block, ...] = (ATT, VEL, POS, GYRO_BIAS, ACCEL_BIAS)
-    if config.scale_factors:
+    gyro_bias = _cover_earth_rate(GYRO_BIAS) if config.uncovered_earth_rate else GYRO_BIAS
+    blocks: tuple[Block, ...] = (ATT, VEL, POS, gyro_bias, ACCEL_BIAS)
+    if config.use_scale_factors:
         blocks += (GYRO_SCALE, ACCEL_SCALE)
     if config.odometer_std is not None:
         blocks += (ODOMETER_SCALE,)
-    return blocks
+    return blocks + sky_blocks(config)
 
 
 class Layout:
@@ -175,6 +236,7 @@ class Layout:
         self._kernel_src = np.concatenate(src) if src else np.zeros(0, dtype=int)
         self._kernel_dst = np.concatenate(dst) if dst else np.zeros(0, dtype=int)
         self._own = tuple(b for b in self.blocks if callable(b.jacobian))
+        self._offset = tuple(b for b in self._own if b.offset)
         self._plain = self.n == 15 and not self._own and np.array_equal(self._kernel_dst,
                                                                          self._kernel_src)  # fmt: skip
 
@@ -194,11 +256,47 @@ class Layout:
         """Diagonal of the continuous process-noise density ``Qc``, ``(n,)``."""
         return np.concatenate([np.full(b.size, b.noise(model)) for b in self.blocks])
 
+    def step_noise(self, qc: FloatArray, model: ImuModel, step: StepNominal) -> FloatArray:
+        """``Qc`` of each step, ``(S, n)``, or ``qc`` itself when it does not vary.
+
+        The gyro's axis misalignment ``m`` (``ImuModel.gyro_misalignment``) turns rotation
+        into attitude error: it enters the attitude rows as white noise of density
+        ``m^2 |omega_b|^2 tau`` with ``tau = gyro_misalignment_corr_time`` (docs/filter.md,
+        "Rotation-proportional attitude noise").
+        """
+        m2tau = model.gyro_misalignment**2 * model.gyro_misalignment_corr_time
+        if m2tau == 0.0 or step.rate_sq is None:
+            return qc
+        out = np.broadcast_to(qc, (step.dt.shape[0], self.n)).copy()
+        out[:, self.index["att"]] += (m2tau * step.rate_sq)[:, None]
+        return out
+
     def initial_covariance(self, model: ImuModel, config: FuseConfig) -> FloatArray:
         """Diagonal initial covariance ``P0`` from the blocks' initial sigmas."""
         sig = [np.broadcast_to(np.asarray(b.sigma0(model, config), float), (b.size,))
                for b in self.blocks]  # fmt: skip
         return np.diag(np.concatenate(sig) ** 2)
+
+    def linearize(
+        self,
+        item: MeasurementItem,
+        mat_nb: FloatArray,
+        vel_n: FloatArray,
+        tilt_coupling: bool,
+        errors: Mapping[str, FloatArray],
+    ) -> Linearized:
+        """The measurement model of ``item`` over all blocks at the nominal state and the
+        sensor-error estimates ``errors``: the shared model (:func:`item_model`), the
+        Jacobian over all blocks, the residual taken at the estimates of the ``offset``
+        blocks (angles wrapped)."""
+        lin = item_model(item, mat_nb, vel_n, tilt_coupling, errors)
+        H = self.jacobian(item, lin)
+        if not self._offset:
+            return Linearized(lin.residual, H, lin.R, lin.name)
+        res = lin.residual.copy()
+        for b in self._offset:
+            res -= H[:, self.index[b.name]] @ errors[b.name]
+        return Linearized(wrap_residual(res, lin.name), H, lin.R, lin.name)
 
     def jacobian(self, item: MeasurementItem, lin: Linearized) -> FloatArray:
         """The measurement Jacobian ``(dim, n)`` of an item over all blocks."""

@@ -56,7 +56,6 @@ from polins.fusion.items import (
     MeasurementItem,
     UpdateRecord,
     gate_limit,
-    item_model,
     measurement_items,
 )
 from polins.fusion.measurement import Linearized
@@ -368,7 +367,8 @@ class ESKF:
 
     def step_matrices(self, step: StepNominal) -> tuple[FloatArray, FloatArray]:
         """``(Phi, Q)`` ``(n, n)`` of one covariance step."""
-        Phi, Q = discretize(self.layout.dynamics(step), step.dt, self.qc)
+        qc = self.layout.step_noise(self.qc, self.model, step)
+        Phi, Q = discretize(self.layout.dynamics(step), step.dt, qc)
         return Phi[0], Q[0]
 
     def predict(self, Phi: FloatArray, Q: FloatArray) -> None:
@@ -400,8 +400,8 @@ class ESKF:
 
     def linearize(self, item: MeasurementItem) -> Linearized:
         """The measurement model of ``item`` over all blocks, at the nominal state."""
-        lin = item_model(item, self.mat_nb, self.vel_n, self.tilt_coupling)
-        return Linearized(lin.residual, self.layout.jacobian(item, lin), lin.R, lin.name)
+        return self.layout.linearize(item, self.mat_nb, self.vel_n, self.tilt_coupling,
+                                     self.errors)  # fmt: skip
 
     def reject(self, item: MeasurementItem, reason: str) -> UpdateRecord:
         """Log an item as not used."""
@@ -423,8 +423,8 @@ class ESKF:
             return hold_heading(self, item, None)
         if item.kind == "odo":  # the lever arm at the current rate, the scale estimate
             item = self.vehicle.odometer(item, self.errors, self._cur)
-        lin = item_model(item, self.mat_nb, self.vel_n, self.tilt_coupling)
-        H, dim = self.layout.jacobian(item, lin), lin.residual.shape[0]
+        lin = self.linearize(item)
+        H, dim = lin.H, lin.residual.shape[0]
         nu: tuple[float, ...]  # the innovation and its covariance, for the update log
         S: tuple[float, ...]
         if dim == 1:  # scalar innovation: dot products
@@ -562,6 +562,7 @@ class ESKF:
             s.mat_force += mat_h * (0.5 * (fc0 + fc1) * dt)
         s.n += 1
         s.dt += dt
+        s.rate_sq += float(np.sum((0.5 * (wc0 + wc1)) ** 2)) * dt
         s.mat += mat_h * dt
         s.dv += dv_force
         self.set_nominal(t1, mat1, v1, lat1, lon1, h1)
@@ -578,4 +579,5 @@ class ESKF:
             np.array([s.dt]), s.mat[None], s.dv[None], vel[None], np.array([lat]),
             np.array([alt]), self.mech, self.divisors(),
             s.mat_omega[None] if sf else None, s.mat_force[None] if sf else None,
+            np.array([s.rate_sq]),
         )  # fmt: skip

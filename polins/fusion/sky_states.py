@@ -1,0 +1,99 @@
+"""The measurement-side error states of the sky: the error of an approximate site, the sun's azimuth without a clock, and a heading-measurement bias.
+
+Each is an error-state block of the ESKF (:mod:`polins.fusion.eskf.blocks`); this module
+holds their mathematics (docs/filter.md, "Approximate site", "No clock", "Heading-measurement
+bias"):
+
+* **Site error**: ``(d_lat, d_lon)`` [rad], true minus the site the ENU sun vectors were
+  computed at, turns the local ENU frame by ``psi_n = S(lat) (d_lat, d_lon)``
+  (:func:`site_frame_jacobian`), so the sun seen by the camera is ``sun_n + [sun_n x]
+  psi_n``: exactly the form of an attitude error, and the columns of ``psi_n`` in a heading
+  measurement are its attitude columns (:func:`sun_attitude_columns`). The error is common
+  to every image, so ``psi_n`` is a state (three random constants), not an inflation of R:
+  an R inflation averages down over the images while the error does not. Its three
+  components are independent with the 1-sigmas of :func:`site_rotation_std`, which bound
+  ``S Sigma S^T``: the exact model links the tilt part of ``psi_n`` (seen against gravity)
+  to its heading part through ``d_lon``, so that a tilt error of the filter (accelerometer,
+  camera mounting) would leak into the heading; the bound drops that link on purpose.
+* **Sun azimuth** (no clock): the sun's ENU azimuth and its rate are states; a
+  ``"sun_azimuth"`` measurement sees them through ``dh / d azimuth = -H_theta[2]``
+  (:func:`sun_azimuth_jacobian`).
+* **Heading-measurement bias** ``b`` [rad], the measured heading minus the true one, a
+  first-order Gauss-Markov process: it enters every heading measurement as a rotation of
+  the measured sun about the vertical, ``d h / d b = H_theta[2]`` (:func:`heading_bias_jacobian`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from polins.fusion.items import HEADING_KINDS, MeasurementItem
+from polins.fusion.measurement import Linearized
+
+FloatArray = NDArray[np.float64]
+
+
+def site_frame_jacobian(lat: float) -> FloatArray:
+    """``d psi_n / d (lat, lon)``, (3, 2): the rotation of the local ENU frame [rad] per
+    radian of latitude and longitude at latitude ``lat`` [rad].
+
+    North by ``d_lat`` turns the frame about East by ``-d_lat``; East by ``d_lon`` turns it
+    about the Earth's axis, ``(0, cos lat, sin lat)`` in ENU, by ``d_lon``.
+    """
+    return np.array([[-1.0, 0.0], [0.0, math.cos(lat)], [0.0, math.sin(lat)]])
+
+
+def site_frame_cov(lat: float, site_std: float) -> FloatArray:
+    """Covariance (3, 3) [rad^2] of the ENU frame rotation for a site whose latitude and
+    longitude each have the 1-sigma ``site_std`` [rad]."""
+    S = site_frame_jacobian(lat)
+    return (S @ S.T) * site_std**2
+
+
+def sun_attitude_columns(item: MeasurementItem, lin: Linearized) -> FloatArray:
+    """The attitude columns ``d h / d theta`` (dim, 3) of a heading item's model in its
+    dependence on the ENU sun vector: for a sun vector and a tilt-coupled yaw ``lin.H[:,
+    0:3]``; for a yaw with ``sun_n`` the tilt-coupled form with the prior at the estimate,
+    ``(-s_x s_z, -s_y s_z, s_x^2 + s_y^2) / (s_x^2 + s_y^2)``; for a yaw without ``sun_n``
+    the vertical only, ``(0, 0, 1)``; zero for the other kinds."""
+    out = np.zeros((lin.H.shape[0], 3))
+    if item.kind == "sun":
+        out[:] = lin.H[:, 0:3]
+    elif item.kind == "yaw" and item.sun_n is not None:
+        s = item.sun_n
+        h2 = float(s[0] * s[0] + s[1] * s[1])
+        out[0] = (-s[0] * s[2] / h2, -s[1] * s[2] / h2, 1.0)
+    elif item.kind == "yaw":
+        out[0, 2] = 1.0
+    return out
+
+
+def site_rotation_std(lat: float, site_std: float) -> tuple[float, float, float]:
+    """1-sigmas [rad] of the three independent components of the ENU frame rotation of a
+    site whose latitude and longitude have the 1-sigma ``site_std`` [rad], at latitude
+    ``lat`` [rad]: ``(site_std, sqrt(2) site_std |cos lat|, sqrt(2) site_std |sin lat|)``.
+
+    Their covariance bounds the exact one, ``S S^T site_std^2`` (:func:`site_frame_cov`):
+    the difference is ``site_std^2 (0, cos lat, -sin lat)(0, cos lat, -sin lat)^T >= 0``.
+    """
+    r2 = math.sqrt(2.0) * site_std
+    return (site_std, r2 * abs(math.cos(lat)), r2 * abs(math.sin(lat)))
+
+
+def heading_bias_jacobian(item: MeasurementItem, lin: Linearized) -> FloatArray:
+    """Column (dim, 1) of the heading-measurement bias: ``H_theta[:, 2]`` for the heading
+    kinds (1 for a yaw, -1 for a no-clock sun azimuth), zero for the others."""
+    if item.kind not in HEADING_KINDS:
+        return np.zeros((lin.H.shape[0], 1))
+    return lin.H[:, 2:3].copy()
+
+
+def sun_azimuth_jacobian(item: MeasurementItem, lin: Linearized) -> FloatArray:
+    """Column (dim, 1) of the sun's ENU azimuth state in a ``"sun_azimuth"`` item,
+    ``-H_theta[:, 2]`` (docs/filter.md, "No clock"); zero for the other kinds."""
+    if item.kind != "sun_azimuth":
+        return np.zeros((lin.H.shape[0], 1))
+    return -lin.H[:, 2:3]
