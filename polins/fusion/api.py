@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any
 
 import numpy as np
@@ -10,19 +11,20 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
+from polins.fusion.acquisition import gap_variance, skip_in_gaps
 from polins.fusion.config import ODOMETER_STD, FuseConfig, config_with_site
-from polins.fusion.eskf.acquisition import gap_variance
 from polins.fusion.eskf.filter import ESKF
 from polins.fusion.eskf.propagate import advance, interpolate
 from polins.fusion.eskf.smoother import rts_smooth
 from polins.fusion.inputs import (
     PRIOR_COLUMNS,
     ImuArrays,
+    check_gyro_against_headings,
     output_mask,
     validate_imu,
     validate_measurements,
 )
-from polins.fusion.items import MeasurementItem, items_from_table, records_table
+from polins.fusion.items import MeasurementItem, items_from_table, no_clock_table, records_table
 from polins.fusion.result import FusionEvent, FusionResult, events_table
 from polins.fusion.vehicle import odometer_items
 from polins.ins.state import solution_table
@@ -82,10 +84,13 @@ def run_fusion(
             cfg = dataclasses.replace(cfg, odometer_std=ODOMETER_STD)
     cfg.check_backend(backend)
     meas = validate_measurements(measurements)
+    check_gyro_against_headings(imu, meas)
     if cfg.tilt_coupling is None:
         priors = all(c in meas.columns for c in PRIOR_COLUMNS)
         cfg = dataclasses.replace(cfg, tilt_coupling=priors)
     cfg = config_with_site(cfg, stacklevel=4)
+    if no_clock_table(meas):
+        cfg = announce_no_clock(cfg, backend)
     if backend == "graph":
         from polins.fusion.graph import fuse_graph  # gtsam: only when asked for
 
@@ -110,6 +115,9 @@ def run_fusion(
                 f"align_s={cfg.align_s} s; give rot_nb0 or a longer log"
             )
         filt.level([(float(t[k]), W[k], A[k]) for k in range(k_end + 1)])
+        if cfg.no_clock:  # the heading is relative to the levelled yaw (docs/filter.md)
+            filt.P[2, :] = filt.P[:, 2] = 0.0
+            filt.yaw_aligned = True
     run = advance(filt, t, W, A, output_mask(t, cfg.output_rate_hz), full=cfg.smooth)
     assert run is not None
     nodes, rows = run
@@ -127,13 +135,36 @@ def run_fusion(
     )  # fmt: skip
 
 
+def announce_no_clock(config: FuseConfig, backend: str) -> FuseConfig:
+    """The config of a measurements table in the no-clock mode (sun_azimuth_b without yaw
+    or sun_n), with the one warning that says so; the graph refuses it."""
+    if backend == "graph":
+        raise UserInputError(
+            "no-clock measurements (sun_azimuth_b without yaw or sun_n) need the ESKF: the "
+            "graph has no sun-azimuth state (docs/filter.md, 'No clock')"
+        )
+    if config.no_clock is False:
+        raise UserInputError(
+            "no_clock=False but the measurements carry only sun_azimuth_b (no yaw, no sun_n)"
+        )
+    warnings.warn(
+        "no-clock mode: the measurements carry sun_azimuth_b without yaw or sun_n; the sun's "
+        "ENU azimuth is a filter state and the heading is relative to the initial yaw "
+        "(absolute heading is not observable without a clock; docs/filter.md, 'No clock')",
+        UserWarning,
+        stacklevel=4,
+    )
+    return dataclasses.replace(config, no_clock=True)
+
+
 def bridge_gaps(
     arrays: ImuArrays, items: list[MeasurementItem]
 ) -> tuple[list[MeasurementItem], list[FusionEvent]]:
     """The measurement items with the IMU gaps longer than ``max_gap_s`` handled
     (docs/faults.md): the measurements inside a gap are rejected (invalid items with a
     reason), and a ``"gap"`` item at the sample after it inflates the covariance
-    (:func:`~polins.fusion.eskf.acquisition.gap_variance`); an event for each.
+    (:func:`~polins.fusion.acquisition.gap_variance`); an event for each. The graph skips
+    the same measurements (:func:`~polins.fusion.acquisition.skip_in_gaps`).
 
     Returns
     -------
@@ -142,19 +173,7 @@ def bridge_gaps(
     events : list of FusionEvent
     """
     t, gaps = arrays.t, arrays.gaps
-    events: list[FusionEvent] = []
-    out = list(items)
-    if gaps.size == 0:
-        return out, events
-    t_item = np.array([it.t for it in out], dtype=float)
-    j = np.searchsorted(t[gaps], t_item, side="left") - 1  # the gap starting before
-    inside = (j >= 0) & (t_item < t[gaps[np.maximum(j, 0)] + 1])
-    for k in np.flatnonzero(inside).tolist():
-        it, i = out[k], int(gaps[j[k]])
-        if it.valid:
-            reason = f"inside an IMU gap ({t[i]:.6g} to {t[i + 1]:.6g} s)"
-            out[k] = dataclasses.replace(it, valid=False, reason=reason)
-            events.append(FusionEvent(it.t, "measurement-in-gap", f"{it.kind} skipped: {reason}"))
+    out, events = skip_in_gaps(t, gaps, items)
     for i in gaps.tolist():
         t_a, t_b = float(t[i]), float(t[i + 1])
         inflation = gap_variance(t_b - t_a, (arrays.gyro_b[i], arrays.gyro_b[i + 1]),

@@ -25,6 +25,8 @@ from polins.fusion.measurement import (
     Linearized,
     non_holonomic_kernel,
     odometer_kernel,
+    sun_azimuth_kernel,
+    sun_direction_cov_b,
     sun_kernel,
     yaw_kernel,
     zero_velocity_kernel,
@@ -32,7 +34,10 @@ from polins.fusion.measurement import (
 
 FloatArray = NDArray[np.float64]
 
-_KIND_ORDER = {"gap": -1, "yaw": 0, "sun": 1, "zupt": 2, "nhc": 3, "odo": 4}
+_KIND_ORDER = {"gap": -1, "yaw": 0, "sun": 1, "sun_azimuth": 1, "zupt": 2, "nhc": 3, "odo": 4}
+HEADING_KINDS = ("yaw", "sun", "sun_azimuth")  # the measurements of the heading
+# the name of the no-clock state of the sun's ENU azimuth (docs/filter.md, "No clock")
+SUN_AZIMUTH_STATE = "sun_azimuth_n"
 
 
 @functools.lru_cache(maxsize=64)
@@ -45,7 +50,9 @@ def gate_limit(prob: float | None, dof: int) -> float:
 class MeasurementItem:
     """One scalar/vector measurement waiting to be applied at time ``t``.
 
-    ``kind`` is ``"yaw"``, ``"sun"``, ``"zupt"``, ``"nhc"``, ``"odo"`` (a wheel-odometer
+    ``kind`` is ``"yaw"``, ``"sun"``, ``"sun_azimuth"`` (no clock: ``yaw`` holds the sun's
+    body azimuth ``sun_azimuth_b``, ``elevation_b`` its body elevation, NaN when unknown),
+    ``"zupt"``, ``"nhc"``, ``"odo"`` (a wheel-odometer
     ``speed`` [m/s]), or ``"gap"`` (not a
     measurement: the IMU resumes after a gap, the filter adds ``inflation`` to the
     covariance of its navigation errors, docs/filter.md); ``valid`` is False for rows with NaN values or a
@@ -63,6 +70,8 @@ class MeasurementItem:
     mat_nb_prior: FloatArray | None = None  # the prior polins.measure used (yaw rows)
     reason: str = ""  # why an invalid item is not used
     inflation: FloatArray | None = None  # "gap": variances added to the 9 navigation errors
+    cov_b: FloatArray | None = None  # "sun": (3, 3) direction covariance [rad^2], else std^2 I
+    elevation_b: float = math.nan  # "sun_azimuth": the sun's elevation in the body frame [rad]
     speed: float = math.nan  # "odo": the odometer's forward speed [m/s]
     mat_vb: FloatArray | None = None  # "nhc", "odo": IMU mounting, body -> vehicle frame
     lever_vel_b: FloatArray | None = None  # "nhc", "odo": omega_b x lever_arm_b [m/s]
@@ -74,12 +83,18 @@ class MeasurementItem:
 
 
 def item_model(
-    item: MeasurementItem, mat_nb: FloatArray, vel_n: FloatArray | None, tilt_coupling: bool
+    item: MeasurementItem,
+    mat_nb: FloatArray,
+    vel_n: FloatArray | None,
+    tilt_coupling: bool,
+    states: Mapping[str, FloatArray] | None = None,
 ) -> Linearized:
     """The 15-state measurement model (:mod:`polins.fusion.measurement`) of ``item`` at a
     nominal attitude ``mat_nb`` and ENU velocity ``vel_n`` [m/s] (only zero-velocity and
-    non-holonomic items use it); ``tilt_coupling`` as ``FuseConfig.tilt_coupling``. The ESKF and
-    the GTSAM graph both linearize their items here.
+    non-holonomic items use it); ``tilt_coupling`` as ``FuseConfig.tilt_coupling``;
+    ``states`` the estimates of the sensor-error blocks by name (a ``"sun_azimuth"`` item
+    needs :data:`SUN_AZIMUTH_STATE`). The ESKF and the GTSAM graph both linearize their
+    items here.
     """
     var = item.std * item.std
     if item.kind == "yaw":
@@ -87,7 +102,14 @@ def item_model(
             return yaw_kernel(mat_nb, item.yaw, var, item.sun_n, item.mat_nb_prior)
         return yaw_kernel(mat_nb, item.yaw, var, None)
     if item.kind == "sun":
-        return sun_kernel(mat_nb, item.sun_b, item.sun_n, var, None)  # type: ignore[arg-type]
+        return sun_kernel(mat_nb, item.sun_b, item.sun_n, var, None, item.cov_b)  # type: ignore[arg-type]
+    if item.kind == "sun_azimuth":
+        if states is None or SUN_AZIMUTH_STATE not in states:
+            raise ValueError("a sun_azimuth item needs the sun azimuth state (no-clock mode)")
+        return sun_azimuth_kernel(
+            mat_nb, item.yaw, var, float(states[SUN_AZIMUTH_STATE][0]),
+            sun_elevation_n(mat_nb, item.yaw, item.elevation_b),
+        )  # fmt: skip
     if item.kind not in ("zupt", "nhc", "odo"):  # pragma: no cover - built by measurement_items
         raise ValueError(f"unknown measurement kind {item.kind!r}")
     if vel_n is None:
@@ -99,6 +121,24 @@ def item_model(
     return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var), item.mat_vb, item.lever_vel_b)
 
 
+def sun_elevation_n(mat_nb: FloatArray, azimuth_b: float, elevation_b: float) -> float:
+    """The sun's ENU elevation [rad] from its body azimuth and elevation [rad] at the
+    attitude ``mat_nb``; 0 when the body elevation is unknown (NaN): the tilt terms of the
+    no-clock model then vanish (docs/filter.md, "No clock")."""
+    if math.isnan(elevation_b):
+        return 0.0
+    ce = math.cos(elevation_b)
+    s_b = np.array([ce * math.cos(azimuth_b), ce * math.sin(azimuth_b), math.sin(elevation_b)])
+    return math.asin(max(-1.0, min(1.0, float(mat_nb[2] @ s_b))))
+
+
+def no_clock_table(measurements: pd.DataFrame | Mapping[str, ArrayLike]) -> bool:
+    """True when a measurements table carries the sun's body azimuth (``sun_azimuth_b``)
+    and neither a yaw nor an ENU sun vector: the no-clock mode (docs/filter.md, "No clock")."""
+    cols = set(measurements.columns if isinstance(measurements, pd.DataFrame) else measurements)
+    return "sun_azimuth_b" in cols and not ({"yaw", "sun_nx"} & cols)
+
+
 def items_from_table(
     measurements: pd.DataFrame | Mapping[str, ArrayLike], *, use_sun: bool = True
 ) -> list[MeasurementItem]:
@@ -107,7 +147,10 @@ def items_from_table(
     ``measurements`` is a DataFrame or a mapping of column name to values (one row per
     element). The rules: a sun vector if complete and ``use_sun``, else a yaw; NaN -> an
     invalid item (logged, not used); ``zupt_std`` -> a zero-velocity item; yaw items carry
-    the prior attitude of the ``prior_*`` columns (docs/filter.md).
+    the prior attitude of the ``prior_*`` columns; a sun vector carries the direction
+    covariance of ``sun_std`` (azimuth) and ``sun_elevation_b_std`` (elevation) when the
+    row has the latter; a table without yaw and ``sun_n`` but with ``sun_azimuth_b,
+    sun_azimuth_b_std`` gives ``"sun_azimuth"`` items (no clock; docs/filter.md).
     """
     df = measurements
     n = len(df) if isinstance(df, pd.DataFrame) else len(np.atleast_1d(df["t"]))
@@ -136,6 +179,14 @@ def items_from_table(
         yaw_ok = np.isfinite(yaw) & _sigma_ok(yaw_std)
         zupt_ok = _sigma_ok(zupt_std)
     # Python scalars (lists) in the row loop: numpy scalar indexing costs more
+    heading = "sun_azimuth" if no_clock_table(df) else "yaw"
+    if heading == "sun_azimuth":  # the sun's body azimuth takes the place of the yaw
+        has_yaw, yaw, yaw_std = True, col("sun_azimuth_b"), col("sun_azimuth_b_std")
+        with np.errstate(invalid="ignore"):
+            yaw_ok = np.isfinite(yaw) & _sigma_ok(yaw_std)
+    elev_b, elev_std = col("sun_elevation_b"), col("sun_elevation_b_std")
+    with np.errstate(invalid="ignore"):
+        cov_ok = (sun_ok & _sigma_ok(elev_std)).tolist()
     t_l, yaw_l, yaw_std_l, sun_std_l = t.tolist(), yaw.tolist(), yaw_std.tolist(), sun_std.tolist()
     zupt_l, sun_ok_l, yaw_ok_l, zupt_ok_l = (
         zupt_std.tolist(), sun_ok.tolist(), yaw_ok.tolist(), zupt_ok.tolist()
@@ -145,9 +196,13 @@ def items_from_table(
     for i in range(n):
         ti = t_l[i]
         if use_sun and sun_ok_l[i]:
+            cov_b = None
+            if cov_ok[i]:
+                cov_b = sun_direction_cov_b(sun_b[i], sun_std_l[i], float(elev_std[i]))
             items.append(
                 MeasurementItem(
-                    ti, "sun", sun_std_l[i], sun_b=sun_b[i].copy(), sun_n=sun_n[i].copy()
+                    ti, "sun", sun_std_l[i], sun_b=sun_b[i].copy(), sun_n=sun_n[i].copy(),
+                    cov_b=cov_b,
                 )
             )
         elif has_yaw:
@@ -155,13 +210,14 @@ def items_from_table(
             items.append(
                 MeasurementItem(
                     ti,
-                    "yaw",
+                    heading,
                     yaw_std_l[i] if ok else math.nan,
                     yaw=yaw_l[i] if ok else math.nan,
                     sun_n=sun_n[i].copy() if n_ok_l[i] else None,
                     valid=ok,
                     mat_nb_prior=mat_prior[i] if prior_ok_l[i] else None,
-                    reason="" if ok else _invalid_reason("yaw", yaw_l[i], yaw_std_l[i]),
+                    reason="" if ok else _invalid_reason(heading, yaw_l[i], yaw_std_l[i]),
+                    elevation_b=float(elev_b[i]),
                 )
             )
         elif has_sun:
