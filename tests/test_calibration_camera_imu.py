@@ -1,6 +1,7 @@
 """Round trip of the camera-IMU calibration (docs/calibrate.md#camera-imu): time offset and boresight from a 2-minute log with turns."""
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 from test_calibration_scenes import small_camera
@@ -206,3 +207,28 @@ def test_gyro_attitude_integrates_the_body_rates():
     assert np.degrees(err.max()) < 1e-3  # measured: 7e-5 deg after 30 s
     with pytest.raises(UserInputError, match=r"gyro_b of shape \(6001, 3\)"):
         gyro_attitude(imu["t"], imu[["gx", "gy"]].to_numpy())
+
+
+@pytest.mark.parametrize("clock", [True, False])
+def test_camera_imu_drops_sun_vectors_on_the_wrong_branch(clock):
+    """4% of the sun vectors turned 180 deg about the camera axis (the polarization's
+    branch ambiguity): dropped as outliers, and the fit is as good as without them."""
+    rng = np.random.default_rng(46)
+    traj = _tilting_trajectory(10.0)
+    t_cam, sun_c, _ = _camera_sun(traj, rng, dt_true=0.010, rot_bc=ROT_BC)
+    bad = rng.choice(t_cam.size, int(0.04 * t_cam.size), replace=False)
+    sun_c[bad] = sun_c[bad] * [-1.0, -1.0, 1.0]
+    if clock:  # the ephemeris per attitude sample
+        from polins.sky.ephemeris import sun_position, sun_vector_n
+
+        times = pd.Timestamp("2023-09-05T07:06:00Z") + pd.to_timedelta(traj.t, unit="s")
+        sun = sun_position(pd.DatetimeIndex(times[::100]), SITE_LAT_DEG, SITE_LON_DEG, 0.0)
+        s_n = sun_vector_n(sun.azimuth, sun.zenith)
+        s_n = np.stack([np.interp(traj.t, traj.t[::100], s_n[:, i]) for i in range(3)], -1)
+        res = calibrate_camera_imu(t_cam, sun_c, traj.t, traj.rot_nb, s_n)
+    else:
+        res = calibrate_camera_imu(t_cam, sun_c, traj.t, traj.rot_nb)
+    assert res.provenance["n_outliers"] == bad.size
+    assert res.residuals.size == t_cam.size - bad.size
+    assert abs(res.time_offset_s - 0.010) <= 1e-3
+    assert np.degrees((Rotation.from_matrix(res.mat_bc) * ROT_BC.inv()).magnitude()) <= 0.05

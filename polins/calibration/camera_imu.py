@@ -38,7 +38,7 @@ the start value (the base camera's ``mat_bc``), named in the result and warned a
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -51,10 +51,17 @@ from polins.errors import UserInputError
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["CameraImuResult", "HeldAxisWarning", "calibrate_camera_imu", "fit_fixed_sun"]
+__all__ = [
+    "CameraImuResult",
+    "HeldAxisWarning",
+    "calibrate_camera_imu",
+    "fit_ephemeris_sun",
+    "fit_fixed_sun",
+]
 
 BORESIGHT_STD_MAX_DEG = 0.1  # hold a boresight axis known worse than this [deg] (no clock)
 BORESIGHT_PRIOR_STD = np.radians(10.0)  # weak prior on the boresight's change [rad] (no clock)
+OUTLIER_FACTOR = 6.0  # drop images whose residual exceeds this many times the median
 
 
 class HeldAxisWarning(UserWarning):
@@ -152,6 +159,9 @@ def calibrate_camera_imu(
     Returns
     -------
     CameraImuResult
+        Images whose residual exceeds 6 times the median (a sun vector on the wrong 180 deg
+        branch, a cloud) are dropped and the fit repeated; ``provenance["n_outliers"]``
+        counts them.
 
     Raises
     ------
@@ -186,15 +196,68 @@ def calibrate_camera_imu(
             "camera-imu: the sun moves less than 5 deg in the camera frame; record turns"
         )
     slerp = Slerp(t_att, rot_nb)
-    if sun_n is None:
-        rot0 = Rotation.identity() if mat_bc_start is None else Rotation.from_matrix(mat_bc_start)
-        return fit_fixed_sun(
-            t_img, s_c, slerp, rot0, max_offset_s=max_offset_s, sun_drift=sun_drift
-        )
+    rot0 = Rotation.identity() if mat_bc_start is None else Rotation.from_matrix(mat_bc_start)
+
+    def run(keep: NDArray[np.bool_]) -> CameraImuResult:
+        if s_n is None:
+            return fit_fixed_sun(t_img[keep], s_c[keep], slerp, rot0, max_offset_s=max_offset_s,
+                                 sun_drift=sun_drift)  # fmt: skip
+        return fit_ephemeris_sun(t_img[keep], s_c[keep], slerp, t_att, s_n, max_offset_s)
+
+    # Images whose residual is far beyond the others' (a sun vector on the wrong 180 deg
+    # branch, a cloud) are dropped and the fit repeated, up to three times.
+    keep = np.ones(t_img.size, dtype=bool)
+    for _ in range(4):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", HeldAxisWarning)
+            result = run(keep)
+        outlier = result.residuals > OUTLIER_FACTOR * np.median(result.residuals)
+        if not outlier.any() or keep.sum() - outlier.sum() < 10:
+            break
+        keep[np.flatnonzero(keep)[outlier]] = False
+    for w in caught:
+        warnings.warn(w.message, w.category, stacklevel=2)
+    n_out = int((~keep).sum())
+    if n_out:
+        result = replace(result, provenance={**result.provenance, "n_outliers": n_out})
+    return result
+
+
+def fit_ephemeris_sun(
+    t_img: FloatArray,
+    s_c: FloatArray,
+    slerp: Slerp,
+    t_att: FloatArray,
+    s_n: FloatArray,
+    max_offset_s: float,
+) -> CameraImuResult:
+    """Clock camera-IMU fit: Wahba's problem between ephemeris sun vectors in the body frame
+    and the measured camera vectors, the time offset by a grid and a bounded scalar search
+    (module docstring; docs/calibrate.md#camera-imu).
+
+    Parameters
+    ----------
+    t_img : (m,)
+        Image times on the camera clock [s], inside the attitude record by ``max_offset_s``.
+    s_c : (m, 3)
+        Measured unit sun vectors in the camera frame.
+    slerp : scipy.spatial.transform.Slerp
+        Body-to-ENU attitude as a function of IMU time [s].
+    t_att : (k,)
+        Attitude times [s].
+    s_n : (k, 3)
+        Unit ENU sun vector at ``t_att``.
+    max_offset_s : float
+        Search the offset in ``[-max_offset_s, max_offset_s]`` [s].
+
+    Returns
+    -------
+    CameraImuResult
+        ``mode="clock"``.
+    """
 
     def predicted_b(dt: float) -> FloatArray:
         t = t_img + dt
-        assert s_n is not None
         sun = np.stack([np.interp(t, t_att, s_n[:, i]) for i in range(3)], -1)
         sun /= np.linalg.norm(sun, axis=1, keepdims=True)
         return slerp(t).inv().apply(sun)
@@ -339,7 +402,7 @@ def fit_fixed_sun(
             "sun's direction and is held at the start value (use the clock, or tilt the "
             "platform during the turns)",
             HeldAxisWarning,
-            stacklevel=3,
+            stacklevel=2,
         )
         axes = eigvec[:, :2].T
         sol = solve(axes)
