@@ -84,8 +84,8 @@ Compensation = Callable[[NDArray, CameraModel, NDArray], tuple[NDArray, NDArray]
 direct-sunlight coefficient it estimated (its median over the used pixels is reported)."""
 
 
-_SECTOR_MIN = 50
-"""Fewest used pixels for a sector to count in the jackknife."""
+_SECTOR_MIN_SHARE = 1e-3
+"""Smallest share of the azimuth information for a jackknife group to count."""
 
 
 def _excluded_sun(sun_c: NDArray, rays: NDArray, cos_excl: float) -> NDArray:
@@ -344,10 +344,11 @@ def measure_image(
     used_method, fallback = method, ""
     gap = eigen_gap(eig0)
     mask: NDArray
+    mask_sub: NDArray | None = None
     if method == "compensated":
         ml, mask_ml = None, None
         if stride > 1:
-            ml, _ = gauss_newton(
+            ml, mask_sub = gauss_newton(
                 data_sub,
                 theta,
                 zen_arg,
@@ -357,6 +358,7 @@ def measure_image(
                 tol_sigma=0.1,  # the full-set step that follows removes the rest
                 select=sel_sub,
                 epsilon_bound=opt.epsilon_max,
+                sectors=sector_runs(cam, stride),
             )
             fallback = _ml_problem(ml, opt, converged=True)
             theta = ml.theta
@@ -372,6 +374,7 @@ def measure_image(
                 select=full_select,
                 epsilon_bound=opt.epsilon_max,
                 sectors=sector_runs(cam),
+                sector_h=None if ml is None else ml.sector_h,
             )
             fallback = _ml_problem(ml, opt, converged=stride == 1)
         if fallback:
@@ -385,8 +388,10 @@ def measure_image(
             cov_sun_l = sun_covariance(ml)
             var_yaw = float(ml.covariance[0, 0])
             var_jack = float("nan")
-            if ml.jackknife is not None and ml.sector_counts is not None:
-                var_jack = jackknife_variance(ml.jackknife[:, 0], ml.sector_counts, _SECTOR_MIN)
+            if ml.jackknife is not None and ml.sector_share is not None:
+                var_jack = jackknife_variance(
+                    ml.jackknife[:, 0], ml.sector_share, _SECTOR_MIN_SHARE
+                )
             epsilon, epsilon_std = float(theta[-1]), float(np.sqrt(ml.covariance[-1, -1]))
             residual_rms = ml.residual_rms
     if used_method != "compensated":
@@ -409,8 +414,8 @@ def measure_image(
         middle = sandwich_middle(e, omega, mat_cl @ sun_l)
         cov_sun_l = sandwich_covariance(eig, mat_lc @ middle @ mat_lc.T)
         var_yaw = yaw_variance_from_sun_covariance(sun_l, cov_sun_l)
-        deltas, counts = eigen_jackknife(e, omega, sector_runs(cam), mat_lc, sun_l)
-        var_jack = jackknife_variance(deltas, counts, _SECTOR_MIN)
+        deltas, share = eigen_jackknife(e, omega, sector_runs(cam), mat_lc, sun_l)
+        var_jack = jackknife_variance(deltas, share, _SECTOR_MIN_SHARE)
         theta = np.array([np.arctan2(sun_l[1], sun_l[0]), np.arccos(np.clip(sun_l[2], -1, 1)), 0.0])
         zen_arg = None
         epsilon, epsilon_std = float("nan"), float("nan")
@@ -424,7 +429,8 @@ def measure_image(
         residual_rms = float(np.sqrt(dot(r_sub, r_sub) / n_sub))
 
     # The camera-fixed polarization's effect, on the subsample (a ratio of sums, §12).
-    mask_sub = selection_mask(data_sub, sel_sub, mat_cl @ sun_l)
+    if mask_sub is None or used_method != "compensated":
+        mask_sub = selection_mask(data_sub, sel_sub, mat_cl @ sun_l)
     std_instrumental = opt.instrumental_dop_std * instrumental_sensitivity(
         dataclasses.replace(data_sub, mask=mask_sub),
         theta,

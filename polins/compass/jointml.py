@@ -257,8 +257,10 @@ class MLSolution:
     jackknife : (G, k) or None
         Leave-one-sector-out deviations of theta (:func:`polins.compass.sectors.ml_jackknife`)
         when sectors were given.
-    sector_counts : (G,) or None
-        Pixels used per sector.
+    sector_share : (G,) or None
+        Each group's share of the azimuth information ``H_g[0, 0] / H[0, 0]``.
+    sector_h : (G, k, k) or None
+        The groups' parts ``H_g`` of the normal matrix (unscaled).
     """
 
     theta: FloatArray
@@ -269,7 +271,8 @@ class MLSolution:
     converged: bool
     n: int = 0
     jackknife: FloatArray | None = None
-    sector_counts: FloatArray | None = None
+    sector_share: FloatArray | None = None
+    sector_h: FloatArray | None = None
 
 
 def gauss_newton(
@@ -285,6 +288,7 @@ def gauss_newton(
     select: Selection | None = None,
     epsilon_bound: float = np.inf,
     sectors: SectorRuns | None = None,
+    sector_h: FloatArray | None = None,
 ) -> tuple[MLSolution, NDArray | None]:
     """Gauss-Newton (IRLS for robust losses) on ``data``; with ``max_iterations=1`` it is the
     single full-set step of the subsample-then-full scheme (docs/measurement.md). ``select``
@@ -296,8 +300,10 @@ def gauss_newton(
     increases the loss is halved (from the second iteration on: one evaluation per
     iteration as long as the loss decreases).
 
-    With ``sectors`` (full pixel set only) the solution carries the leave-one-sector-out
-    deviations of the last accepted linearization (docs/measurement.md §12).
+    With ``sectors`` (the runs of ``data``'s pixel set) the solution carries the
+    leave-one-group-out deviations of the last accepted linearization
+    (docs/measurement.md §12). ``sector_h`` (e.g. a subsample solution's) replaces the
+    groups' normal matrices, scaled to this solution's ``J^T J``: only ``b_g`` is summed.
     """
     theta = np.asarray(theta0, dtype=float).copy()
     theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
@@ -317,7 +323,7 @@ def gauss_newton(
         post_scale = 1.0
     mask = data.mask
     theta_prev, step, loss_prev, halvings = theta, np.zeros_like(theta), np.inf, 0
-    sector_parts: tuple[FloatArray, FloatArray, FloatArray] | None = None
+    accepted: tuple[NDArray, NDArray, NDArray | None, NDArray] | None = None
     for it in range(1, max_iterations + 1):  # noqa: B007
         r, jac, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select)
         if select is not None:
@@ -343,9 +349,7 @@ def gauss_newton(
         jtj *= post_scale**2
         jtr *= post_scale**2
         rss *= post_scale**2
-        if sectors is not None:
-            sun_c = mat_cl @ _sun_derivatives(theta, zenith)[0]
-            sector_parts = _sector_normal_equations(r, jac, weights, mask, sectors, sun_c)
+        accepted = (r, jac, weights, theta)  # the linearization of jtj, jtr
         try:
             step = _bounded_step(-np.linalg.solve(jtj, jtr), k_sun)
             jtj_inv = np.linalg.inv(jtj)
@@ -381,15 +385,34 @@ def gauss_newton(
         cov = np.full((dof, dof), np.nan)
     sun_l, _ = _sun_derivatives(theta, zenith)
     theta[0] = float(wrap_angle(theta[0]))
-    jackknife = counts = None
+    jackknife = share = None
+    sector_parts = None
+    if sectors is not None and accepted is not None:
+        r_a, jac_a, weights_a, theta_a = accepted
+        sun_c = mat_cl @ _sun_derivatives(theta_a, zenith)[0]
+        sector_parts = _sector_normal_equations(r_a, jac_a, weights_a, sectors, sun_c, sector_h)
     if sector_parts is not None:
-        sector_h, sector_b, counts = sector_parts
+        group_h, sector_b = sector_parts
+        share = group_h[:, 0, 0] / max(float(np.sum(group_h[:, 0, 0])), 1e-300)
+        if sector_h is not None:  # another pixel set's: scale to this J^T J
+            group_h = group_h * (np.trace(jtj) / max(float(np.trace(group_h.sum(0))), 1e-300))
+        else:
+            group_h = group_h * post_scale**2
         try:
-            jackknife = ml_jackknife(jtj, jtr, sector_h * post_scale**2, sector_b * post_scale**2)
+            jackknife = ml_jackknife(jtj, jtr, group_h, sector_b * post_scale**2)
         except np.linalg.LinAlgError:
             jackknife = None
     solution = MLSolution(
-        theta, np.asarray(cov, dtype=np.float64), sun_l, rms, it, converged, n, jackknife, counts
+        theta,
+        np.asarray(cov, dtype=np.float64),
+        sun_l,
+        rms,
+        it,
+        converged,
+        n,
+        jackknife,
+        share,
+        None if sector_parts is None else sector_parts[0],
     )
     return solution, mask
 
@@ -398,21 +421,27 @@ def _sector_normal_equations(
     r: NDArray,
     jac: NDArray,
     weights: NDArray | None,
-    mask: NDArray | None,
     sectors: SectorRuns,
     sun_c: NDArray,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per-sector ``H_g (G, k, k)``, ``b_g (G, k)`` and pixel counts ``(G,)``."""
+    sector_h: FloatArray | None,
+) -> tuple[FloatArray, FloatArray]:
+    """Per-group ``H_g (G, k, k)`` (``sector_h`` when given) and ``b_g (G, k)`` (masked
+    pixels have a zero Jacobian)."""
     k = jac.shape[0]
     jw = jac if weights is None else jac * weights
-    pairs = [(a, b) for a in range(k) for b in range(a, k)]
-    rows = [jw[a] * jac[b] for a, b in pairs] + [jw[a] * r for a in range(k)]
-    used = np.ones_like(r) if mask is None else mask.astype(r.dtype)
-    sums = sector_sums(np.stack([*rows, used]), sectors, sun_c)
+    pairs = [] if sector_h is not None else [(a, b) for a in range(k) for b in range(a, k)]
+    rows = np.empty((len(pairs) + k, r.size), dtype=r.dtype)
+    for j, (a, b) in enumerate(pairs):
+        np.multiply(jw[a], jac[b], out=rows[j])
+    for a in range(k):
+        np.multiply(jw[a], r, out=rows[len(pairs) + a])
+    sums = sector_sums(rows, sectors, sun_c)
+    if sector_h is not None:
+        return sector_h, sums
     h = np.empty((sums.shape[0], k, k))
     for j, (a, b) in enumerate(pairs):
         h[:, a, b] = h[:, b, a] = sums[:, j]
-    return h, sums[:, len(pairs) : len(pairs) + k], sums[:, -1]
+    return h, sums[:, len(pairs) :]
 
 
 def sun_covariance(solution: MLSolution) -> FloatArray:
@@ -468,12 +497,13 @@ def sun_joint_ml(
     zenith: float | None = None,
     loss: str = "linear",
     max_iterations: int = 10,
+    epsilon_bound: float = 0.1,
 ) -> MLSolution:
     """Joint maximum-likelihood sun vector and direct-sunlight coefficient (docs/model.md §9.2).
 
     Minimises ``sum_i rho(r_i)`` over theta = (A_l, Z_l, eps), or (A_l, eps) with the zenith
     fixed to ``zenith`` (the ephemeris' apparent zenith: the fixed-zenith variant), by
-    Gauss-Newton from ``sun_l0`` (e.g. the eigen solution).
+    Gauss-Newton from ``sun_l0`` (e.g. the eigen solution) or a coarse grid.
 
     Parameters
     ----------
@@ -484,6 +514,11 @@ def sun_joint_ml(
         the covariance is rescaled by the residual variance).
     zenith : fixed sun zenith [rad] or None (estimated).
     loss : {"linear", "huber", "cauchy"}
+    epsilon_bound : largest ``|epsilon|`` (the physical range is about 0 to 0.05); a
+        solution on it is not a free estimate.
+
+    Converges from any start: Gauss-Newton begins at ``sun_l0`` or at the best point of a
+    15 deg grid of suns (epsilon 0), whichever fits better.
     """
     if loss not in LOSSES:
         raise ValueError(f"loss={loss!r}: expected one of {LOSSES}")
@@ -495,12 +530,44 @@ def sun_joint_ml(
     a0 = np.arctan2(sl[1], sl[0])
     theta0 = [a0, epsilon0] if zenith is not None else [a0, np.arccos(sl[2]), epsilon0]
     data = _pixel_data_of(s, forward, sigma_l)
+    mat = np.asarray(mat_cl, dtype=float)
+    sub = _pixel_data_of(s[:: max(1, len(s) // 4000)],
+                         np.asarray(forward)[:: max(1, len(s) // 4000)],
+                         sigma_l if np.ndim(sigma_l) == 0
+                         else np.asarray(sigma_l)[:: max(1, len(s) // 4000)])  # fmt: skip
+    theta_start = _grid_start(sub, np.asarray(theta0, dtype=float), zenith, mat)
     solution, _ = gauss_newton(
         data,
-        np.asarray(theta0),
+        theta_start,
         zenith,
-        np.asarray(mat_cl, dtype=float),
+        mat,
         loss=loss,
         max_iterations=max_iterations,
+        epsilon_bound=epsilon_bound,
     )
     return solution
+
+
+_GRID_AZIMUTHS = 24  # 15 deg steps
+_GRID_ZENITHS = np.radians([10.0, 25.0, 40.0, 55.0, 70.0, 85.0])
+
+
+def _grid_start(data: PixelData, theta0: NDArray, zenith: float | None, mat_cl: NDArray) -> NDArray:
+    """The start of the joint ML from anywhere (docs/measurement.md §11): ``theta0`` or the
+    best point of a 15 deg azimuth x 15 deg zenith grid (epsilon 0) by the sum of squared
+    residuals on ``data``, whichever fits better."""
+
+    def rss(theta: NDArray) -> float:
+        r, _, _, _ = ml_evaluate(data, theta, zenith, mat_cl, False)
+        return float(np.dot(r, r))
+
+    best, best_rss = theta0, rss(theta0)
+    azimuths = np.arange(_GRID_AZIMUTHS) * (2 * np.pi / _GRID_AZIMUTHS) - np.pi
+    zeniths = [None] if zenith is not None else _GRID_ZENITHS
+    for a in azimuths:
+        for z in zeniths:
+            theta = np.array([a, 0.0]) if z is None else np.array([a, z, 0.0])
+            value = rss(theta)
+            if value < best_rss:
+                best, best_rss = theta, value
+    return best

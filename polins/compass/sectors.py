@@ -82,17 +82,18 @@ class SectorRuns:
         return band + SECTOR_AZIMUTHS * self.ring
 
 
-@lru_cache(maxsize=8)
-def sector_runs(cam: CameraModel) -> SectorRuns:
-    """The fixed image sectors of the camera's field of view (``4 SECTOR_AZIMUTHS`` slices
-    x :data:`SECTOR_RINGS` rings), cached per camera."""
+@lru_cache(maxsize=16)
+def sector_runs(cam: CameraModel, stride: int = 1) -> SectorRuns:
+    """The fixed image sectors (``4 SECTOR_AZIMUTHS`` slices x :data:`SECTOR_RINGS` rings)
+    of the camera's field-of-view pixel set, or of every ``stride``-th pixel of it (the
+    chain's subsample), cached."""
     rays = camera_constants(cam, np.float64).rays
     azimuth = np.arctan2(rays[1], rays[0])
     field = np.arccos(np.clip(rays[2], -1.0, 1.0))
     slice_ = np.floor((azimuth + np.pi) * (_FINE / (2 * np.pi))).astype(np.intp)
     slice_ = np.minimum(slice_, _FINE - 1)
     ring = np.searchsorted(np.quantile(field, np.arange(1, SECTOR_RINGS) / SECTOR_RINGS), field)
-    labels = slice_ + _FINE * ring.astype(np.intp)
+    labels = (slice_ + _FINE * ring.astype(np.intp))[::stride]
     starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
     n = _FINE * SECTOR_RINGS
     centre: FloatArray = np.asarray(
@@ -104,20 +105,23 @@ def sector_runs(cam: CameraModel) -> SectorRuns:
 def sector_sums(rows: NDArray, runs: SectorRuns, sun_c: NDArray) -> FloatArray:
     """Per-group sums ``(G, m)`` of rows ``(m, n)`` over the field-of-view pixel set, in
     float64, the groups the mirror pairs of :meth:`SectorRuns.mirror_groups` for the
-    camera-frame sun ``sun_c``."""
-    run_sums = np.add.reduceat(rows, runs.starts, axis=1, dtype=np.float64)
-    groups = runs.mirror_groups(sun_c)
-    out = np.zeros((SECTOR_AZIMUTHS * SECTOR_RINGS, rows.shape[0]))
-    np.add.at(out, groups[runs.labels], run_sums.T)
-    return out
+    camera-frame sun ``sun_c``. The runs (about a hundred pixels each) are summed in the
+    rows' dtype, the runs' sums in float64."""
+    run_sums = np.add.reduceat(rows, runs.starts, axis=1).astype(np.float64)
+    group_of_run = runs.mirror_groups(sun_c)[runs.labels]
+    n_groups = SECTOR_AZIMUTHS * SECTOR_RINGS
+    return np.stack(
+        [np.bincount(group_of_run, weights=row, minlength=n_groups) for row in run_sums], -1
+    )
 
 
-def jackknife_variance(deltas: NDArray, counts: NDArray, min_count: int = 1) -> float:
+def jackknife_variance(deltas: NDArray, share: NDArray, min_share: float = 1e-3) -> float:
     """Delete-one-group jackknife variance ``(G'-1)/G' sum (d_g - mean d)^2`` of the
-    leave-one-out deviations ``deltas (G,)`` over the G' sectors holding at least
-    ``min_count`` pixels (``counts (G,)``); NaN with fewer than 3 such sectors."""
+    leave-one-out deviations ``deltas (G,)`` over the G' groups holding at least
+    ``min_share`` of the information (``share (G,)``, summing to 1); NaN with fewer than 3
+    such groups."""
     d = np.asarray(deltas, dtype=float)
-    use = (np.asarray(counts) >= min_count) & np.isfinite(d)
+    use = (np.asarray(share) >= min_share) & np.isfinite(d)
     g = int(np.count_nonzero(use))
     if g < 3:
         return float("nan")
@@ -151,17 +155,15 @@ def _moment_rows(e: NDArray, omega: NDArray) -> NDArray:
 def eigen_jackknife(
     e: NDArray, omega: NDArray, runs: SectorRuns, mat_lc: NDArray, sun_l: NDArray
 ) -> tuple[FloatArray, FloatArray]:
-    """Leave-one-sector-out azimuth deviations ``(G,)`` [rad] of the eigen sun of
+    """Leave-one-group-out azimuth deviations ``(G,)`` [rad] of the eigen sun of
     camera-frame E-vectors ``e (3, n)`` with weights ``omega (n,)`` (the moment
-    ``sum omega e e^T``), and the pixels per sector ``(G,)``.
+    ``sum omega e e^T``), and each group's share of the moment's trace ``(G,)``.
 
     ``sun_l`` (3,) is the full-set level-frame sun; each sector's sun is the smallest
     eigenvector of ``M - M_g``, signed like ``sun_l``.
     """
     rows = _moment_rows(e, omega)
-    sums = sector_sums(
-        np.vstack([rows, (omega > 0)[None].astype(rows.dtype)]), runs, mat_lc.T @ sun_l
-    )
+    sums = sector_sums(rows, runs, mat_lc.T @ sun_l)
     total = sums.sum(axis=0)
     idx = ([0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2])
     reduced = np.zeros((sums.shape[0], 3, 3))
@@ -173,4 +175,5 @@ def eigen_jackknife(
     suns *= np.sign(suns @ sun_l)[:, None]
     deltas = np.arctan2(suns[:, 1], suns[:, 0]) - np.arctan2(sun_l[1], sun_l[0])
     deltas = (deltas + np.pi) % (2 * np.pi) - np.pi
-    return deltas, sums[:, 6]
+    trace = sums[:, 0] + sums[:, 3] + sums[:, 5]
+    return deltas, trace / max(float(trace.sum()), 1e-300)
