@@ -98,7 +98,7 @@ def run_fusion(
     arrays = validate_imu(imu, max_gap_s=cfg.max_gap_s, model=cfg.imu)
     t, W, A = arrays.t, arrays.gyro_b, arrays.accel_b
     filt = ESKF(cfg, float(t[0]), arrays.dt, rot_nb0)
-    items = items_from_table(meas, use_sun=cfg.use_sun)
+    items = items_from_table(meas, use_sun=cfg.use_sun, white_only=cfg.heading_bias_std is not None)
     if odometry is not None:
         assert cfg.odometer_std is not None
         items += odometer_items(odometry, cfg.odometer_std)

@@ -140,7 +140,10 @@ def no_clock_table(measurements: pd.DataFrame | Mapping[str, ArrayLike]) -> bool
 
 
 def items_from_table(
-    measurements: pd.DataFrame | Mapping[str, ArrayLike], *, use_sun: bool = True
+    measurements: pd.DataFrame | Mapping[str, ArrayLike],
+    *,
+    use_sun: bool = True,
+    white_only: bool = False,
 ) -> list[MeasurementItem]:
     """The filter's measurement items of a validated measurements table, in row order.
 
@@ -150,7 +153,10 @@ def items_from_table(
     the prior attitude of the ``prior_*`` columns; a sun vector carries the direction
     covariance of ``sun_std`` (azimuth) and ``sun_elevation_b_std`` (elevation) when the
     row has the latter; a table without yaw and ``sun_n`` but with ``sun_azimuth_b,
-    sun_azimuth_b_std`` gives ``"sun_azimuth"`` items (no clock; docs/filter.md).
+    sun_azimuth_b_std`` gives ``"sun_azimuth"`` items (no clock; docs/filter.md). With
+    ``white_only`` (a heading-bias state carries the correlated part) the yaw and sun-azimuth
+    sigmas lose their part ``yaw_std_correlated`` when the table has it,
+    ``sqrt(std^2 - yaw_std_correlated^2)``, at least a tenth of ``std``.
     """
     df = measurements
     n = len(df) if isinstance(df, pd.DataFrame) else len(np.atleast_1d(df["t"]))
@@ -184,6 +190,11 @@ def items_from_table(
         has_yaw, yaw, yaw_std = True, col("sun_azimuth_b"), col("sun_azimuth_b_std")
         with np.errstate(invalid="ignore"):
             yaw_ok = np.isfinite(yaw) & _sigma_ok(yaw_std)
+    if white_only and "yaw_std_correlated" in df:
+        corr = np.nan_to_num(col("yaw_std_correlated"))
+        with np.errstate(invalid="ignore"):
+            white = np.sqrt(np.maximum(yaw_std**2 - corr**2, (0.1 * yaw_std) ** 2))
+        yaw_std = np.where(yaw_ok, white, yaw_std)
     elev_b, elev_std = col("sun_elevation_b"), col("sun_elevation_b_std")
     with np.errstate(invalid="ignore"):
         cov_ok = (sun_ok & _sigma_ok(elev_std)).tolist()

@@ -26,6 +26,7 @@ bias"):
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -97,3 +98,31 @@ def sun_azimuth_jacobian(item: MeasurementItem, lin: Linearized) -> FloatArray:
     if item.kind != "sun_azimuth":
         return np.zeros((lin.H.shape[0], 1))
     return -lin.H[:, 2:3]
+
+
+# The states that turn a measured heading as the yaw does, and their component that does:
+# a yaw acquired from such headings carries their error (link_acquired_yaw).
+HEADING_OFFSETS = {"heading_bias": 0, "site_rot_n": 2}
+
+
+def link_acquired_yaw(P: FloatArray, index: Mapping[str, slice], yaw: int = 2) -> FloatArray:
+    """The covariance after a yaw acquisition from headings that carry heading offsets.
+
+    The yaw was set to agree with the headings, so its error is the acquisition's own
+    (``P[yaw, yaw]`` on entry, uncorrelated) minus the offsets: ``e = n - c . x`` with ``c``
+    selecting the heading bias and the vertical site rotation (:data:`HEADING_OFFSETS`);
+    ``P`` becomes ``A P A^T`` for that linear map (the offsets' own rows unchanged).
+    Without such states ``P`` is returned unchanged.
+    """
+    cols = [index[name].start + k for name, k in HEADING_OFFSETS.items() if name in index]
+    if not cols:
+        return P
+    c = np.zeros(P.shape[0])
+    c[cols] = 1.0
+    row = -(c @ P)
+    var = float(P[yaw, yaw] + c @ P @ c)
+    P = P.copy()
+    P[yaw, :] = row
+    P[:, yaw] = row
+    P[yaw, yaw] = var
+    return P

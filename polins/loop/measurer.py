@@ -90,6 +90,10 @@ class ImageMeasurer:
                     sun_by=m.sun_b[1],
                     sun_bz=m.sun_b[2],
                     sun_std=m.sun_std,
+                    sun_azimuth_b=m.sun_azimuth_b,
+                    sun_azimuth_b_std=m.sun_azimuth_b_std,
+                    sun_elevation_b=m.sun_elevation_b,
+                    sun_elevation_b_std=m.sun_elevation_b_std,
                     eigen_gap=m.eigen_gap,
                     residual_rms=m.residual_rms,
                 )

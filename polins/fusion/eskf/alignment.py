@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.blocks import Layout
+from polins.fusion.sky_states import link_acquired_yaw
 from polins.ins.alignment import gyrocompass, level_from_accel
 from polins.ins.earth import OMEGA_IE, normal_gravity
 from polins.ins.strapdown import Mechanization
@@ -122,7 +123,8 @@ def rotate_yaw(
     """Attitude, velocity and covariance with the yaw turned by ``delta`` [rad] (the error
     state is zero: called after a reset). The rotation turns the velocity and the
     attitude/velocity covariance with it; the yaw variance becomes ``std**2`` [rad^2], its
-    correlations zero."""
+    correlations zero, except with the states that turn the measured heading (a heading
+    bias, a site error: :func:`~polins.fusion.sky_states.link_acquired_yaw`)."""
     rz = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix()
     att, vel = layout["att"], layout["vel"]
     T = np.eye(layout.n)
@@ -132,4 +134,4 @@ def rotate_yaw(
     P[2, :] = 0.0
     P[:, 2] = 0.0
     P[2, 2] = std**2
-    return rz @ mat_nb, rz @ vel_n, P
+    return rz @ mat_nb, rz @ vel_n, link_acquired_yaw(P, layout.index)
