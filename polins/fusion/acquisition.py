@@ -83,29 +83,6 @@ def consensus(
     return float(wrap_angle(mean)), float(1.0 / math.sqrt(np.sum(w))), members
 
 
-def first_consensus(
-    offsets: FloatArray, stds: FloatArray, k: int, n: int
-) -> tuple[float, float, NDArray[np.int_], int] | None:
-    """The first consensus of a sequence of yaw offsets, as the ESKF reaches it online.
-
-    The offsets are taken in order; after each, :func:`consensus` of the last ``n`` (at
-    least ``k`` agree) is tried.
-
-    Returns
-    -------
-    (mean, std, members, last) or None
-        The consensus (indices into ``offsets``) and the index of the offset that
-        completed it; None if the sequence never reaches one.
-    """
-    for last in range(k - 1, offsets.size):
-        lo = max(0, last + 1 - n)
-        res = consensus(offsets[lo : last + 1], stds[lo : last + 1], k)
-        if res is not None:
-            mean, std, members = res
-            return mean, std, members + lo, last
-    return None
-
-
 def skip_in_gaps(
     t_imu: FloatArray, gaps: NDArray[np.int_], items: list[MeasurementItem]
 ) -> tuple[list[MeasurementItem], list[FusionEvent]]:

@@ -34,7 +34,16 @@ apart. Implementation notes beyond docs/filter.md §9:
 * Self-alignment (``rot_nb0=None``): a levelling factor (mean specific force over
   ``align_s`` at rest equals ``C_bn (0, 0, g) + b_a``, horizontal components, sigma
   ``VRW / sqrt(align_s)``: the ESKF's tilt covariance and its correlation with the
-  accelerometer bias) and a 1 rad yaw prior at the first measured yaw.
+  accelerometer bias) and a 1 rad yaw prior.
+* Yaw acquisition (docs/filter.md §7.1): the initial yaw is the consensus of the first
+  headings on the dead-reckoned keyframes (:class:`~polins.fusion.graph.problem.Problem`,
+  with the functions of :mod:`polins.fusion.acquisition`); it also re-acquires a given
+  ``rot_nb0`` whose yaw the headings contradict.
+* Rotation-proportional gyro noise: each keyframe interval has its own preintegration
+  parameters, gyro density ``ARW^2 + (m^2 + s_g^2) mean|w|^2 tau``
+  (:func:`~polins.fusion.graph.factors.gyro_noise_density`): the misalignment, and the
+  stand-in for the ESKF's gyro scale-factor states when ``FuseConfig.use_scale_factors``.
+  Inside an IMU gap longer than ``max_gap_s`` the densities also carry the gap's variance.
 
 Error blocks
 ------------
@@ -49,7 +58,8 @@ lacks it (an IMU error such as a scale factor: a factor on ``X, V, B`` and the b
 corrects the preintegrated increments to first order in the block, as GTSAM does for the
 bias); :class:`~polins.fusion.graph.problem.Estimates` gets its array and its slice of
 the covariance, and :func:`~polins.fusion.graph.output.nav_state` its entry in
-``errors`` and ``sigma``. Not implemented yet: ``scale_factors=True`` is refused.
+``errors`` and ``sigma``. The scale factors have no variables yet: the rotation-
+proportional gyro noise stands in for them (``scale_factors=None`` or ``True``).
 
 Solvers
 -------
@@ -85,9 +95,11 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
+from polins.fusion.acquisition import skip_in_gaps
 from polins.fusion.config import FuseConfig, config_with_site
 from polins.fusion.graph.factors import (
     bias_from_polins,
+    gyro_noise_density,
     levelling_factor,
     non_holonomic_factor,
     pose_cov_body_from_nav,
@@ -107,7 +119,7 @@ from polins.fusion.graph.solvers import (
 )
 from polins.fusion.inputs import PRIOR_COLUMNS, output_mask, validate_imu, validate_measurements
 from polins.fusion.items import UpdateRecord, items_from_table, records_table
-from polins.fusion.result import FusionResult
+from polins.fusion.result import FusionEvent, FusionResult, events_table
 from polins.ins.state import solution_table
 
 
@@ -142,16 +154,14 @@ def fuse_graph(
     FusionResult
         ``solution``: the solution table (:func:`polins.ins.state.solution_table`);
         ``updates``: one row per yaw/sun measurement (``t, name, dim, nis, accepted,
-        reason``; the batch solver's NIS is post-fit); ``info``: the IMU model's name, the
+        reason``; the batch solver's NIS is post-fit); ``events``: the data faults and
+        recoveries (dropped IMU samples, IMU gaps, measurements skipped inside them, a
+        re-acquired yaw; docs/faults.md); ``info``: the IMU model's name, the
         solver, the options set (``FuseConfig.changes``), iterations, keyframes, timings
-        [s]. ``solution.attrs`` repeats ``updates``, ``backend``, ``solver``, ``imu_model``
-        and ``info``.
+        [s]. ``solution.attrs`` repeats ``updates``, ``events``, ``backend``, ``solver``,
+        ``imu_model`` and ``info``.
     """
     t_start = time.perf_counter()
-    if config.scale_factors:
-        raise UserInputError(
-            "the graph backend estimates no scale factors (15 states); use the ESKF"
-        )
     config.check_backend("graph")
     if rot_nb0 is not None and (not isinstance(rot_nb0, Rotation) or not rot_nb0.single):
         raise UserInputError("rot_nb0 must be a single scipy Rotation (body FLU -> ENU) or None")
@@ -161,13 +171,24 @@ def fuse_graph(
     tilt = config.tilt_coupling
     if tilt is None:
         tilt = all(c in meas.columns for c in PRIOR_COLUMNS)
-    items = items_from_table(meas, use_sun=config.use_sun)
-    prob = Problem(config, tilt, arrays.t, arrays.gyro_b, arrays.accel_b, items, rot_nb0)
+    items, events = skip_in_gaps(
+        arrays.t, arrays.gaps, items_from_table(meas, use_sun=config.use_sun)
+    )
+    for i in arrays.gaps.tolist():
+        t_a, t_b = float(arrays.t[i]), float(arrays.t[i + 1])
+        detail = (
+            f"IMU gap of {t_b - t_a:.3g} s until t={t_b:.6g}: preintegrated across, noise inflated"
+        )
+        events.append(FusionEvent(t_a, "imu-gap", detail))
+    prob = Problem(
+        config, tilt, arrays.t, arrays.gyro_b, arrays.accel_b, items, rot_nb0, arrays.gaps
+    )
     records = [
         UpdateRecord(it.t, it.kind, 0, math.nan, False, it.reason or "invalid measurement")
         for it in items
         if not it.valid
     ]
+    records += prob.held
     records += [
         UpdateRecord(it.t, it.kind, 0, math.nan, False, "outside the IMU time span")
         for it in prob.outside
@@ -196,7 +217,9 @@ def fuse_graph(
     sol.attrs.update(
         updates=updates, backend="graph", solver=config.solver, imu_model=config.imu.name, info=info
     )
-    return FusionResult(solution=sol, updates=updates, backend="graph", info=info)
+    ev = events_table([*arrays.events, *events, *prob.events])
+    sol.attrs["events"] = ev
+    return FusionResult(solution=sol, updates=updates, backend="graph", info=info, events=ev)
 
 
 __all__ = [
@@ -204,6 +227,7 @@ __all__ = [
     "bias_from_polins",
     "fuse_graph",
     "gauss_newton_qr",
+    "gyro_noise_density",
     "imu_segments",
     "keyframe_times",
     "levelling_factor",

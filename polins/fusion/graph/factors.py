@@ -60,6 +60,9 @@ def preintegration_params(
     gravity_mps2: float,
     omega_ie_n: ArrayLike | None = None,
     integration_std: float = 1e-2,
+    gyro_density: float | None = None,
+    accel_density: float | None = None,
+    gyro_bias_density: float | None = None,
 ) -> gtsam.PreintegrationCombinedParams:
     """``PreintegrationCombinedParams`` for an ENU navigation frame from an IMU model.
 
@@ -79,18 +82,55 @@ def preintegration_params(
         Without position measurements the positions are a sink of the graph and this value
         does not change the attitude, velocity or bias estimates; 1 cm/sqrt(s) keeps the
         position chain from dominating the conditioning.
+    gyro_density, accel_density, gyro_bias_density : float, optional
+        Replace the model's white-noise variance densities ``ARW^2`` [rad^2/s], ``VRW^2``
+        [m^2/s^3] and gyro bias random-walk density [rad^2/s^3] (one keyframe interval's
+        rotation-proportional noise and IMU-gap inflation, :func:`gyro_noise_density`; the
+        unmechanized Earth rate).
     """
     params = gtsam.PreintegrationCombinedParams.MakeSharedU(float(gravity_mps2))
     eye = np.eye(3)
-    params.setGyroscopeCovariance(eye * imu_model.gyro_arw**2)
-    params.setAccelerometerCovariance(eye * imu_model.accel_vrw**2)
+    gyro = imu_model.gyro_arw**2 if gyro_density is None else gyro_density
+    accel = imu_model.accel_vrw**2 if accel_density is None else accel_density
+    bias_rw = imu_model.gyro_bias_rw**2 if gyro_bias_density is None else gyro_bias_density
+    params.setGyroscopeCovariance(eye * gyro)
+    params.setAccelerometerCovariance(eye * accel)
     params.setIntegrationCovariance(eye * integration_std**2)
     # GTSAM needs a regular bias covariance; 1e-30 per second is far below any real IMU.
-    params.setBiasOmegaCovariance(eye * max(imu_model.gyro_bias_rw**2, 1e-30))
+    params.setBiasOmegaCovariance(eye * max(bias_rw, 1e-30))
     params.setBiasAccCovariance(eye * max(imu_model.accel_bias_rw**2, 1e-30))
     if omega_ie_n is not None:
         params.setOmegaCoriolis(np.asarray(omega_ie_n, dtype=float))
     return params
+
+
+def gyro_noise_density(
+    imu_model: ImuModel, rate_sq: ArrayLike, *, scale_factors: bool
+) -> FloatArray:
+    """Gyro white-noise variance density of keyframe intervals [rad^2/s] (docs/filter.md §9).
+
+    ``ARW^2 + (m^2 + s_g^2) |omega_b|^2 tau``: the axis misalignment ``m``
+    (``ImuModel.gyro_misalignment``) and, with ``scale_factors``, the gyro scale-factor
+    sigma ``s_g`` (``ImuModel.gyro_scale_factor``) turn rotation into attitude error. The
+    graph has no states for either and covers both as white noise correlated over
+    ``tau = ImuModel.gyro_misalignment_corr_time`` (the ESKF covers the misalignment the
+    same way: docs/filter.md, "Rotation-proportional attitude noise"). The error a fixed
+    ``m`` or ``s_g`` makes decorrelates as the direction of the rotation changes, so one
+    ``tau`` serves both.
+
+    Parameters
+    ----------
+    imu_model : ImuModel
+        ``gyro_arw`` [rad/sqrt(s)], ``gyro_misalignment`` [rad] and its correlation time
+        [s], ``gyro_scale_factor`` [-].
+    rate_sq : array_like
+        Mean of ``|omega_b|^2`` over each interval [rad^2/s^2].
+    scale_factors : bool
+        Cover the scale factors too (``FuseConfig.use_scale_factors``).
+    """
+    m = imu_model
+    coeff = m.gyro_misalignment**2 + (m.gyro_scale_factor**2 if scale_factors else 0.0)
+    return m.gyro_arw**2 + coeff * m.gyro_misalignment_corr_time * np.asarray(rate_sq, float)
 
 
 def sun_factor(

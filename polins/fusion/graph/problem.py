@@ -9,6 +9,7 @@ conventions (navigation-frame errors, the ESKF's block order).
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,10 +20,12 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 
-from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.fusion.acquisition import consensus, gap_variance, yaw_offset
 from polins.fusion.config import FuseConfig
+from polins.fusion.eskf.blocks import EARTH_RATE_TURN_S
 from polins.fusion.graph.factors import (
     bias_from_polins,
+    gyro_noise_density,
     levelling_factor,
     non_holonomic_factor,
     pose_cov_body_from_nav,
@@ -32,11 +35,18 @@ from polins.fusion.graph.factors import (
     yaw_factor,
     zero_velocity_factor,
 )
-from polins.fusion.items import MeasurementItem
-from polins.fusion.measurement import N_ERROR, yaw_from_sun
+from polins.fusion.items import MeasurementItem, UpdateRecord
+from polins.fusion.measurement import N_ERROR
+from polins.fusion.result import FusionEvent
 from polins.fusion.vehicle import vehicle_items
 from polins.ins.alignment import level_from_accel
-from polins.ins.earth import earth_rate_n, normal_gravity, radii_of_curvature, transport_rate_n
+from polins.ins.earth import (
+    OMEGA_IE,
+    earth_rate_n,
+    normal_gravity,
+    radii_of_curvature,
+    transport_rate_n,
+)
 from polins.site import Site
 
 FloatArray = NDArray[np.float64]
@@ -44,6 +54,8 @@ FloatArray = NDArray[np.float64]
 # The ESKF's error order (att, vel, pos, bg, ba) from GTSAM's blocks (pose_n: att, pos;
 # velocity; bias: ba, bg), an index into block_diag(pose, velocity, bias).
 ESKF_FROM_GTSAM = np.r_[0:3, 6:9, 3:6, 12:15, 9:12]
+
+HELD = "held for the yaw acquisition"  # the ESKF's wording (polins.fusion.eskf.acquisition)
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,7 +133,8 @@ def snap_times(t: ArrayLike, t_imu: FloatArray, tol_s: float) -> FloatArray:
 
 @dataclass(frozen=True, eq=False)
 class MeasFactor:
-    """A yaw or sun factor at keyframe ``k`` with the item it came from (to gate and log it)."""
+    """A yaw, sun or zero-velocity factor at keyframe ``k`` with the item it came from (to
+    gate and log it)."""
 
     k: int
     item: MeasurementItem
@@ -144,6 +157,11 @@ class Problem:
         The measurement items (:func:`polins.fusion.items.items_from_table`).
     rot_nb0 : Rotation or None
         Initial attitude, or None for self-alignment.
+    gaps : int ndarray, optional
+        The IMU gaps longer than ``max_gap_s`` (``ImuArrays.gaps``: ``t_imu[i] ..
+        t_imu[i + 1]``): keyframes at their ends, and the IMU noise of the intervals
+        inside raised by :func:`~polins.fusion.acquisition.gap_variance`, the ESKF's
+        inflation (docs/faults.md).
     """
 
     def __init__(
@@ -155,6 +173,7 @@ class Problem:
         accel: FloatArray,
         items: list[MeasurementItem],
         rot_nb0: Rotation | None,
+        gaps: NDArray[np.int_] | None = None,
     ) -> None:
         assert isinstance(config.site, Site)  # fuse_graph substitutes the assumed site
         self.config = config
@@ -164,31 +183,36 @@ class Problem:
         self.lon = float(np.radians(config.site.lon_deg))
         self.alt_m = float(config.site.alt_m)
         self.gravity = float(normal_gravity(self.lat, self.alt_m))
-        self.params = preintegration_params(
-            config.imu,
-            gravity_mps2=self.gravity,
-            omega_ie_n=earth_rate_n(self.lat) if self.earth_rate else None,
-            integration_std=config.integration_std,
-        )
+        self.params = self._params()
         t0, t1 = float(t_imu[0]), float(t_imu[-1])
         stationary = np.asarray(config.stationary, dtype=float)
         stationary = stationary[(stationary >= t0) & (stationary <= t1)]
         aiding = [it for it in items if it.valid and it.kind in ("yaw", "sun")]
-        zupts = [(it.t, it.std) for it in items if it.valid and it.kind == "zupt"]
+        zupts = [it for it in items if it.valid and it.kind == "zupt"]
         if config.zupt_std is not None:
-            zupts += [(float(t), config.zupt_std) for t in stationary]
+            zupts += [MeasurementItem(float(t), "zupt", config.zupt_std) for t in stationary]
         # The vehicle's NHC and standstill pseudo-measurements, at the ESKF's epochs.
         ground = vehicle_items(config, t_imu, gyro, accel)
-        zupts += [(it.t, it.std) for it in ground if it.kind == "zupt"]
+        n_given = len(zupts)
+        zupts += [it for it in ground if it.kind == "zupt"]
         nhcs = [it for it in ground if it.kind == "nhc"]
         # Times within time_tol_s of an IMU sample are moved onto it (as the ESKF does).
         t_aid = snap_times([it.t for it in aiding], t_imu, config.time_tol_s).tolist()
-        t_zupt = snap_times([t for t, _ in zupts], t_imu, config.time_tol_s).tolist()
+        t_zupt = snap_times([it.t for it in zupts], t_imu, config.time_tol_s).tolist()
         nhc_t = np.array([it.t for it in nhcs], dtype=float)
-        events = np.concatenate([t_aid, t_zupt, nhc_t])
+        gaps = np.zeros(0, dtype=int) if gaps is None else np.asarray(gaps, dtype=int)
+        # (start, end, variances of the attitude and velocity errors) of each IMU gap
+        self.gaps = [
+            (float(t_imu[i]), float(t_imu[i + 1]), gap_variance(
+                float(t_imu[i + 1] - t_imu[i]), (gyro[i], gyro[i + 1]), (accel[i], accel[i + 1])
+            )[[0, 3]]) for i in gaps.tolist()
+        ]  # fmt: skip
+        t_gaps = [t for a, b, _ in self.gaps for t in (a, b)]
+        events = np.concatenate([t_aid, t_zupt, nhc_t, t_gaps])
         self.t_key = keyframe_times(t0, t1, events, config.max_keyframe_dt_s)
         self.segments = imu_segments(t_imu, gyro, accel, self.t_key)
         n_key = len(self.t_key)
+        self.interval_params = self._interval_params()
 
         self.meas: list[MeasFactor] = []
         self.outside: list[MeasurementItem] = []
@@ -199,21 +223,72 @@ class Problem:
             else:
                 self.meas.append(MeasFactor(k, it, self._aiding_factor(X(k), it)))
         self.aux: list[list[gtsam.NonlinearFactor]] = [[] for _ in range(n_key)]
-        for t, (_, std) in zip(t_zupt, zupts, strict=True):
-            k = self.key_of(t)
-            if k is not None:
-                self.aux[k].append(zero_velocity_factor(V(k), std))
         for it in nhcs:
             k = self.key_of(it.t)
             if k is not None:
                 self.aux[k].append(
                     non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b)
                 )
+        self.yaw_given = rot_nb0 is not None  # else unknown until the first yaw / sun
+        self.held: list[UpdateRecord] = []  # headings rejected by the yaw acquisition
+        self.events: list[FusionEvent] = []
+        self.state0, self.bias0, self.priors = self._first_state(t_imu, accel, rot_nb0)
+        self.n_headings = len(self.meas)  # the yaw / sun factors kept by the acquisition
+        # Zero velocity: gated like the headings (the standstill detector also fires at
+        # a constant speed; the ESKF's gate rejects those updates too).
+        self.detected: set[int] = set()  # those of the standstill detector
+        for j, (it, t) in enumerate(zip(zupts, t_zupt, strict=True)):
+            k = self.key_of(t)
+            if k is not None:
+                if j >= n_given:
+                    self.detected.add(len(self.meas))
+                self.meas.append(MeasFactor(k, it, zero_velocity_factor(V(k), it.std)))
         self.meas_at: list[list[int]] = [[] for _ in range(n_key)]
         for i, mf in enumerate(self.meas):
             self.meas_at[mf.k].append(i)
-        self.yaw_given = rot_nb0 is not None  # else unknown until the first yaw / sun
-        self.state0, self.bias0, self.priors = self._first_state(t_imu, accel, rot_nb0)
+
+    def _params(self, **densities: float) -> gtsam.PreintegrationCombinedParams:
+        """Preintegration parameters of the run with the densities ``densities`` replaced
+        (:func:`~polins.fusion.graph.factors.preintegration_params`); without a site the
+        gyro bias random walk covers the unmechanized Earth rate, as the ESKF's
+        (docs/filter.md, "Without a site")."""
+        c = self.config
+        if c.uncovered_earth_rate:
+            densities.setdefault(
+                "gyro_bias_density", c.imu.gyro_bias_rw**2 + OMEGA_IE**2 / EARTH_RATE_TURN_S
+            )
+        return preintegration_params(
+            c.imu,
+            gravity_mps2=self.gravity,
+            omega_ie_n=earth_rate_n(self.lat) if self.earth_rate else None,
+            integration_std=c.integration_std,
+            **densities,
+        )
+
+    def _interval_params(self) -> list[gtsam.PreintegrationCombinedParams]:
+        """Preintegration parameters of each keyframe interval: the gyro noise density with
+        the rotation-proportional term of the interval's mean ``|omega_b|^2``
+        (:func:`~polins.fusion.graph.factors.gyro_noise_density`, docs/filter.md §9); inside
+        an IMU gap the gyro and accelerometer densities raised so that the interval adds
+        the gap's variances (``self.gaps``)."""
+        c, seg = self.config, self.segments
+        energy = np.concatenate(
+            [[0.0], np.cumsum(np.einsum("ij,ij->i", seg.gyro, seg.gyro) * seg.dt)]
+        )
+        rate_sq = np.diff(energy[seg.bounds]) / np.diff(seg.t[seg.bounds])
+        gyro = gyro_noise_density(c.imu, rate_sq, scale_factors=c.use_scale_factors)
+        accel = np.full(gyro.shape, c.imu.accel_vrw**2)
+        mid = 0.5 * (self.t_key[1:] + self.t_key[:-1])
+        for t_a, t_b, (att_var, vel_var) in self.gaps:  # spread over the gap's intervals
+            inside = (mid > t_a) & (mid < t_b)
+            gyro[inside] += att_var / (t_b - t_a)
+            accel[inside] += vel_var / (t_b - t_a)
+        if np.all(gyro == c.imu.gyro_arw**2) and np.all(accel == c.imu.accel_vrw**2):
+            return [self.params] * len(rate_sq)
+        return [
+            self._params(gyro_density=float(g), accel_density=float(a))
+            for g, a in zip(gyro, accel, strict=True)
+        ]
 
     def key_of(self, t: float) -> int | None:
         """The keyframe at time ``t`` [s] (within 1 us), or None."""
@@ -241,7 +316,8 @@ class Problem:
         """First keyframe's initial values and priors (module docstring of the package)."""
         c, m = self.config, self.config.imu
         bias0 = gtsam.imuBias.ConstantBias()
-        bias_sigmas = np.concatenate([np.full(3, m.accel_bias), np.full(3, m.gyro_bias)])
+        gyro_bias = np.hypot(m.gyro_bias, OMEGA_IE) if c.uncovered_earth_rate else m.gyro_bias
+        bias_sigmas = np.concatenate([np.full(3, m.accel_bias), np.full(3, gyro_bias)])
         priors: list[gtsam.NonlinearFactor] = [
             gtsam.PriorFactorConstantBias(
                 B(0), bias0, gtsam.noiseModel.Diagonal.Sigmas(np.maximum(bias_sigmas, 1e-12))
@@ -249,8 +325,11 @@ class Problem:
         ]
         vel_n0 = np.asarray(c.vel_n0, dtype=float)
         if rot_nb0 is not None:
-            rot = rot_nb0
             att_var = np.asarray(c.att_std0, dtype=float) ** 2
+            turn = self._acquire(rot_nb0, vel_n0, float(np.sqrt(att_var[2])))
+            rot = Rotation.from_rotvec([0.0, 0.0, turn]) * rot_nb0
+            if turn != 0.0:
+                att_var[2] = 1.0  # re-acquired: the prior's yaw is released
         else:
             window = t_imu <= t_imu[0] + c.align_s
             f_mean = accel[window].mean(axis=0)
@@ -258,7 +337,12 @@ class Problem:
             roll, pitch = level_from_accel(f_mean)
             vel_n0 = np.zeros(3)
             level = Rotation.from_euler("ZYX", [0.0, pitch, roll])
-            rot = Rotation.from_euler("ZYX", [self._initial_yaw(level, vel_n0), pitch, roll])
+            if not self.meas:
+                raise ValueError(
+                    "self-alignment (rot_nb0=None) needs a valid yaw or sun-vector "
+                    "measurement; give rot_nb0 or measurements"
+                )
+            rot = Rotation.from_rotvec([0.0, 0.0, self._acquire(level, vel_n0, None)]) * level
             std = max(m.accel_vrw / np.sqrt(duration), 1e-9)
             priors.append(levelling_factor(X(0), B(0), f_mean, self.gravity, std))
             # Tilt from the levelling factor only (1e4 rad is no information); yaw 1 rad
@@ -279,25 +363,67 @@ class Problem:
         )
         return state0, bias0, priors
 
-    def _initial_yaw(self, level: Rotation, vel_n0: FloatArray) -> float:
-        """Yaw at the first keyframe from the first measurement, carried back by the gyro."""
-        if not self.meas:
-            raise ValueError(
-                "self-alignment (rot_nb0=None) needs a valid yaw or sun-vector measurement; "
-                "give rot_nb0 or measurements"
+    def _acquire(self, rot0: Rotation, vel_n0: FloatArray, yaw_std0: float | None) -> float:
+        """The yaw acquisition of the graph (docs/filter.md §7.1, §9): the turn [rad] of the
+        first keyframe's yaw.
+
+        The keyframes are dead-reckoned from ``rot0`` (zero bias); each heading gives its
+        :func:`~polins.fusion.acquisition.yaw_offset` there, and the headings are taken in
+        time order until ``acquire_k`` of the last ``acquire_n`` agree
+        (:func:`~polins.fusion.acquisition.consensus`), as the ESKF does online.
+
+        * Self-alignment (``yaw_std0`` None): the consensus sets the yaw; the headings held
+          before it that disagree leave the graph (``held for the yaw acquisition:
+          disagrees``, or ``no consensus`` when they left the window). No consensus at
+          all: every heading leaves the graph and the yaw stays unknown (NaN).
+        * A given ``rot_nb0`` (yaw 1-sigma ``yaw_std0``): if the consensus differs from its
+          yaw by more than ``3 sqrt(yaw_std0^2 + std^2)``, the yaw is re-acquired from the
+          consensus (its prior released, a ``yaw-reacquired`` event); else nothing changes.
+        """
+        c = self.config
+        order = sorted(range(len(self.meas)), key=lambda i: self.meas[i].k)
+        state = gtsam.NavState(gtsam.Rot3(rot0.as_matrix()), np.zeros(3), vel_n0)
+        bias, k_state = gtsam.imuBias.ConstantBias(), 0
+        offsets: list[float] = []
+        stds: list[float] = []
+        found = None
+        for i in order:
+            mf = self.meas[i]
+            for k in range(k_state, mf.k):
+                state = self.preintegrate(k, bias, np.zeros(6)).predict(state, bias)
+            k_state = max(k_state, mf.k)
+            mat = state.attitude().matrix()
+            offset, std = yaw_offset(mf.item, mat, None, self.tilt_coupling)
+            offsets.append(offset)
+            stds.append(std)
+            lo = max(0, len(offsets) - c.acquire_n)
+            res = consensus(np.array(offsets[lo:]), np.array(stds[lo:]), c.acquire_k)
+            if res is not None:
+                found = (res[0], res[1], res[2] + lo, len(offsets) - 1)
+                break
+        if yaw_std0 is not None:
+            if found is None or abs(found[0]) <= 3.0 * math.hypot(yaw_std0, found[1]):
+                return 0.0
+            mean, _std, members, last = found
+            t_last = self.meas[order[last]].item.t
+            detail = (
+                f"re-acquired: {members.size} of {min(last + 1, c.acquire_n)} headings "
+                f"agree on a yaw {math.degrees(mean):.1f} deg from the initial attitude's"
             )
-        first = min(self.meas, key=lambda mf: mf.k)
-        state = gtsam.NavState(gtsam.Rot3(level.as_matrix()), np.zeros(3), vel_n0)
-        bias = gtsam.imuBias.ConstantBias()
-        for k in range(first.k):
-            state = self.preintegrate(k, bias, np.zeros(6)).predict(state, bias)
-        rot_k = Rotation.from_matrix(state.attitude().matrix())
-        it = first.item
-        if it.kind == "yaw":
-            measured = it.yaw
-        else:
-            measured = yaw_from_sun(rot_k, it.sun_b, it.sun_n)  # type: ignore[arg-type]
-        return float(wrap_angle(measured - yaw_from_rot_nb(rot_k)))
+            self.events.append(FusionEvent(t_last, "yaw-reacquired", detail))
+            return mean
+        last = len(order) - 1 if found is None else found[3]
+        used = set() if found is None else {order[j] for j in found[2].tolist()}
+        for pos, i in enumerate(order[: last + 1]):
+            if i in used:
+                continue
+            it = self.meas[i].item
+            agreed = found is not None and pos > last - c.acquire_n
+            why = "disagrees" if agreed else f"no consensus of {c.acquire_k} in {c.acquire_n}"
+            self.held.append(UpdateRecord(it.t, it.kind, 0, math.nan, False, f"{HELD}: {why}"))
+        drop = set(order[: last + 1]) - used
+        self.meas = [mf for i, mf in enumerate(self.meas) if i not in drop]
+        return 0.0 if found is None else found[0]
 
     def imu_correction(self, state: gtsam.NavState) -> FloatArray:
         """What to subtract from the (gyro, accelerometer) samples of the next interval (6,).
@@ -329,7 +455,7 @@ class Problem:
         """Preintegrated IMU from keyframe ``k`` to ``k + 1`` (``correction``: see
         :meth:`imu_correction`)."""
         seg = self.segments
-        pim = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
+        pim = gtsam.PreintegratedCombinedMeasurements(self.interval_params[k], bias)
         lo, hi = seg.bounds[k], seg.bounds[k + 1]
         gyro = seg.gyro[lo:hi] - correction[:3]
         accel = seg.accel[lo:hi] - correction[3:]

@@ -1,7 +1,7 @@
 """Graph solvers: batch Gauss-Newton / LM with QR and post-fit gating, ISAM2, fixed-lag smoother.
 
 Each solver takes a :class:`~polins.fusion.graph.problem.Problem`, appends one
-:class:`~polins.fusion.items.UpdateRecord` per yaw/sun factor to ``records`` and its
+:class:`~polins.fusion.items.UpdateRecord` per yaw/sun/zero-velocity factor to ``records`` and its
 diagnostics to ``info``, and returns the keyframe
 :class:`~polins.fusion.graph.problem.Estimates`.
 """
@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from polins.fusion.graph.factors import pose_cov_nav_from_body
 from polins.fusion.graph.problem import Estimates, Problem
 from polins.fusion.items import UpdateRecord, gate_limit, item_model
-from polins.fusion.measurement import ATT, N_ERROR
+from polins.fusion.measurement import ATT, N_ERROR, VEL
 
 FloatArray = NDArray[np.float64]
 
@@ -149,9 +149,20 @@ def batch_graph(
 
 
 def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]) -> Estimates:
-    """Gauss-Newton (QR) over the whole log, post-fit gating, QR marginals."""
+    """Gauss-Newton (QR) over the whole log, post-fit gating, QR marginals.
+
+    The zero-velocity factors of the standstill detector (``Problem.detected``) are gated
+    first by a causal pass (ISAM2, :func:`solve_incremental`), as the ESKF gates them: the
+    detector also fires at constant speed, and so many wrong factors bend the whole
+    solution, which a post-fit gate cannot undo.
+    """
     c = prob.config
     rejected: dict[int, tuple[float, str]] = {}
+    if prob.detected:
+        causal: dict[int, tuple[float, str]] = {}
+        solve_incremental(prob, [], {}, solver="isam2", rejected=causal)
+        rejected = {i: (nis, f"causal {why}") for i, (nis, why) in causal.items()
+                    if i in prob.detected}  # fmt: skip
     result: gtsam.Values | None = None
     iterations: list[int] = []
     for gate_round in range(1 + c.max_gate_rounds):
@@ -175,7 +186,7 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
                 marginal_covariance_qr(bayes_tree, X(k)),
                 marginal_covariance_qr(bayes_tree, V(k)),
                 marginal_covariance_qr(bayes_tree, B(k)),
-                prob.yaw_given or bool(prob.meas),
+                prob.yaw_given or prob.n_headings > 0,
             )
         new = post_fit_gate(prob, est, rejected, records, final=gate_round == c.max_gate_rounds)
         if not new:
@@ -199,7 +210,7 @@ def post_fit_gate(
     *,
     final: bool,
 ) -> dict[int, tuple[float, str]]:
-    """Post-fit chi-square gate of the yaw/sun factors.
+    """Post-fit chi-square gate of the yaw, sun and zero-velocity factors.
 
     The post-fit residual of a correct measurement has covariance ``R - H P H^T``
     (``P`` the smoothed covariance), so ``r^T (R - H P H^T)^-1 r`` is chi-square with
@@ -211,7 +222,7 @@ def post_fit_gate(
     rows: list[UpdateRecord] = []
     exceed: dict[int, tuple[float, str]] = {}
     for i, mf in enumerate(prob.meas):
-        lin = item_model(mf.item, est.mat_nb[mf.k], None, prob.tilt_coupling)
+        lin = item_model(mf.item, est.mat_nb[mf.k], est.vel_n[mf.k], prob.tilt_coupling)
         if i in rejected:
             nis, reason = rejected[i]
             rows.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
@@ -232,10 +243,20 @@ def post_fit_gate(
 
 
 def solve_incremental(
-    prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
+    prob: Problem,
+    records: list[UpdateRecord],
+    info: dict[str, Any],
+    *,
+    solver: str | None = None,
+    rejected: dict[int, tuple[float, str]] | None = None,
 ) -> Estimates:
-    """ISAM2 (causal estimates) or the incremental fixed-lag smoother (lagged estimates)."""
+    """ISAM2 (causal estimates) or the incremental fixed-lag smoother (lagged estimates).
+
+    ``solver`` overrides ``prob.config.solver``; ``rejected`` (if given) receives the
+    gated factors: index into ``prob.meas`` -> (NIS, reason).
+    """
     c = prob.config
+    solver = solver or c.solver
     isam_params = gtsam.ISAM2Params()
     isam_params.setFactorization("QR")
     # Relinearize on attitude changes only: the IMU factors are linear in velocity and
@@ -247,7 +268,7 @@ def solve_incremental(
     thresholds.insert(("b", np.full(6, 1e6)))
     isam_params.setRelinearizeThreshold(thresholds)
     isam_params.relinearizeSkip = 10
-    if c.solver == "fixed_lag":
+    if solver == "fixed_lag":
         # GTSAM's default "wildfire" threshold (1e-3) leaves the deltas of older variables
         # stale by up to 1e-3 rad, a sizeable fraction of a sigma, and the fixed-lag
         # smoother reports them late: update them all (cheap in a bounded window). ISAM2
@@ -255,7 +276,7 @@ def solve_incremental(
         isam_params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(0.0))
     engine: Any = (
         gtsam.ISAM2(isam_params)
-        if c.solver == "isam2"
+        if solver == "isam2"
         else gtsam.IncrementalFixedLagSmoother(c.lag_s, isam_params)
     )
     n_key = len(prob.t_key)
@@ -282,25 +303,28 @@ def solve_incremental(
         mat = state.attitude().matrix()
         for i in prob.meas_at[k]:
             mf = prob.meas[i]
-            lin = item_model(mf.item, mat, None, prob.tilt_coupling)
-            if not seen_aiding and not np.isfinite(cov_prev).all():
+            heading = mf.item.kind in ("yaw", "sun")
+            lin = item_model(mf.item, mat, state.velocity(), prob.tilt_coupling)
+            if not np.isfinite(cov_prev).all():
                 nis = np.nan  # first keyframe
             else:
                 s = lin.H @ cov_prev @ lin.H.T + lin.R
                 nis = float(lin.residual @ np.linalg.solve(s, lin.residual))
             limit = gate_limit(c.gate_prob, lin.dim)
-            if seen_aiding and nis > limit:
+            if (seen_aiding or not heading) and nis > limit:
                 reason = f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {lin.dim} dof)"
                 records.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
+                if rejected is not None:
+                    rejected[i] = (nis, reason)
                 continue
-            # The first yaw/sun measurement aligns the yaw (no gate, like the ESKF).
+            # The first heading (yaw/sun) is not gated: it aligns the yaw.
             records.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, True, ""))
             out.append(mf.factor)
-            seen_aiding = True
+            seen_aiding = seen_aiding or heading
         return out
 
     def update(k: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
-        if c.solver == "isam2":
+        if solver == "isam2":
             engine.update(graph, values)
             record(k)
             return
@@ -319,7 +343,7 @@ def solve_incremental(
     values.insert(B(0), prob.bias0)
     update(0, graph, values)
     for k in range(n_key - 1):
-        if c.solver == "isam2":
+        if solver == "isam2":
             state, bias = est.values(k)
             cov_prev = est.cov[k]
         else:
@@ -346,8 +370,10 @@ def solve_incremental(
 
 
 def fixed_lag_cov(engine: Any, k: int, state: gtsam.NavState) -> FloatArray:
-    """Attitude block of the current marginal of keyframe ``k`` (for the gate), ESKF order."""
+    """Attitude and velocity blocks of the current marginal of keyframe ``k`` (for the
+    gate), ESKF order."""
     cov = np.zeros((N_ERROR, N_ERROR))
     pose = pose_cov_nav_from_body(state.attitude().matrix(), engine.marginalCovariance(X(k)))
     cov[ATT, ATT] = pose[:3, :3]
+    cov[VEL, VEL] = engine.marginalCovariance(V(k))
     return cov
