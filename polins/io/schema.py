@@ -39,6 +39,8 @@ _SOLUTION: dict[str, tuple[str, str]] = {
     },
     **{f"sg{a}_std": ("-", f"1-sigma of sg{a}") for a in "xyz"},
     **{f"sa{a}_std": ("-", f"1-sigma of sa{a}") for a in "xyz"},
+    "so": ("-", "wheel-odometer scale-factor error (only with an odometer)"),
+    "so_std": ("-", "1-sigma of so"),
     "ve": ("m/s", "velocity, East"),
     "vn": ("m/s", "velocity, North"),
     "vu": ("m/s", "velocity, Up"),
