@@ -14,9 +14,9 @@ from scipy.spatial.transform import Rotation
 import polins
 from polins.errors import UserInputError
 from polins.frames import wrap_angle
-from polins.fusion import run_fusion
+from polins.fusion import build_filter, run_fusion
 from polins.fusion.config import FuseConfig
-from polins.fusion.items import item_model, items_from_table
+from polins.fusion.items import MeasurementItem, item_model, items_from_table, measurement_items
 from polins.fusion.measurement import sun_azimuth_kernel, sun_direction_cov_b
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
@@ -267,3 +267,23 @@ def test_sun_update_carries_the_fits_2x2_covariance():
     assert 0.4 < rms_cov < 1.3, rms_cov
     assert np.mean(np.abs(z_cov) < 3.0) >= 0.98
     assert rms_iso > 1.8, rms_iso
+
+
+def test_no_clock_streaming_matches_fuse():
+    # build_filter(no_clock=True) fed row by row gives fuse's relative heading
+    model, _traj, imu, meas, t_rest = drive(1, 30.0)
+    options = dict(imu_model=model, site=SITE, zupt_std=0.01, stationary=t_rest)
+    with pytest.warns(UserWarning, match="no-clock mode"):
+        batch = run_fusion(imu, meas, config=FuseConfig.from_options(None, **options)).solution
+    filt = build_filter(0.0, 0.01, no_clock=True, **options)
+    for row in meas.itertuples(index=False):
+        sky = {c: getattr(row, c) for c in meas.columns if c != "t"}
+        filt.add_items(measurement_items(row.t, sky=sky))
+    filt.add_items([MeasurementItem(ts, "zupt", 0.01) for ts in t_rest])
+    data = imu.to_numpy()
+    filt.propagate_many(data[:, 0], data[:, 1:4], data[:, 4:7])
+    st, last = filt.state(), batch.iloc[-1]
+    assert st.t == pytest.approx(last["t"])
+    yaw = st.rot_nb.as_euler("ZYX")[0]
+    assert abs(wrap_angle(yaw - last["yaw"])) < 1e-3
+    assert math.sqrt(st.att_cov[2, 2]) == pytest.approx(last["yaw_std"], rel=0.05)

@@ -115,9 +115,6 @@ def run_fusion(
                 f"align_s={cfg.align_s} s; give rot_nb0 or a longer log"
             )
         filt.level([(float(t[k]), W[k], A[k]) for k in range(k_end + 1)])
-        if cfg.no_clock:  # the heading is relative to the levelled yaw (docs/filter.md)
-            filt.P[2, :] = filt.P[:, 2] = 0.0
-            filt.yaw_aligned = True
     run = advance(filt, t, W, A, output_mask(t, cfg.output_rate_hz), full=cfg.smooth)
     assert run is not None
     nodes, rows = run

@@ -269,13 +269,18 @@ def measurement_items(
     zupt_std: float | None = None,
     use_sun: bool = True,
     rot_nb_prior: Rotation | None = None,
+    sky: Mapping[str, float] | None = None,
 ) -> list[MeasurementItem]:
     """The measurement items of one row, by the rules of :func:`items_from_table`.
 
     Parameters are the ``measurements`` table's columns (docs/filter.md); ``rot_nb_prior``
-    is the prior ``polins.measure`` used for the yaw (tilt coupling).
+    is the prior ``polins.measure`` used for the yaw (tilt coupling); ``sky`` more columns
+    by name: ``sun_azimuth_b, sun_azimuth_b_std`` (without ``yaw`` and ``sun_n``: a no-clock
+    row, for ``ESKF.add_items``), ``sun_elevation_b, sun_elevation_b_std``,
+    ``yaw_std_correlated``.
     """
     row: dict[str, list[float]] = {"t": [float(t)]}
+    row.update({name: [float(value)] for name, value in (sky or {}).items()})
     if yaw is not None or yaw_std is not None:
         row["yaw"] = [math.nan if yaw is None else float(yaw)]
         row["yaw_std"] = [math.nan if yaw_std is None else float(yaw_std)]

@@ -109,6 +109,8 @@ def level(
     P[ba, 0:2] = (J @ p_ba).T
     P[2, 2] = yaw_var
     P[vel, vel] = np.eye(3) * config.vel_std0**2
+    if config.no_clock:  # the heading is relative to the levelled yaw (docs/filter.md §5.7)
+        P[2, :] = P[:, 2] = 0.0
     return rot.as_matrix(), P
 
 

@@ -490,6 +490,7 @@ class ESKF:
             self.mech,
         )  # fmt: skip
         self.vel_n = np.zeros(3)
+        self.yaw_aligned = self.yaw_aligned or bool(self.config.no_clock)  # relative heading
 
     # ------------------------------------------------------------------ internals
     def _record(
