@@ -164,6 +164,30 @@ def test_gain_residual_is_the_correlated_part():
     assert np.all(corr > 0.5 * np.sqrt(np.maximum(std**2 - jack**2, 0.0)))
 
 
+def test_cloud_mask_removes_most_of_the_cloud_error():
+    # Thin clouds only (AoP rotated by up to 3 deg): the DoP-deficit mask (cloud_dop_ratio)
+    # cuts the heading error, and the sigma (with the default camera-fixed part) stays honest.
+    rng = np.random.default_rng(8)
+    err, err_mask, std_mask = [], [], []
+    for _ in range(16):
+        sun_n, rot = _case(rng)
+        clouds = random_real_sky(rng, sun_n, n_clouds=3).clouds
+        sky = RealSky(neutral_sep=0.0, vignetting=0.0, horizon_depolarization=0.0,
+                      clouds=clouds)  # fmt: skip
+        raw = render_real_raw(CAM4, sun_n, rot, sky, rng)
+        kw = {"sun_n": sun_n, "rot_nb_prior": rot}
+        m, masked = measure(raw, CAM4, **kw), measure(raw, CAM4, cloud_dop_ratio=0.95, **kw)
+        assert masked.ok and masked.n_pixels < m.n_pixels
+        err.append(float(wrap_angle(m.yaw - yaw_from_rot_nb(rot))))
+        err_mask.append(float(wrap_angle(masked.yaw - yaw_from_rot_nb(rot))))
+        std_mask.append(masked.yaw_std)
+    rmse, rmse_mask = (float(np.sqrt(np.mean(np.square(e)))) for e in (err, err_mask))
+    assert rmse_mask < 0.75 * rmse, (np.degrees(rmse), np.degrees(rmse_mask))
+    _check_honest(np.array(err_mask), np.array(std_mask))
+    with pytest.raises(ValueError, match="cloud_dop_ratio"):
+        measure(raw, CAM4, cloud_dop_ratio=1.5)
+
+
 # ----------------------------------------------------------------------------- roi
 def test_region_of_interest_from_the_camera_file_and_the_options(tmp_path):
     text = polins.load_camera("paper-table1").path.read_text()

@@ -61,7 +61,7 @@ from polins.compass.jointml import (
 from polins.compass.kernels import dot, dot_rows
 from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import METHODS, Measurement, MeasurementMaps, MeasureOptions
-from polins.compass.modelerror import instrumental_sensitivity
+from polins.compass.modelerror import clear_sky_mask, instrumental_sensitivity
 from polins.compass.pixels import check_raw, gather_channels
 from polins.compass.polarimetry import (
     stokes_calibration,
@@ -309,6 +309,12 @@ def measure_image(
     sun_l0 = eig0.sun
     if s_n is not None:
         sun_l0 = resolve_sun_sign(eig0.sun, s_n, yaw_prior, opt.horizon_fallback)
+
+    if opt.cloud_dop_ratio is not None:  # thin clouds: a DoP deficit (docs/measurement.md §4)
+        valid &= clear_sky_mask(
+            est_rows, cache.rays, mat_cl @ sun_l0, opt.cloud_dop_ratio, sub.index, valid
+        )
+        valid_sub = valid[sub.index]
 
     # 2. Subsample selection with this sun; the DoP cut along the predicted direction.
     sel_sub = Selection(

@@ -503,7 +503,8 @@ def sun_joint_ml(
 
     Minimises ``sum_i rho(r_i)`` over theta = (A_l, Z_l, eps), or (A_l, eps) with the zenith
     fixed to ``zenith`` (the ephemeris' apparent zenith: the fixed-zenith variant), by
-    Gauss-Newton from ``sun_l0`` (e.g. the eigen solution) or a coarse grid.
+    Gauss-Newton from ``sun_l0`` (e.g. the eigen solution) or from the best point of a 15 deg
+    grid of suns (epsilon 0), whichever fits better: it converges from any start.
 
     Parameters
     ----------
@@ -516,9 +517,6 @@ def sun_joint_ml(
     loss : {"linear", "huber", "cauchy"}
     epsilon_bound : largest ``|epsilon|`` (the physical range is about 0 to 0.05); a
         solution on it is not a free estimate.
-
-    Converges from any start: Gauss-Newton begins at ``sun_l0`` or at the best point of a
-    15 deg grid of suns (epsilon 0), whichever fits better.
     """
     if loss not in LOSSES:
         raise ValueError(f"loss={loss!r}: expected one of {LOSSES}")

@@ -89,6 +89,10 @@ class MeasureOptions:
         the field angle theta (docs/measurement.md §4).
     model_field_angle : float
         Field angle [rad] at which the AoP model error has doubled.
+    cloud_dop_ratio : float or None
+        Thin-cloud mask: pixels whose DoP is below this fraction of the clear sky's
+        ``d_max sin^2 T / (1 + cos^2 T)`` (d_max fitted per image) are not used, away from
+        the sun and the antisun (docs/measurement.md §4); None: no cloud mask.
     tilt_std : float
         1-sigma roll/pitch error about the horizontal axis towards the sun [rad]; adds
         ``cot(Z) tilt_std`` to the heading sigma.
@@ -153,6 +157,7 @@ class MeasureOptions:
     max_field_angle: float | None = None
     model_aop_std: float = 0.0
     model_field_angle: float = float(np.radians(60.0))
+    cloud_dop_ratio: float | None = None
     tilt_std: float = 0.0
     yaw_gate: float | None = None
     gradient_max: float | None = 0.05
@@ -194,6 +199,8 @@ class MeasureOptions:
             raise UserInputError(f"dop_min={self.dop_min} outside [0, 1)")
         if self.max_field_angle is not None and not 0 < self.max_field_angle <= np.pi / 2:
             raise UserInputError(f"max_field_angle={self.max_field_angle} outside (0, pi/2] rad")
+        if self.cloud_dop_ratio is not None and not 0 < self.cloud_dop_ratio < 1:
+            raise UserInputError(f"cloud_dop_ratio={self.cloud_dop_ratio} outside (0, 1)")
         if not self.model_field_angle > 0:
             raise UserInputError(f"model_field_angle={self.model_field_angle} must be > 0 [rad]")
         if not 0 < self.separability_max <= 1:

@@ -22,7 +22,38 @@ from numpy.typing import NDArray
 from polins.compass.jointml import ml_evaluate
 from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
 
-__all__ = ["instrumental_sensitivity"]
+__all__ = ["clear_sky_mask", "instrumental_sensitivity"]
+
+_SHAPE_FIT = 0.5  # Rayleigh DoP shape above which d_max is fitted
+_SHAPE_TEST = 0.3  # ... and above which a pixel is tested (near the sun and the antisun the
+# deficit is the neutral points, not a cloud)
+
+
+def clear_sky_mask(
+    rows: NDArray, rays: NDArray, sun_c: NDArray, ratio: float, sample: NDArray, valid: NDArray
+) -> NDArray:
+    """Pixels not flagged as cloud ``(n,)``: a thin cloud depolarizes, so its DoP falls short
+    of the clear sky's ``d_max sin^2 T / (1 + cos^2 T)`` (T the angle to the sun ``sun_c``
+    (3,)), with ``d_max`` the median ratio over the ``valid`` pixels among ``sample``
+    (index) where the shape exceeds 0.5. Flagged: shape above 0.3 and
+    ``DoP < ratio d_max shape`` (docs/measurement.md §4).
+
+    Parameters
+    ----------
+    rows : (3, n)
+        Stokes rows S0, S1, S2 [DN]. rays : (3, n) camera rays.
+    """
+    cos_t = rays[0] * sun_c[0] + rays[1] * sun_c[1] + rays[2] * sun_c[2]
+    c2 = cos_t * cos_t
+    shape = (1.0 - c2) / (1.0 + c2)
+    p2 = rows[1] * rows[1] + rows[2] * rows[2]
+    fit = valid[sample] & (shape[sample] > _SHAPE_FIT) & (rows[0][sample] > 0)
+    if not np.any(fit):
+        return np.ones(shape.shape, dtype=bool)
+    s0 = rows[0][sample][fit]
+    d_max = float(np.median(np.sqrt(p2[sample][fit]) / (s0 * shape[sample][fit])))
+    floor = (ratio * d_max) * shape * rows[0]
+    return (shape < _SHAPE_TEST) | (p2 >= floor * floor)
 
 
 def instrumental_sensitivity(
