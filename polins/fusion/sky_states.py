@@ -100,25 +100,29 @@ def sun_azimuth_jacobian(item: MeasurementItem, lin: Linearized) -> FloatArray:
     return -lin.H[:, 2:3]
 
 
-# The states that turn a measured heading as the yaw does, and their component that does:
-# a yaw acquired from such headings carries their error (link_acquired_yaw).
-HEADING_OFFSETS = {"heading_bias": 0, "site_rot_n": 2}
-
-
-def link_acquired_yaw(P: FloatArray, index: Mapping[str, slice], yaw: int = 2) -> FloatArray:
+def link_acquired_yaw(
+    P: FloatArray, index: Mapping[str, slice], sun_n: FloatArray | None = None, yaw: int = 2
+) -> FloatArray:
     """The covariance after a yaw acquisition from headings that carry heading offsets.
 
     The yaw was set to agree with the headings, so its error is the acquisition's own
     (``P[yaw, yaw]`` on entry, uncorrelated) minus the offsets: ``e = n - c . x`` with ``c``
-    selecting the heading bias and the vertical site rotation (:data:`HEADING_OFFSETS`);
-    ``P`` becomes ``A P A^T`` for that linear map (the offsets' own rows unchanged).
-    Without such states ``P`` is returned unchanged.
+    1 on the heading bias and, on the site rotation ``site_rot_n``, the heading's
+    sensitivity to a frame rotation: ``(-s_x s_z, -s_y s_z, s_x^2 + s_y^2) / (s_x^2 +
+    s_y^2)`` for the ENU sun ``sun_n`` of the headings, ``(0, 0, 1)`` without it. ``P``
+    becomes ``A P A^T`` for that linear map (the offsets' own rows unchanged). Without such
+    states ``P`` is returned unchanged.
     """
-    cols = [index[name].start + k for name, k in HEADING_OFFSETS.items() if name in index]
-    if not cols:
+    if "heading_bias" not in index and "site_rot_n" not in index:
         return P
     c = np.zeros(P.shape[0])
-    c[cols] = 1.0
+    if "heading_bias" in index:
+        c[index["heading_bias"]] = 1.0
+    if "site_rot_n" in index:
+        s = sun_n
+        h2 = 0.0 if s is None else float(s[0] * s[0] + s[1] * s[1])
+        c[index["site_rot_n"]] = (0.0, 0.0, 1.0) if s is None or h2 < 1e-12 else (
+            -s[0] * s[2] / h2, -s[1] * s[2] / h2, 1.0)  # fmt: skip
     row = -(c @ P)
     var = float(P[yaw, yaw] + c @ P @ c)
     P = P.copy()

@@ -136,7 +136,7 @@ def hold_heading(filt: Filter, item: MeasurementItem, rec: UpdateRecord | None) 
     delta, std, members = found
     filt.reset()
     filt.mat_nb, filt.vel_n, filt.P = rotate_yaw(
-        delta, std, filt.mat_nb, filt.vel_n, filt.P, filt.layout
+        delta, std, filt.mat_nb, filt.vel_n, filt.P, filt.layout, item.sun_n
     )
     if filt.yaw_aligned:
         reason = f"re-acquired: {acq.rejections} consecutive rejections"
