@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import polins
+from polins.errors import UserInputError
 from polins.frames import skew, wrap_angle
 from polins.fusion import run_fusion
 from polins.fusion.config import FuseConfig
@@ -154,3 +155,10 @@ def test_approximate_site_with_self_alignment():
     rms, within = pooled(1.0, 1.0, range(4), self_align=True)
     assert 0.45 < rms < 1.4, rms
     assert within >= 0.98, within
+
+
+def test_site_std_is_an_eskf_option():
+    with pytest.raises(UserInputError, match="site_std applies to the eskf backend only"):
+        FuseConfig.from_options(None, site=SITE, site_std=0.01).check_backend("graph")
+    with pytest.raises(UserInputError, match="site_std must be > 0"):
+        FuseConfig.from_options(None, site=SITE, site_std=-0.01)
