@@ -41,6 +41,17 @@ _SOLUTION: dict[str, tuple[str, str]] = {
     **{f"sa{a}_std": ("-", f"1-sigma of sa{a}") for a in "xyz"},
     "so": ("-", "wheel-odometer scale-factor error (only with an odometer)"),
     "so_std": ("-", "1-sigma of so"),
+    **{
+        f"site_rot_n{a}": (_ANG, f"ENU frame rotation of the site error, {a} (only with site_std)")
+        for a in "xyz"
+    },
+    **{f"site_rot_n{a}_std": (_ANG, f"1-sigma of site_rot_n{a}") for a in "xyz"},
+    "sun_azimuth_n": (_ANG, "the sun's ENU azimuth, counter-clockwise from East (no clock)"),
+    "sun_azimuth_n_std": (_ANG, "1-sigma of sun_azimuth_n"),
+    "sun_azimuth_rate": ("rad/s", "rate of the sun's ENU azimuth (no clock)"),
+    "sun_azimuth_rate_std": ("rad/s", "1-sigma of sun_azimuth_rate"),
+    "heading_bias": (_ANG, "heading-measurement bias (only with heading_bias_std)"),
+    "heading_bias_std": (_ANG, "1-sigma of heading_bias"),
     "ve": ("m/s", "velocity, East"),
     "vn": ("m/s", "velocity, North"),
     "vu": ("m/s", "velocity, Up"),
@@ -77,6 +88,16 @@ _MEASUREMENTS: dict[str, tuple[str, str]] = {
     "sun_ny": ("-", "ephemeris unit sun vector, North"),
     "sun_nz": ("-", "ephemeris unit sun vector, Up"),
     "sun_std": (_ANG, "sun-direction 1-sigma per tangent axis"),
+    "sun_azimuth_b": (_ANG, "the sun's azimuth in the body frame, counter-clockwise from body x"),
+    "sun_azimuth_b_std": (_ANG, "1-sigma of sun_azimuth_b"),
+    "sun_elevation_b": (
+        _ANG,
+        "the sun's elevation above the body x-y plane where the image determines it, else NaN",
+    ),
+    "sun_elevation_b_std": (
+        _ANG,
+        "1-sigma of sun_elevation_b; with it polins.fuse uses the fit's 2x2 sun covariance",
+    ),
     "eigen_gap": (
         "-",
         "normalised eigen-gap (lambda_perp - lambda_1) / lambda_perp of the polarization "
