@@ -212,7 +212,11 @@ def items_from_table(
                 cov_b = sun_direction_cov_b(sun_b[i], sun_std_l[i], float(elev_std[i]))
             items.append(
                 MeasurementItem(
-                    ti, "sun", sun_std_l[i], sun_b=sun_b[i].copy(), sun_n=sun_n[i].copy(),
+                    ti,
+                    "sun",
+                    sun_std_l[i],
+                    sun_b=sun_b[i].copy(),
+                    sun_n=sun_n[i].copy(),
                     cov_b=cov_b,
                 )
             )

@@ -217,9 +217,8 @@ def sun_azimuth_kernel(
     H = np.zeros((1, N_ERROR))
     H[0, ATT] = (grad @ mat_nb.T) @ skew(sun_n)
     predicted = math.atan2(float(b[1]), float(b[0]))
-    return Linearized(
-        np.array([_wrap(azimuth_b - predicted)]), H, np.array([[var]]), "sun_azimuth"
-    )
+    residual = np.array([_wrap(azimuth_b - predicted)])
+    return Linearized(residual, H, np.array([[var]]), "sun_azimuth")
 
 
 def zero_velocity_kernel(vel_n: FloatArray, var: FloatArray) -> Linearized:
