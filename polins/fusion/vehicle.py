@@ -166,7 +166,8 @@ class VehicleAiding:
             f = np.concatenate([self._accel, accel_b])
             stat = standstill_statistic(w, f, self.n, self.gyro_var, self.accel_var)
             still = stat[len(w) - len(t) :] <= self.threshold
-            self._gyro, self._accel = w[len(w) - self.n + 1 :], f[len(f) - self.n + 1 :]
+            keep = max(0, len(w) - self.n + 1)  # the last n - 1 samples
+            self._gyro, self._accel = w[keep:], f[keep:]
         g = index0 + np.arange(len(t))
         out: list[tuple[int, MeasurementItem]] = []
         for i in np.flatnonzero((g >= 1) & (g % self.every == 0)).tolist():
