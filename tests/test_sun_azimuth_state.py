@@ -290,3 +290,32 @@ def test_no_clock_streaming_matches_fuse():
     yaw = st.rot_nb.as_euler("ZYX")[0]
     assert abs(wrap_angle(yaw - last["yaw"])) < 1e-3
     assert math.sqrt(st.att_cov[2, 2]) == pytest.approx(last["yaw_std"], rel=0.05)
+
+
+def test_ambiguous_rows_are_axes():
+    # a third of the rows could not tell the sun from the antisun: measure reports one
+    # candidate at random and the other in sun_azimuth_b_alt; taken as axes they keep the
+    # relative heading consistent, taken as directions half of them are gated out
+    model, traj, imu, meas, t_rest = drive(2, 90.0)
+    rng = np.random.default_rng(7)
+    amb = rng.random(len(meas)) < 1.0 / 3.0
+    amb[:3] = False  # the first rows set the sun's azimuth
+    flip = amb & (rng.random(len(meas)) < 0.5)
+    meas = meas.copy()
+    meas.loc[flip, "sun_azimuth_b"] = wrap_angle(meas.loc[flip, "sun_azimuth_b"] + np.pi)
+    meas["sun_azimuth_b_alt"] = np.where(amb, wrap_angle(meas["sun_azimuth_b"] + np.pi), np.nan)
+    config = FuseConfig.from_options(
+        None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01, stationary=t_rest
+    )
+    with pytest.warns(UserWarning, match="no-clock mode"):
+        result = run_fusion(imu, meas, config=config)
+    assert result.updates["accepted"].mean() > 0.98
+    sol = result.solution[result.solution["t"] >= 5.0]
+    k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
+    yaw_rel = traj.rot_nb[k].as_euler("ZYX")[:, 0] - traj.rot_nb[0].as_euler("ZYX")[0]
+    z = wrap_angle(sol["yaw"].to_numpy() - yaw_rel) / sol["yaw_std"].to_numpy()
+    assert np.max(np.abs(z)) < 3.0
+    with pytest.warns(UserWarning, match="no-clock mode"):
+        directions = run_fusion(imu, meas.drop(columns="sun_azimuth_b_alt"), config=config)
+    rejected = ~directions.updates["accepted"].to_numpy()
+    assert rejected.sum() >= 0.8 * flip.sum()

@@ -72,6 +72,7 @@ class MeasurementItem:
     inflation: FloatArray | None = None  # "gap": variances added to the 9 navigation errors
     cov_b: FloatArray | None = None  # "sun": (3, 3) direction covariance [rad^2], else std^2 I
     elevation_b: float = math.nan  # "sun_azimuth": the sun's elevation in the body frame [rad]
+    axis: bool = False  # "sun_azimuth": the 180 deg branch is ambiguous (an axis, not a direction)
     speed: float = math.nan  # "odo": the odometer's forward speed [m/s]
     mat_vb: FloatArray | None = None  # "nhc", "odo": IMU mounting, body -> vehicle frame
     lever_vel_b: FloatArray | None = None  # "nhc", "odo": omega_b x lever_arm_b [m/s]
@@ -108,7 +109,7 @@ def item_model(
             raise ValueError("a sun_azimuth item needs the sun azimuth state (no-clock mode)")
         return sun_azimuth_kernel(
             mat_nb, item.yaw, var, float(states[SUN_AZIMUTH_STATE][0]),
-            sun_elevation_n(mat_nb, item.yaw, item.elevation_b),
+            sun_elevation_n(mat_nb, item.yaw, item.elevation_b), axis=item.axis,
         )  # fmt: skip
     if item.kind not in ("zupt", "nhc", "odo"):  # pragma: no cover - built by measurement_items
         raise ValueError(f"unknown measurement kind {item.kind!r}")
@@ -153,7 +154,8 @@ def items_from_table(
     the prior attitude of the ``prior_*`` columns; a sun vector carries the direction
     covariance of ``sun_std`` (azimuth) and ``sun_elevation_b_std`` (elevation) when the
     row has the latter; a table without yaw and ``sun_n`` but with ``sun_azimuth_b,
-    sun_azimuth_b_std`` gives ``"sun_azimuth"`` items (no clock; docs/filter.md). With
+    sun_azimuth_b_std`` gives ``"sun_azimuth"`` items (no clock; docs/filter.md), an axis
+    where ``sun_azimuth_b_alt`` is given (the 180 deg branch is ambiguous). With
     ``white_only`` (a heading-bias state carries the correlated part) the yaw and sun-azimuth
     sigmas lose their part ``yaw_std_correlated`` when the table has it,
     ``sqrt(std^2 - yaw_std_correlated^2)``, at least a tenth of ``std``.
@@ -196,6 +198,7 @@ def items_from_table(
             white = np.sqrt(np.maximum(yaw_std**2 - corr**2, (0.1 * yaw_std) ** 2))
         yaw_std = np.where(yaw_ok, white, yaw_std)
     elev_b, elev_std = col("sun_elevation_b"), col("sun_elevation_b_std")
+    axis = np.isfinite(col("sun_azimuth_b_alt")) & (heading == "sun_azimuth")
     with np.errstate(invalid="ignore"):
         cov_ok = (sun_ok & _sigma_ok(elev_std)).tolist()
     t_l, yaw_l, yaw_std_l, sun_std_l = t.tolist(), yaw.tolist(), yaw_std.tolist(), sun_std.tolist()
@@ -233,6 +236,7 @@ def items_from_table(
                     mat_nb_prior=mat_prior[i] if prior_ok_l[i] else None,
                     reason="" if ok else _invalid_reason(heading, yaw_l[i], yaw_std_l[i]),
                     elevation_b=float(elev_b[i]),
+                    axis=bool(axis[i]),
                 )
             )
         elif has_sun:

@@ -192,6 +192,8 @@ def sun_azimuth_kernel(
     var: float,
     sun_azimuth_n: float,
     sun_elevation_n: float,
+    *,
+    axis: bool = False,
 ) -> Linearized:
     """The sun's body-frame azimuth without a clock (docs/filter.md, "No clock").
 
@@ -204,6 +206,8 @@ def sun_azimuth_kernel(
 
     so ``h = sun_azimuth_n - yaw`` for a level body, and ``dh / d sun_azimuth_n =
     -H_theta[2]`` (the sun turning about the vertical is the body turning the other way).
+    With ``axis`` (the image could not tell the sun from the antisun) the residual is taken
+    modulo pi, in (-pi/2, pi/2].
     """
     ce = math.cos(sun_elevation_n)
     sun_n = np.array(
@@ -217,7 +221,8 @@ def sun_azimuth_kernel(
     H = np.zeros((1, N_ERROR))
     H[0, ATT] = (grad @ mat_nb.T) @ skew(sun_n)
     predicted = math.atan2(float(b[1]), float(b[0]))
-    residual = np.array([_wrap(azimuth_b - predicted)])
+    residual = np.array([_wrap(2.0 * (azimuth_b - predicted)) / 2.0 if axis
+                         else _wrap(azimuth_b - predicted)])  # fmt: skip
     return Linearized(residual, H, np.array([[var]]), "sun_azimuth")
 
 
