@@ -142,7 +142,7 @@ def test_help_shows_every_default_and_the_filter_options(capsys, monkeypatch):
     for command, expected in (("simulate", ["(default: fins-paper)", "(default: 8)"]),
                               ("heading", ["(default: paper-table1)"]),
                               ("fuse", ["(default: 0.5)", "nhc_std = None", "--set KEY=VALUE",
-                                        "scale_factors = False [eskf only]"])):  # fmt: skip
+                                        "scale_factors = None", "smooth = False [eskf only]"])):  # fmt: skip
         assert main([command, "--help"]) == 0
         out = " ".join(capsys.readouterr().out.split())
         for text in expected:

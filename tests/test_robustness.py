@@ -30,7 +30,7 @@ def drive(seed):
     model = polins.load_imu("mems-typical")
     rng = np.random.default_rng(seed)
     traj = ugv_drive(duration_s=DURATION, rng=rng)
-    imu, _ = imu_errors(ideal_imu(traj, earth_rotation=model.earth_rate), model, rng)
+    imu, _ = imu_errors(ideal_imu(traj), model, rng)
     truth = traj.truth_frame()
     tm = np.arange(0.2, DURATION, 0.2)
     yaw = np.interp(tm, truth["t"], np.unwrap(truth["yaw"]))
@@ -243,3 +243,16 @@ def test_yaw_given_then_no_acquisition_needed():
     y, p, r = truth[["yaw", "pitch", "roll"]].iloc[0]
     res = fuse(imu, meas, model, rot_nb0=rot_nb_from_euler(y, p, r))
     assert res.updates["accepted"].mean() > 0.99 and res.events.empty
+
+
+def test_slow_turns_in_deg_per_s_are_caught_by_the_headings():
+    # An undeclared deg/s gyro on a slow drive stays below the full scale; the headings show
+    # that it turns 57x too much. The right units pass the same check.
+    model, _, imu, _, meas = drive(0)
+    deg = imu.assign(**{c: np.degrees(imu[c]) for c in ("gx", "gy", "gz")})
+    assert np.percentile(np.linalg.norm(deg[["gx", "gy", "gz"]], axis=1), 99) < 35.0
+    validate_imu(deg, model=model)  # the full-scale check alone lets it through
+    with pytest.raises(ValueError, match=r"turns 5\d times as much .* looks like deg/s"):
+        fuse(deg, meas, model)
+    res = fuse(imu, meas, model)
+    assert np.isfinite(res.solution["yaw"].iloc[2:]).all()  # set by the first consensus
