@@ -364,8 +364,8 @@ def test_per_sample_filter_matches_the_fast_path(drive: Drive):
     as ``run_fusion``'s fast path and ends on its estimate."""
     from polins.fusion.api import build_filter
 
-    short = drive.imu[drive.imu["t"] <= 25.0]
-    heads = drive.headings[drive.headings["t"] <= 25.0]
+    short = drive.imu[drive.imu["t"] <= 15.0]
+    heads = drive.headings[drive.headings["t"] <= 15.0]
     options = {"vehicle": "ground", "mount_rpy": MOUNT, "lever_arm_b": UGV_LEVER_ARM_B}
     cfg = FuseConfig.from_options(imu_model=MEMS, **SITE, **options)
     ref = run_fusion(short, heads, "eskf", None, cfg)
@@ -373,12 +373,12 @@ def test_per_sample_filter_matches_the_fast_path(drive: Drive):
     filt = build_filter(t[0], 0.005, None, cfg)
     for row in heads.itertuples():
         filt.add_measurement(row.t, yaw=row.yaw, yaw_std=row.yaw_std)
+    gyro, accel = short[["gx", "gy", "gz"]].to_numpy(), short[["ax", "ay", "az"]].to_numpy()
     for k in range(len(t)):
-        filt.propagate(t[k], short[["gx", "gy", "gz"]].to_numpy()[k],
-                       short[["ax", "ay", "az"]].to_numpy()[k])  # fmt: skip
+        filt.propagate(t[k], gyro[k], accel[k])
     names = [r.name for r in filt.records]
     ref_names = ref.updates["name"].tolist()
-    assert names.count("zupt") == ref_names.count("zupt") >= 40
+    assert names.count("zupt") == ref_names.count("zupt") >= 30
     assert names.count("nhc") == ref_names.count("nhc")
     last = ref.solution.iloc[-1]
     np.testing.assert_allclose(filt.state().vel_n, last[["ve", "vn", "vu"]].to_numpy(float),
