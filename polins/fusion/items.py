@@ -278,6 +278,7 @@ def measurement_items(
     use_sun: bool = True,
     rot_nb_prior: Rotation | None = None,
     sky: Mapping[str, float] | None = None,
+    white_only: bool = False,
 ) -> list[MeasurementItem]:
     """The measurement items of one row, by the rules of :func:`items_from_table`.
 
@@ -285,7 +286,8 @@ def measurement_items(
     is the prior ``polins.measure`` used for the yaw (tilt coupling); ``sky`` more columns
     by name: ``sun_azimuth_b, sun_azimuth_b_std`` (without ``yaw`` and ``sun_n``: a no-clock
     row, for ``ESKF.add_items``), ``sun_elevation_b, sun_elevation_b_std``,
-    ``yaw_std_correlated``.
+    ``yaw_std_correlated`` (subtracted from the sigma with ``white_only``, as with a
+    heading-bias state).
     """
     row: dict[str, list[float]] = {"t": [float(t)]}
     row.update({name: [float(value)] for name, value in (sky or {}).items()})
@@ -304,7 +306,7 @@ def measurement_items(
     if rot_nb_prior is not None:
         y, p, r = euler_from_rot_nb(rot_nb_prior)
         row.update(prior_yaw=[float(y)], prior_pitch=[float(p)], prior_roll=[float(r)])
-    return items_from_table(row, use_sun=use_sun)
+    return items_from_table(row, use_sun=use_sun, white_only=white_only)
 
 
 @dataclass(frozen=True)
