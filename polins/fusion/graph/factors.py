@@ -104,19 +104,26 @@ def preintegration_params(
     return params
 
 
+# The window over which a gyro scale-factor error is taken as fully correlated [s] (the
+# graph's stand-in for scale-factor states, docs/filter.md §9): a turn keeps its direction
+# for about this long on a ground vehicle; hand-held motion reverses sooner, which the turn
+# over the window then shows.
+SCALE_FACTOR_WINDOW_S = 1.0
+
+
 def gyro_noise_density(
-    imu_model: ImuModel, rate_sq: ArrayLike, *, scale_factors: bool
+    imu_model: ImuModel, rate_sq: ArrayLike, turn_rate_sq: ArrayLike, *, scale_factors: bool
 ) -> FloatArray:
     """Gyro white-noise variance density of keyframe intervals [rad^2/s] (docs/filter.md §9).
 
-    ``ARW^2 + (m^2 + s_g^2) |omega_b|^2 tau``: the axis misalignment ``m``
-    (``ImuModel.gyro_misalignment``) and, with ``scale_factors``, the gyro scale-factor
-    sigma ``s_g`` (``ImuModel.gyro_scale_factor``) turn rotation into attitude error. The
-    graph has no states for either and covers both as white noise correlated over
-    ``tau = ImuModel.gyro_misalignment_corr_time`` (the ESKF covers the misalignment the
-    same way: docs/filter.md, "Rotation-proportional attitude noise"). The error a fixed
-    ``m`` or ``s_g`` makes decorrelates as the direction of the rotation changes, so one
-    ``tau`` serves both.
+    ``ARW^2 + m^2 mean|omega_b|^2 tau + s_g^2 |dtheta_W|^2 / W``. The axis misalignment
+    ``m`` (``ImuModel.gyro_misalignment``, ``tau = gyro_misalignment_corr_time``) turns
+    rotation into attitude error, covered as the ESKF covers it (docs/filter.md,
+    "Rotation-proportional attitude noise"). With ``scale_factors`` the gyro scale-factor
+    sigma ``s_g`` (``ImuModel.gyro_scale_factor``) adds the error of the angle turned over
+    a window of ``W`` = :data:`SCALE_FACTOR_WINDOW_S` around the interval, spread over the
+    window: the graph has no scale-factor variables, and this is their stand-in for the
+    ESKF's ``sg`` states.
 
     Parameters
     ----------
@@ -125,12 +132,19 @@ def gyro_noise_density(
         [s], ``gyro_scale_factor`` [-].
     rate_sq : array_like
         Mean of ``|omega_b|^2`` over each interval [rad^2/s^2].
+    turn_rate_sq : array_like
+        ``|dtheta_W|^2 / W`` of each interval [rad^2/s]: the integrated body rate over the
+        window, squared, per second of window.
     scale_factors : bool
-        Cover the scale factors too (``FuseConfig.use_scale_factors``).
+        Cover the scale factors (``FuseConfig.use_scale_factors``).
     """
     m = imu_model
-    coeff = m.gyro_misalignment**2 + (m.gyro_scale_factor**2 if scale_factors else 0.0)
-    return m.gyro_arw**2 + coeff * m.gyro_misalignment_corr_time * np.asarray(rate_sq, float)
+    out = m.gyro_arw**2 + m.gyro_misalignment**2 * m.gyro_misalignment_corr_time * np.asarray(
+        rate_sq, dtype=float
+    )
+    if scale_factors:
+        out = out + m.gyro_scale_factor**2 * np.asarray(turn_rate_sq, dtype=float)
+    return out
 
 
 def sun_factor(

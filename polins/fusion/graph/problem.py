@@ -24,6 +24,7 @@ from polins.fusion.acquisition import consensus, gap_variance, yaw_offset
 from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.blocks import EARTH_RATE_TURN_S
 from polins.fusion.graph.factors import (
+    SCALE_FACTOR_WINDOW_S,
     bias_from_polins,
     gyro_noise_density,
     levelling_factor,
@@ -267,7 +268,8 @@ class Problem:
 
     def _interval_params(self) -> list[gtsam.PreintegrationCombinedParams]:
         """Preintegration parameters of each keyframe interval: the gyro noise density with
-        the rotation-proportional term of the interval's mean ``|omega_b|^2``
+        the rotation-proportional terms of the interval's mean ``|omega_b|^2`` and of the
+        turn over the window around it
         (:func:`~polins.fusion.graph.factors.gyro_noise_density`, docs/filter.md §9); inside
         an IMU gap the gyro and accelerometer densities raised so that the interval adds
         the gap's variances (``self.gaps``)."""
@@ -276,9 +278,15 @@ class Problem:
             [[0.0], np.cumsum(np.einsum("ij,ij->i", seg.gyro, seg.gyro) * seg.dt)]
         )
         rate_sq = np.diff(energy[seg.bounds]) / np.diff(seg.t[seg.bounds])
-        gyro = gyro_noise_density(c.imu, rate_sq, scale_factors=c.use_scale_factors)
-        accel = np.full(gyro.shape, c.imu.accel_vrw**2)
+        # the angle turned about each body axis over the window around each interval
+        angle = np.vstack([np.zeros(3), np.cumsum(seg.gyro * seg.dt[:, None], axis=0)])
         mid = 0.5 * (self.t_key[1:] + self.t_key[:-1])
+        half = 0.5 * SCALE_FACTOR_WINDOW_S
+        lo, hi = (np.clip(mid + d, seg.t[0], seg.t[-1]) for d in (-half, half))
+        turn = np.array([np.interp(hi, seg.t, a) - np.interp(lo, seg.t, a) for a in angle.T]).T
+        turn_rate_sq = np.einsum("ij,ij->i", turn, turn) / np.maximum(hi - lo, 1e-9)
+        gyro = gyro_noise_density(c.imu, rate_sq, turn_rate_sq, scale_factors=c.use_scale_factors)
+        accel = np.full(gyro.shape, c.imu.accel_vrw**2)
         for t_a, t_b, (att_var, vel_var) in self.gaps:  # spread over the gap's intervals
             inside = (mid > t_a) & (mid < t_b)
             gyro[inside] += att_var / (t_b - t_a)
