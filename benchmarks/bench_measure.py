@@ -75,7 +75,8 @@ def main() -> None:
     for method, m in results.items():
         print(
             f"  {method:12s} n_pixels={m.n_pixels} yaw_std_meas={np.degrees(m.yaw_std_meas):.5f} deg "
-            f"heading={m.heading_deg:.4f} deg"
+            f"yaw_std={np.degrees(m.yaw_std):.4f} deg (model {np.degrees(m.yaw_std_model):.4f}, "
+            f"correlated {np.degrees(m.yaw_std_correlated):.4f}) heading={m.heading_deg:.4f} deg"
         )
 
 

@@ -275,7 +275,7 @@ def test_inflation_terms():
     kw = {"kappa": 20.0, "sigma_floor": np.radians(0.2), "tilt_std": np.radians(0.1)}
     m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, **kw)
     zen = np.arccos(SUN_N[2])
-    sky2 = 1.5**2 * max(m.yaw_std_jackknife**2 - m.yaw_std_meas**2, 0.0)
+    sky2 = 2.0**2 * max(m.yaw_std_jackknife**2 - m.yaw_std_meas**2, 0.0)
     model = np.sqrt(sky2 + m.yaw_std_correlated**2 + np.radians(0.2) ** 2)
     assert m.yaw_std_correlated > 0 and m.yaw_std_model == pytest.approx(model, rel=1e-12)
     assert m.yaw_std_noise == pytest.approx(20.0 * m.yaw_std_meas, rel=1e-12)

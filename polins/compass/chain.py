@@ -61,7 +61,7 @@ from polins.compass.jointml import (
 from polins.compass.kernels import dot, dot_rows
 from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import METHODS, Measurement, MeasurementMaps, MeasureOptions
-from polins.compass.modelerror import clear_sky_mask, instrumental_sensitivity
+from polins.compass.modelerror import clear_sky_mask, instrumental_sensitivity, model_weights
 from polins.compass.pixels import check_raw, gather_channels
 from polins.compass.polarimetry import (
     stokes_calibration,
@@ -255,15 +255,6 @@ def measure_image(
     if isinstance(inv_sigma_l2, np.ndarray):
         np.copyto(inv_sigma_l2, dtype(1.0), where=invalid)
 
-    # Weights of the estimators: the pixel noise, plus a model error of the AoP that grows
-    # with the field angle when model_aop_std > 0 (docs/measurement.md §4).
-    inv_weight_l2 = inv_sigma_l2
-    if opt.model_aop_std > 0:
-        field = np.arccos(np.clip(cache.rays[2], -1.0, 1.0)) * (1.0 / opt.model_field_angle)
-        sigma_aop = opt.model_aop_std * (1.0 + field * field)
-        p2 = est_rows[1] * est_rows[1] + est_rows[2] * est_rows[2]
-        inv_weight_l2 = (1.0 / (1.0 / inv_sigma_l2 + 4.0 * p2 * sigma_aop**2)).astype(dtype)
-
     def inv_weight_at(idx: NDArray | None) -> NDArray | float:
         w = inv_weight_l2
         if not isinstance(w, np.ndarray):
@@ -315,6 +306,12 @@ def measure_image(
             est_rows, cache.rays, mat_cl @ sun_l0, opt.cloud_dop_ratio, sub.index, valid
         )
         valid_sub = valid[sub.index]
+
+    # Weights: the pixel noise, and with model_aop_std > 0 a model error of the AoP that
+    # grows with the field angle and towards the sun and the antisun (§4).
+    inv_weight_l2 = inv_sigma_l2
+    if opt.model_aop_std > 0:
+        inv_weight_l2 = model_weights(inv_sigma_l2, est_rows, cache.rays, mat_cl @ sun_l0, opt)
 
     # 2. Subsample selection with this sun; the DoP cut along the predicted direction.
     sel_sub = Selection(

@@ -75,7 +75,8 @@ class MeasureOptions:
         part (default 0: the model part comes from the data, docs/measurement.md §12).
     model_scale : float
         Calibration factor of the sky-model part: the jackknife's variance beyond the pixel
-        noise times ``model_scale^2`` (1.5, calibrated on realistic skies; §12).
+        noise times ``model_scale^2`` (2, calibrated on realistic skies, with and without
+        ``sun_n``; §12).
     instrumental_dop_std : float
         1-sigma per component of the camera-fixed polarization the channel calibration
         leaves [-] (0.002 for gains good to +-0.5 %; 0 for a perfect calibration); gives
@@ -85,10 +86,14 @@ class MeasureOptions:
         camera file's ``[roi]`` and field of view only).
     model_aop_std : float
         Model error of the AoP on the optical axis [rad] in the pixel weights (0: weights
-        from the pixel noise only); it grows as ``1 + (theta / model_field_angle)^2`` with
-        the field angle theta (docs/measurement.md §4).
+        from the pixel noise only); it grows as ``1 + (theta / model_field_angle)^2 +
+        (model_neutral_angle / gamma)^2`` with the field angle theta and towards the sun
+        and the antisun (gamma the angle to the nearer; docs/measurement.md §4).
     model_field_angle : float
         Field angle [rad] at which the AoP model error has doubled.
+    model_neutral_angle : float
+        Angle [rad] to the sun or the antisun at which the AoP model error has doubled
+        (the neutral points).
     cloud_dop_ratio : float or None
         Thin-cloud mask: pixels whose DoP is below this fraction of the clear sky's
         ``d_max sin^2 T / (1 + cos^2 T)`` (d_max fitted per image) are not used, away from
@@ -152,11 +157,12 @@ class MeasureOptions:
     snr_min: float = 3.0
     kappa: float = 1.0
     sigma_floor: float = 0.0
-    model_scale: float = 1.5
+    model_scale: float = 2.0
     instrumental_dop_std: float = 0.002
     max_field_angle: float | None = None
     model_aop_std: float = 0.0
     model_field_angle: float = float(np.radians(60.0))
+    model_neutral_angle: float = float(np.radians(10.0))
     cloud_dop_ratio: float | None = None
     tilt_std: float = 0.0
     yaw_gate: float | None = None
@@ -187,6 +193,7 @@ class MeasureOptions:
             "model_scale",
             "instrumental_dop_std",
             "model_aop_std",
+            "model_neutral_angle",
             "tilt_std",
             "epsilon_max",
             "branch_z_min",
