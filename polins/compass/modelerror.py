@@ -105,6 +105,7 @@ def instrumental_sensitivity(
     with_epsilon : bool
         Epsilon was estimated (it absorbs part of a camera-fixed polarization).
     """
+    data = _every(data, max(1, data.s0.size // _SENSITIVITY_PIXELS))
     _, jac, _, _ = ml_evaluate(data, theta, zenith, mat_cl, True)
     assert jac is not None
     j = (jac if with_epsilon else jac[:-1]).astype(np.float64)
@@ -125,6 +126,29 @@ def instrumental_sensitivity(
     except np.linalg.LinAlgError:
         return float("nan")
     return float(np.hypot(dtheta[0, 0], dtheta[0, 1]))
+
+
+_SENSITIVITY_PIXELS = 4000  # a ratio of sums: a few thousand pixels give it to ~1 %
+
+
+def _every(data: PixelData, k: int) -> PixelData:
+    """Every ``k``-th pixel of ``data``."""
+    if k == 1:
+        return data
+    n = data.s0.size
+    fwd = data.forward
+    if fwd is not None:
+        fwd = np.ascontiguousarray(np.concatenate([fwd[:, :n:k], fwd[:, n::k]], axis=1))
+    return PixelData(
+        data.s0[::k],
+        data.s1[::k],
+        data.s2[::k],
+        data.c[::k],
+        fwd,
+        None if data.rays is None else np.ascontiguousarray(data.rays[:, ::k]),
+        data.inv_sigma[::k] if isinstance(data.inv_sigma, np.ndarray) else data.inv_sigma,
+        None if data.mask is None else data.mask[::k],
+    )
 
 
 def _sun_level(theta: NDArray, zenith: float | None) -> NDArray:
