@@ -37,6 +37,7 @@ def batch(sim_log):
 def _stream(log, *, options=None, delay_s=0.05, state_every=25, **kwargs):
     """Feed a log to a NavigationStream the way a vehicle would: IMU samples as they come,
     each image ``delay_s`` after it was taken; ``state()`` every ``state_every`` samples."""
+    kwargs.setdefault("config", log.config)  # the manifest's [filter] and [vehicle], as run_log
     nav = NavigationStream(log.camera, log.imu_model, site=log.site, epoch_utc=log.epoch_utc,
                            options=options, **kwargs)  # fmt: skip
     imu = log.imu.to_numpy()

@@ -76,6 +76,8 @@ from polins.loop.tables import EventBuffer, measurement_frame
 from polins.models import CameraModel, ImuModel
 from polins.site import Site, utc_timestamp
 
+SUN_2X2 = ("sun_elevation_b", "sun_elevation_b_std")  # the sun fit's 2x2 covariance columns
+
 FloatArray = NDArray[np.float64]
 
 
@@ -465,7 +467,7 @@ class NavigationStream:
                 row["innovation"] = float(wrap_angle(row["yaw"] - self._predicted_yaw(img.t)))
         if "sun_bx" in row:
             cols.update(sun_b=[row["sun_bx"], row["sun_by"], row["sun_bz"]],
-                        sun_std=row["sun_std"])  # fmt: skip
+                        sun_std=row["sun_std"], sky={c: row[c] for c in SUN_2X2 if c in row})  # fmt: skip
         if all(np.isfinite(row.get(c, np.nan)) for c in PRIOR_COLUMNS):
             cols["rot_nb_prior"] = rot_nb_from_euler(
                 row["prior_yaw"], row["prior_pitch"], row["prior_roll"]

@@ -38,7 +38,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from filterpy.kalman import update as kf_update
@@ -269,13 +269,15 @@ class ESKF:
         sun_std: float | None = None,
         zupt_std: float | None = None,
         rot_nb_prior: Rotation | None = None,
+        sky: Mapping[str, float] | None = None,
     ) -> list[UpdateRecord]:
         """Queue (or apply now, if ``t`` is the current time) one measurement row.
 
         Parameters are the ``measurements`` table's columns (docs/filter.md): a yaw and its
         1-sigma [rad]; and/or a measured body sun vector, its ENU reference and direction
         1-sigma [rad]; and/or a zero-velocity 1-sigma [m/s]; ``rot_nb_prior`` is the prior
-        ``polins.measure`` used for the yaw (tilt coupling). A measurement older than the
+        ``polins.measure`` used for the yaw (tilt coupling); ``sky`` the further columns of
+        :func:`~polins.fusion.items.measurement_items`. A measurement older than the
         filter time is rejected (logged): the filter does not re-process the past.
 
         Returns
@@ -285,7 +287,7 @@ class ESKF:
         """
         items = measurement_items(
             t, yaw=yaw, yaw_std=yaw_std, sun_b=sun_b, sun_n=sun_n, sun_std=sun_std,
-            zupt_std=zupt_std, use_sun=self.config.use_sun, rot_nb_prior=rot_nb_prior,
+            zupt_std=zupt_std, use_sun=self.config.use_sun, rot_nb_prior=rot_nb_prior, sky=sky,
         )  # fmt: skip
         return self.add_items(items)
 
