@@ -41,7 +41,7 @@ from polins.compass.eigen import (
     eigen_gap,
     eigen_level_rows,
     sandwich_covariance,
-    sandwich_middle,
+    weighted_residuals,
 )
 from polins.compass.heading import (
     check_sun_and_attitude,
@@ -58,7 +58,7 @@ from polins.compass.jointml import (
     ml_evaluate,
     sun_covariance,
 )
-from polins.compass.kernels import dot, dot_rows
+from polins.compass.kernels import dot, dot_rows, moment
 from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import METHODS, Measurement, MeasurementMaps, MeasureOptions
 from polins.compass.modelerror import clear_sky_mask, instrumental_sensitivity, model_weights
@@ -414,10 +414,11 @@ def measure_image(
         if s_n is not None:
             sun_l = resolve_sun_sign(eig.sun, s_n, yaw_prior, opt.horizon_fallback)
         gap = eigen_gap(eig)
-        middle = sandwich_middle(e, omega, mat_cl @ sun_l)
+        wr = weighted_residuals(e, omega, mat_cl @ sun_l)
+        middle = moment(e, wr * wr)  # the sandwich's middle (docs/measurement.md §6)
         cov_sun_l = sandwich_covariance(eig, mat_lc @ middle @ mat_lc.T)
         var_yaw = yaw_variance_from_sun_covariance(sun_l, cov_sun_l)
-        deltas, share = eigen_jackknife(e, omega, sector_runs(cam), mat_lc, sun_l)
+        deltas, share = eigen_jackknife(e, wr, omega, sector_runs(cam), mat_lc, eig, sun_l)
         var_jack = jackknife_variance(deltas, share, _SECTOR_MIN_SHARE)
         theta = np.array([np.arctan2(sun_l[1], sun_l[0]), np.arccos(np.clip(sun_l[2], -1, 1)), 0.0])
         zen_arg = None

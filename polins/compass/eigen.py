@@ -29,6 +29,7 @@ __all__ = [
     "sandwich_covariance",
     "sandwich_middle",
     "sun_eigen",
+    "weighted_residuals",
 ]
 
 
@@ -139,12 +140,20 @@ def eigen_level_rows(
     return sol, e, omega
 
 
+def weighted_residuals(e: NDArray, omega: NDArray, sun: NDArray) -> NDArray:
+    """``omega_i (e_i . s)`` ``(n,)`` of unnormalised E-vectors ``e`` (3, n) with weights
+    ``omega = w_i/|e_i|^2``: the middle of the sandwich is ``sum (omega_i (e_i . s))^2 e_i
+    e_i^T`` and the moment's derivative ``M s = sum omega_i (e_i . s) e_i``."""
+    proj = sun[0] * e[0] + sun[1] * e[1] + sun[2] * e[2]
+    proj *= omega
+    return proj
+
+
 def sandwich_middle(e: NDArray, omega: NDArray, sun: NDArray) -> NDArray:
     """``sum_i (w_i r_i)^2 u_i u_i^T`` for unit E-vectors ``u_i = e_i/|e_i|`` and residuals
     ``r_i = u_i . s`` (docs/model.md §10.2), from unnormalised ``e`` (3, n) and
     ``omega = w_i/|e_i|^2``: the summand equals ``(omega_i (e_i . s))^2 e_i e_i^T``."""
-    proj = sun[0] * e[0] + sun[1] * e[1] + sun[2] * e[2]
-    wr = omega * proj
+    wr = weighted_residuals(e, omega, sun)
     return moment(e, wr * wr)
 
 

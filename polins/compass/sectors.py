@@ -14,7 +14,8 @@ The leave-one-out estimates are one linearized step from the full-set normal equ
 
     theta_(g) - theta = -(H - H_g)^-1 (b - b_g) + H^-1 b
 
-and for the eigen solution the smallest eigenvector of ``M - M_g``. The per-sector sums
+and for the eigen solution the first-order change of its smallest eigenvector when the
+sector's moment ``M_g`` is removed. The per-sector sums
 run over the pixels in index order as ``np.add.reduceat`` over runs of equal sector
 (sectors are contiguous in the image, so a row holds few runs).
 """
@@ -27,6 +28,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
+from polins.compass.eigen import EigenSolution
 from polins.compass.lens import camera_constants
 from polins.models import CameraModel
 
@@ -145,35 +147,34 @@ def ml_jackknife(jtj: NDArray, jtr: NDArray, sector_h: NDArray, sector_b: NDArra
     return out
 
 
-def _moment_rows(e: NDArray, omega: NDArray) -> NDArray:
-    """The six distinct products ``omega e_a e_b`` ``(6, n)`` (xx, xy, xz, yy, yz, zz)."""
-    we = e * omega
-    return np.stack([we[0] * e[0], we[0] * e[1], we[0] * e[2], we[1] * e[1], we[1] * e[2],
-                     we[2] * e[2]])  # fmt: skip
-
-
 def eigen_jackknife(
-    e: NDArray, omega: NDArray, runs: SectorRuns, mat_lc: NDArray, sun_l: NDArray
+    e: NDArray,
+    wr: NDArray,
+    omega: NDArray,
+    runs: SectorRuns,
+    mat_lc: NDArray,
+    solution: EigenSolution,
+    sun_l: NDArray,
 ) -> tuple[FloatArray, FloatArray]:
     """Leave-one-group-out azimuth deviations ``(G,)`` [rad] of the eigen sun of
     camera-frame E-vectors ``e (3, n)`` with weights ``omega (n,)`` (the moment
-    ``sum omega e e^T``), and each group's share of the moment's trace ``(G,)``.
+    ``M = sum omega e e^T``), and each group's share of the weights ``(G,)``; ``wr (n,)``
+    is ``omega_i (e_i . s)`` (:func:`polins.compass.eigen.weighted_residuals`).
 
-    ``sun_l`` (3,) is the full-set level-frame sun; each sector's sun is the smallest
-    eigenvector of ``M - M_g``, signed like ``sun_l``.
+    First order in the removed moment ``M_g``: ``ds_g = A+ M_g s`` with
+    ``A+ = sum_{j=2,3} v_j v_j^T / (lambda_j - lambda_1)`` of the level-frame ``solution``
+    (docs/model.md §10.2) and ``M_g s = sum_g omega_i (e_i . s) e_i``; ``sun_l`` (3,) is
+    the full-set level-frame sun.
     """
-    rows = _moment_rows(e, omega)
-    sums = sector_sums(rows, runs, mat_lc.T @ sun_l)
-    total = sums.sum(axis=0)
-    idx = ([0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2])
-    reduced = np.zeros((sums.shape[0], 3, 3))
-    reduced[:, idx[0], idx[1]] = total[None, :6] - sums[:, :6]
-    reduced[:, idx[1], idx[0]] = reduced[:, idx[0], idx[1]]
-    reduced = mat_lc @ reduced @ mat_lc.T
-    _, vec = np.linalg.eigh(reduced)
-    suns = vec[..., 0]
-    suns *= np.sign(suns @ sun_l)[:, None]
-    deltas = np.arctan2(suns[:, 1], suns[:, 0]) - np.arctan2(sun_l[1], sun_l[0])
-    deltas = (deltas + np.pi) % (2 * np.pi) - np.pi
-    trace = sums[:, 0] + sums[:, 3] + sums[:, 5]
-    return deltas, trace / max(float(trace.sum()), 1e-300)
+    sun_c = mat_lc.T @ sun_l
+    rows = np.empty((4, e.shape[1]), dtype=e.dtype)
+    for j in range(3):
+        np.multiply(e[j], wr, out=rows[j])
+    rows[3] = omega
+    sums = sector_sums(rows, runs, sun_c)
+    lam, vec = solution.eigenvalues, solution.eigenvectors
+    a_plus = sum(np.outer(vec[:, j], vec[:, j]) / (lam[j] - lam[0]) for j in (1, 2))
+    ds = (sums[:, :3] @ mat_lc.T) @ np.asarray(a_plus).T  # (G, 3) level frame
+    rho2 = max(float(sun_l[0] ** 2 + sun_l[1] ** 2), 1e-300)
+    deltas = (sun_l[0] * ds[:, 1] - sun_l[1] * ds[:, 0]) / rho2
+    return deltas, sums[:, 3] / max(float(sums[:, 3].sum()), 1e-300)
