@@ -51,7 +51,8 @@ EVENT_KINDS = (
 EVENT_COLUMNS = ("t", "kind", "detail")
 MEASUREMENT_COLUMNS = (
     "t", "ok", "reason", "yaw", "yaw_std", "heading_deg", "heading_std_deg", "epsilon",
-    "epsilon_std", "n_pixels", "yaw_std_meas", "sun_bx", "sun_by", "sun_bz", "sun_nx",
+    "epsilon_std", "n_pixels", "yaw_std_meas", "yaw_std_noise", "yaw_std_model",
+    "yaw_std_correlated", "sun_bx", "sun_by", "sun_bz", "sun_nx",
     "sun_ny", "sun_nz", "sun_std", "sun_azimuth_b", "sun_azimuth_b_std", "sun_elevation_b",
     "sun_elevation_b_std", "eigen_gap", "residual_rms", "prior_t", "prior_roll",
     "prior_pitch", "prior_yaw", "accepted", "update_reason", "innovation", "nis", "nis_dof",
