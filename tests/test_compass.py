@@ -581,3 +581,29 @@ def test_public_sun_vector_functions(model):
     assert eigen_gap(eig) > 0.9 and eig.sun[2] > 0
     var = yaw_variance_from_sun_covariance(eig.sun, eigen_sun_covariance(e_l, weights, eig))
     assert 0.5 < np.sqrt(var) / np.sqrt(sol.covariance[0, 0]) < 3.0
+
+
+def test_the_camera_file_states_its_calibration_residual(tmp_path):
+    # [polarizer] instrumental_dop_std in the camera file is the measurement's default for
+    # the camera-fixed part; an explicit option still wins; the key and the [roi] table
+    # survive a write/read of the file.
+    import dataclasses
+
+    from polins.io.model_files import write_camera_file
+
+    rot = _level(40.0)
+    raw = render(CAM4, SUN_N, rot, noise_std=1.5, rng=np.random.default_rng(16))
+    exact = dataclasses.replace(CAM4, instrumental_dop_std=0.0)
+    default = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot)
+    stated = measure(raw, exact, sun_n=SUN_N, rot_nb_prior=rot)
+    assert default.yaw_std_correlated > 0.0 and stated.yaw_std_correlated == 0.0
+    assert stated.yaw_std < default.yaw_std
+    explicit = measure(raw, exact, sun_n=SUN_N, rot_nb_prior=rot, instrumental_dop_std=0.002)
+    assert explicit.yaw_std_correlated == pytest.approx(default.yaw_std_correlated, rel=1e-12)
+    roi = dataclasses.replace(exact, roi_max_field_angle=np.radians(50.0),
+                              roi_polygons=(np.array([[1.0, 2.0], [30.0, 2.0], [30.0, 40.0]]),))  # fmt: skip
+    write_camera_file(roi, tmp_path / "cam.toml")
+    back = polins.load_camera(tmp_path / "cam.toml")
+    assert back.instrumental_dop_std == 0.0
+    assert back.roi_max_field_angle == pytest.approx(np.radians(50.0))
+    np.testing.assert_allclose(back.roi_polygons[0], roi.roi_polygons[0], atol=1e-12)

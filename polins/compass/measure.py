@@ -173,6 +173,8 @@ def _dispatch(
             raw, cam, sun_n=sun_n, rot_nb_prior=rot_nb_prior, maps=maps, **options
         )
     else:
+        if cam.instrumental_dop_std is not None and "instrumental_dop_std" not in options:
+            options = {**options, "instrumental_dop_std": cam.instrumental_dop_std}
         opt: MeasureOptions = measure_options(**options)
         result = measure_image(
             raw,

@@ -124,6 +124,8 @@ def camera_model_toml(
             "gain": cam.gain,
             "efficiency": cam.efficiency,
             "dark_offset_dn": cam.dark_offset_dn,
+            **({} if cam.instrumental_dop_std is None
+               else {"instrumental_dop_std": cam.instrumental_dop_std}),  # fmt: skip
             **{MAP_FIELDS[f]: Path(p).as_posix() for f, p in paths.items()},
         },
         "noise": {
@@ -143,6 +145,13 @@ def camera_model_toml(
         "mount": {"mat_bc": cam.mat_bc},
         "occlusion": {"polygons_superpixel": [p.tolist() for p in cam.occlusion_polygons]},
     }
+    roi: dict[str, Any] = {}
+    if cam.roi_max_field_angle is not None:
+        roi["max_field_angle_deg"] = math.degrees(cam.roi_max_field_angle)
+    if cam.roi_polygons:  # superpixel [u, v] -> full-resolution pixels (the file's unit)
+        roi["polygons_px"] = [(2.0 * p + 0.5).tolist() for p in cam.roi_polygons]
+    if roi:
+        data["roi"] = roi
     if cam.calibration:  # an empty array of tables has no TOML form: left out
         data["calibration"] = [dict(entry) for entry in cam.calibration]
     header = "\n".join(comments) if comments else f"camera model written by polins from {cam.path}"

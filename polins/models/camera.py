@@ -126,6 +126,7 @@ _CAMERA_SCHEMA: Schema = {
         "gain": vector(4),
         "efficiency": vector(4),
         "dark_offset_dn": vector(4),
+        "instrumental_dop_std": Optional(nonneg),
         **{key: Optional(string) for key in MAP_FIELDS.values()},
     },
     "noise": {"read_noise_dn": nonneg, "conversion_gain_e_per_dn": positive},
@@ -205,6 +206,9 @@ class CameraModel:
     transmission_angle_map: FloatArray | None = None  # (Hs, Ws, 4) per-pixel alpha [rad]
     efficiency_map: FloatArray | None = None  # (Hs, Ws, 4) per-pixel eta [-]
     calibration: tuple[Mapping[str, Any], ...] = ()  # [[calibration]] entries
+    # 1-sigma of the camera-fixed polarization the calibration leaves [-] (docs/measurement.md
+    # §12); None: the measurement's default, a calibration good to +-0.5 % in gain
+    instrumental_dop_std: float | None = None
 
     def __post_init__(self) -> None:
         expected = (*self.superpixel_shape, 4)
@@ -453,6 +457,7 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
         gain=pol["gain"],
         efficiency=pol["efficiency"],
         dark_offset_dn=pol["dark_offset_dn"],
+        instrumental_dop_std=pol.get("instrumental_dop_std"),
         read_noise_dn=d["noise"]["read_noise_dn"],
         conversion_gain_e_per_dn=d["noise"]["conversion_gain_e_per_dn"],
         projection=lens["projection"],

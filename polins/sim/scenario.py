@@ -21,6 +21,7 @@ leaves the drive and the IMU noise unchanged.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -235,6 +236,9 @@ def simulate_log(
         cam = cam_full if downscale == 1 else cam_full.downscaled(int(downscale))
     except ValueError as exc:
         raise ValueError(f"downscale={downscale}: {exc}") from None
+    # the images are rendered with the camera file's own calibration: it is exact, and the
+    # log's camera file says so (its sigma then has no camera-fixed part, docs/measurement.md)
+    cam = dataclasses.replace(cam, instrumental_dop_std=0.0)
     rate_hz = imu_model.sample_rate_hz if imu_rate_hz is None else float(imu_rate_hz)
     options = dict(render_options or {})
     if "rng" in options:
@@ -285,7 +289,7 @@ def simulate_log(
     manifest = write_log(
         out,
         epoch_utc=epoch,
-        camera=camera if downscale == 1 else cam,
+        camera=cam,
         imu_model=imu,
         lat_deg=lat_deg,
         lon_deg=lon_deg,
