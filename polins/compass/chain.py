@@ -61,7 +61,12 @@ from polins.compass.jointml import (
 from polins.compass.kernels import dot, dot_rows, moment
 from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import METHODS, Measurement, MeasurementMaps, MeasureOptions
-from polins.compass.modelerror import clear_sky_mask, instrumental_sensitivity, model_weights
+from polins.compass.modelerror import (
+    cloudy_cells,
+    instrumental_sensitivity,
+    model_weights,
+    sky_cells,
+)
 from polins.compass.pixels import check_raw, gather_channels
 from polins.compass.polarimetry import (
     stokes_calibration,
@@ -301,11 +306,13 @@ def measure_image(
     if s_n is not None:
         sun_l0 = resolve_sun_sign(eig0.sun, s_n, yaw_prior, opt.horizon_fallback)
 
-    if opt.cloud_dop_ratio is not None:  # thin clouds: a DoP deficit (docs/measurement.md §4)
-        valid &= clear_sky_mask(
-            est_rows, cache.rays, mat_cl @ sun_l0, opt.cloud_dop_ratio, sub.index, valid
-        )
-        valid_sub = valid[sub.index]
+    if opt.cloud_dop_ratio is not None:  # thin clouds: cells with a DoP deficit (§4)
+        cells = sky_cells(cam)
+        cloudy = cloudy_cells(rows_sub, sub.rays, mat_cl @ sun_l0, opt.cloud_dop_ratio,
+                              valid_sub, cells.take(sub.index))  # fmt: skip
+        if cloudy.any():
+            valid &= ~cloudy.take(cells)
+            valid_sub = valid[sub.index]
 
     # Weights: the pixel noise, and with model_aop_std > 0 a model error of the AoP that
     # grows with the field angle and towards the sun and the antisun (§4).

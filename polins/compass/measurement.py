@@ -95,9 +95,10 @@ class MeasureOptions:
         Angle [rad] to the sun or the antisun at which the AoP model error has doubled
         (the neutral points).
     cloud_dop_ratio : float or None
-        Thin-cloud mask: pixels whose DoP is below this fraction of the clear sky's
-        ``d_max sin^2 T / (1 + cos^2 T)`` (d_max fitted per image) are not used, away from
-        the sun and the antisun (docs/measurement.md §4); None: no cloud mask.
+        Thin-cloud mask: sky cells (about 7 deg) whose summed polarized intensity is below
+        this fraction of the clear sky's ``d_max sin^2 T / (1 + cos^2 T) S0`` (d_max fitted
+        per image) are not used, away from the sun and the antisun (docs/measurement.md
+        §4); None: no cloud mask.
     tilt_std : float
         1-sigma roll/pitch error about the horizontal axis towards the sun [rad]; adds
         ``cot(Z) tilt_std`` to the heading sigma.
@@ -163,7 +164,7 @@ class MeasureOptions:
     model_aop_std: float = 0.0
     model_field_angle: float = float(np.radians(60.0))
     model_neutral_angle: float = float(np.radians(10.0))
-    cloud_dop_ratio: float | None = None
+    cloud_dop_ratio: float | None = 0.95
     tilt_std: float = 0.0
     yaw_gate: float | None = None
     gradient_max: float | None = 0.05

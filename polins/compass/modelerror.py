@@ -16,45 +16,85 @@ with ``g_j`` the yaw's change per unit ``delta_j`` (docs/measurement.md §12).
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numpy.typing import NDArray
 
 from polins.compass.jointml import ml_evaluate
+from polins.compass.lens import camera_constants
 from polins.compass.measurement import MeasureOptions
 from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
+from polins.models import CameraModel
 
-__all__ = ["clear_sky_mask", "instrumental_sensitivity", "model_weights"]
+__all__ = ["CLOUD_CELLS", "cloudy_cells", "instrumental_sensitivity", "model_weights", "sky_cells"]
 
 _SHAPE_FIT = 0.5  # Rayleigh DoP shape above which d_max is fitted
 _SHAPE_TEST = 0.3  # ... and above which a pixel is tested (near the sun and the antisun the
-# deficit is the neutral points, not a cloud)
+# deficit is the neutral points', not a cloud's)
 
 
-def clear_sky_mask(
-    rows: NDArray, rays: NDArray, sun_c: NDArray, ratio: float, sample: NDArray, valid: NDArray
+CLOUD_CELLS = 24
+"""Cells per side of the thin-cloud mask's grid of image-plane ray components (about 7 deg
+at the optical axis of a fisheye)."""
+_CELL_MIN_PIXELS = 8  # tested pixels a cell needs to be judged
+
+
+@lru_cache(maxsize=16)
+def sky_cells(cam: CameraModel) -> NDArray:
+    """The thin-cloud mask's cell ``(n,)`` of each field-of-view pixel: a
+    :data:`CLOUD_CELLS` x :data:`CLOUD_CELLS` grid of the camera-frame ray's ``(x, y)`` in
+    ``[-1, 1]``, cached per camera (docs/measurement.md §4)."""
+    rays = camera_constants(cam, np.float64).rays
+    idx = [np.clip(((c + 1.0) * (0.5 * CLOUD_CELLS)).astype(np.intp), 0, CLOUD_CELLS - 1)
+           for c in rays[:2]]  # fmt: skip
+    cells = idx[0] * CLOUD_CELLS + idx[1]
+    cells.setflags(write=False)
+    return cells
+
+
+def cloudy_cells(
+    rows: NDArray, rays: NDArray, sun_c: NDArray, ratio: float, valid: NDArray, cells: NDArray
 ) -> NDArray:
-    """Pixels not flagged as cloud ``(n,)``: a thin cloud depolarizes, so its DoP falls short
-    of the clear sky's ``d_max sin^2 T / (1 + cos^2 T)`` (T the angle to the sun ``sun_c``
-    (3,)), with ``d_max`` the median ratio over the ``valid`` pixels among ``sample``
-    (index) where the shape exceeds 0.5. Flagged: shape above 0.3 and
-    ``DoP < ratio d_max shape`` (docs/measurement.md §4).
+    """Sky cells flagged as thin cloud ``(CLOUD_CELLS**2,)`` bool (docs/measurement.md §4).
+
+    A thin cloud depolarizes: its polarized intensity falls short of the clear sky's
+    ``d_max f S0``, ``f = sin^2 T / (1 + cos^2 T)`` (T the angle to the sun ``sun_c``
+    (3,)), ``d_max`` the median of ``p / (f S0)`` over the ``valid`` pixels with
+    ``f > 0.5``. A cell is flagged when, over its valid pixels with ``f > 0.3`` (near the
+    sun and the antisun the deficit is the neutral points'; at least
+    :data:`_CELL_MIN_PIXELS` of them), ``sum p < ratio d_max sum f S0``. The sums average
+    the noise of ``p`` out: unlike a per-pixel cut, no pixel is dropped for its noise.
 
     Parameters
     ----------
     rows : (3, n)
-        Stokes rows S0, S1, S2 [DN]. rays : (3, n) camera rays.
+        Stokes rows S0, S1, S2 [DN] (e.g. the chain's subsample).
+    rays : (3, n)
+        Camera-frame unit rays.
+    sun_c : (3,)
+        Camera-frame unit sun.
+    ratio : float
+        ``cloud_dop_ratio`` [-].
+    valid : (n,) bool
+    cells : (n,) int
+        The pixels' :func:`sky_cells`.
     """
     cos_t = rays[0] * sun_c[0] + rays[1] * sun_c[1] + rays[2] * sun_c[2]
     c2 = cos_t * cos_t
     shape = (1.0 - c2) / (1.0 + c2)
-    p2 = rows[1] * rows[1] + rows[2] * rows[2]
-    fit = valid[sample] & (shape[sample] > _SHAPE_FIT) & (rows[0][sample] > 0)
+    p = np.sqrt(rows[1] * rows[1] + rows[2] * rows[2])
+    n_cells = CLOUD_CELLS * CLOUD_CELLS
+    fit = valid & (shape > _SHAPE_FIT) & (rows[0] > 0)
     if not np.any(fit):
-        return np.ones(shape.shape, dtype=bool)
-    s0 = rows[0][sample][fit]
-    d_max = float(np.median(np.sqrt(p2[sample][fit]) / (s0 * shape[sample][fit])))
-    floor = (ratio * d_max) * shape * rows[0]
-    return (shape < _SHAPE_TEST) | (p2 >= floor * floor)
+        return np.zeros(n_cells, dtype=bool)
+    d_max = float(np.median(p[fit] / (rows[0][fit] * shape[fit])))
+    tested = valid & (shape > _SHAPE_TEST)
+    cells_t = cells[tested]
+    count = np.bincount(cells_t, minlength=n_cells)
+    sum_p = np.bincount(cells_t, weights=p[tested], minlength=n_cells)
+    sum_clear = np.bincount(cells_t, weights=(shape * rows[0])[tested], minlength=n_cells)
+    return (count >= _CELL_MIN_PIXELS) & (sum_p < (ratio * d_max) * sum_clear)
 
 
 def model_weights(
