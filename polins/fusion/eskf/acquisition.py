@@ -34,7 +34,6 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.fusion.acquisition import consensus, yaw_offset
-from polins.fusion.acquisition import gap_variance as gap_variance  # api.py imports it here
 from polins.fusion.eskf.alignment import rotate_yaw
 from polins.fusion.eskf.blocks import Layout, inject_nav
 from polins.fusion.items import MeasurementItem, UpdateRecord, item_model
