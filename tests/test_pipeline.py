@@ -73,8 +73,9 @@ def test_streaming_matches_batch(sim_log, batch):
     m, mb = nav.drain_measurements(), batch.measurements
     pd.testing.assert_series_equal(m["ok"], mb["ok"])
     pd.testing.assert_series_equal(m["accepted"], mb["accepted"])
-    for col in ("yaw", "yaw_std", "prior_yaw", "prior_roll", "nis", "epsilon"):
+    for col in ("yaw", "yaw_std", "prior_yaw", "prior_roll", "epsilon"):
         np.testing.assert_allclose(m[col], mb[col], rtol=0, atol=1e-12, err_msg=col)
+    np.testing.assert_allclose(m["nis"], mb["nis"], rtol=1e-9, atol=0)  # summation order
     # the live estimate (IMU ahead of the images) ends on the batch solution
     last = nav.state()
     assert not last.aligning and last.heading_known and last.images_pending == 0
@@ -104,8 +105,11 @@ def test_batch_heading_agrees_with_truth_within_sigma(sim_log, batch):
     assert heading["within_3sigma"] >= 0.95
     assert abs(heading["final_deg"]) < 3 * heading["final_sigma_deg"]
     assert heading["rms_deg"] < 0.5
-    meas = s["accuracy_vs_reference"]["measurement_heading"]
-    assert meas["rms_normalized"] < 3.0 and meas["rms_deg"] < 0.5
+    assert s["accuracy_vs_reference"]["measurement_heading"]["rms_deg"] < 0.5
+    # the images' residual at the reference attitude, z - h(x_true, prior), is what their
+    # sigma must cover (the raw heading error also holds the prior's tilt error)
+    res = s["accuracy_vs_reference"]["measurement_residual"]
+    assert 0.6 < res["rms_normalized"] < 1.4 and res["within_3sigma"] > 0.95, res
 
 
 def test_measurements_do_not_depend_on_workers(sim_log, batch):
