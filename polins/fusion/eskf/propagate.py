@@ -33,6 +33,7 @@ from polins.fusion.items import MeasurementItem, UpdateRecord
 from polins.fusion.vehicle import VehicleAiding
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown
+from polins.models import ImuModel
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int_]
@@ -47,6 +48,7 @@ class Filter(Protocol):
     its configuration, error state and nominal state, and its steps."""
 
     config: FuseConfig
+    model: ImuModel
     layout: Layout
     mech: Mechanization
     qc: FloatArray
@@ -222,7 +224,6 @@ def _schedule(
     return T, W, A, merged[:N], epochs
 
 
-
 def advance(
     filt: Filter,
     t: FloatArray,
@@ -324,7 +325,9 @@ def _segment(
     track = strapdown(start, T[s : e + 1], wc, fc, filt.mech)
     dt = np.diff(T[s : e + 1])
     sf = "sg" in filt.errors
-    parts = [dt[:, None], (track.mat_nb_mid * dt[:, None, None]).reshape(-1, 9), track.dv_force_n]
+    rate_sq_dt = np.sum((0.5 * (wc[:-1] + wc[1:])) ** 2, axis=1) * dt
+    parts = [dt[:, None], (track.mat_nb_mid * dt[:, None, None]).reshape(-1, 9), track.dv_force_n,
+             rate_sq_dt[:, None]]  # fmt: skip
     if sf:
         phi, _ = rotation_vectors(wc[:-1], wc[1:], dt)
         f_dt = 0.5 * (fc[:-1] + fc[1:]) * dt[:, None]
@@ -340,8 +343,9 @@ def _segment(
         sums[:, 0], sums[:, 1:10].reshape(S, 3, 3), sums[:, 10:13], track.vel_n[a],
         track.lat[a], track.alt_m[a],
         filt.mech, filt.divisors(),
-        sums[:, 13:22].reshape(S, 3, 3) if sf else None,
-        sums[:, 22:31].reshape(S, 3, 3) if sf else None,
+        sums[:, 14:23].reshape(S, 3, 3) if sf else None,
+        sums[:, 23:32].reshape(S, 3, 3) if sf else None,
+        sums[:, 13],
     )  # fmt: skip
     errors = {k: v.copy() for k, v in filt.errors.items()}
     n_nodes = len(rec.nodes) if rec is not None else 0
@@ -394,8 +398,9 @@ def _chunk(filt: Filter, step: StepNominal, j: int) -> tuple[FloatArray, FloatAr
         gyro_divisor=step.gyro_divisor, accel_divisor=step.accel_divisor,
         mat_omega=None if step.mat_omega is None else step.mat_omega[part],
         mat_force=None if step.mat_force is None else step.mat_force[part],
+        rate_sq=None if step.rate_sq is None else step.rate_sq[part],
     )  # fmt: skip
-    return filt.layout.dynamics(sub), sub.dt, filt.qc
+    return filt.layout.dynamics(sub), sub.dt, filt.layout.step_noise(filt.qc, filt.model, sub)
 
 
 def interpolate(
