@@ -442,3 +442,10 @@ def test_tune_command_writes_a_model_that_loads(log_dir, tmp_path, capsys):
     assert main(bad) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "gyro_arx" in err
+
+
+def test_docs_outputs_page_lists_the_filter_options(capsys):
+    assert main(["fuse", "--list-options"]) == 0
+    listing = capsys.readouterr().out.rstrip("\n")
+    page = (ROOT / "docs" / "outputs.md").read_text(encoding="utf-8")
+    assert listing in page  # regenerate with polins fuse --list-options
