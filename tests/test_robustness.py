@@ -39,10 +39,10 @@ def drive(seed):
     return model, traj, imu, truth, meas
 
 
-def fuse(imu, meas, model, rot_nb0=None, **options):
+def fuse(imu, meas, model, rot_nb0=None, backend="eskf", **options):
     config = FuseConfig.from_options(None, imu_model=model, site=SITE, output_rate_hz=2.0)
     config = FuseConfig.from_options(config, **options)
-    return run_fusion(imu, meas, rot_nb0=rot_nb0, config=config)
+    return run_fusion(imu, meas, backend, rot_nb0=rot_nb0, config=config)
 
 
 def yaw_z(solution, truth):
@@ -117,7 +117,8 @@ def test_stream_recovers_from_a_bad_first_heading():
     assert reasons[0].endswith("disagrees") and reasons[1].startswith("used for the yaw")
 
 
-def test_outliers_are_still_rejected():
+@pytest.mark.parametrize("backend", ["eskf", "graph"])
+def test_outliers_are_still_rejected(backend):
     # 10 % of the headings off by 30 to 180 deg (either sign), the first one among them
     model, _, imu, truth, meas = drive(3)
     rng = np.random.default_rng(7)
@@ -125,7 +126,7 @@ def test_outliers_are_still_rejected():
     idx = np.sort(np.concatenate([[0], rng.choice(np.arange(1, len(bad)), 30, replace=False)]))
     size = rng.uniform(30.0, 180.0, idx.size) * rng.choice([-1.0, 1.0], idx.size)
     bad.loc[idx, "yaw"] = wrap_angle(bad.loc[idx, "yaw"] + np.radians(size))
-    res = fuse(imu, bad, model)
+    res = fuse(imu, bad, model, backend=backend)
     upd = res.updates
     assert not upd.loc[idx, "accepted"].any()  # all of them (>= 99 % required)
     good = np.setdiff1d(np.arange(len(bad)), idx)
