@@ -33,7 +33,9 @@ def broad_trial(trial: str, seed: int = 7):
     ok = np.isfinite(d["qw"].to_numpy())
     quat = np.where(ok[:, None], d[["qx", "qy", "qz", "qw"]].to_numpy(), [0.0, 0.0, 0.0, 1.0])
     ypr = Rotation.from_quat(quat).as_euler("ZYX")
-    imu = pd.DataFrame({"t": t, **{c: d[c].to_numpy() for c in ("gx", "gy", "gz", "ax", "ay", "az")}})
+    imu = pd.DataFrame(
+        {"t": t, **{c: d[c].to_numpy() for c in ("gx", "gy", "gz", "ax", "ay", "az")}}
+    )
     rng = np.random.default_rng(seed)
     k = np.searchsorted(t, np.arange(t[0] + 1.0, t[-1], 1.0) - 1e-9)
     k = k[ok[k] & (np.abs(ypr[k, 1]) < np.radians(80.0))]  # yaw undefined near pitch 90 deg
@@ -43,7 +45,9 @@ def broad_trial(trial: str, seed: int = 7):
     rest = rest[d["moving"].to_numpy()[rest] == 0]
     zupt = pd.DataFrame({"t": t[rest], "zupt_std": 0.01})
     meas = heading.merge(zupt, on="t", how="outer").sort_values("t").reset_index(drop=True)
-    truth = pd.DataFrame({"t": t, "yaw": ypr[:, 0], "pitch": ypr[:, 1], "roll": ypr[:, 2], "ok": ok})
+    truth = pd.DataFrame(
+        {"t": t, "yaw": ypr[:, 0], "pitch": ypr[:, 1], "roll": ypr[:, 2], "ok": ok}
+    )
     return imu, meas, truth, Rotation.from_quat(quat[0])
 
 
@@ -64,7 +68,9 @@ def score(sol: pd.DataFrame, truth: pd.DataFrame):
 @pytest.mark.parametrize("trial", ["02", "15"])
 def test_broad_trials_are_accurate_and_consistent_with_the_defaults(trial):
     imu, meas, truth, rot0 = broad_trial(trial)
-    sol = polins.fuse(imu, meas, imu_model="broad-aktos-t", rot_nb0=rot0, output_rate_hz=2.0, **SITE)
+    sol = polins.fuse(
+        imu, meas, imu_model="broad-aktos-t", rot_nb0=rot0, output_rate_hz=2.0, **SITE
+    )
     upd = sol.attrs["updates"]
     zupt = upd[upd["name"] == "zupt"]
     assert zupt["accepted"].mean() > 0.99  # no lock-out of the rests after the motion

@@ -191,8 +191,16 @@ def test_shipped_models_are_plausible_and_round_trip():
         values = model.toml_values()
         assert set(values) == {"gyro", "accel"}
         extra = {"misalignment_mrad", "misalignment_corr_s"} if model.gyro_misalignment else set()
-        assert set(values["gyro"]) == {"arw_deg_per_sqrt_h", "bias_deg_per_h",
-                                       "bias_rw_deg_per_h_per_sqrt_h", "scale_factor_ppm"} | extra
+        assert (
+            set(values["gyro"])
+            == {
+                "arw_deg_per_sqrt_h",
+                "bias_deg_per_h",
+                "bias_rw_deg_per_h_per_sqrt_h",
+                "scale_factor_ppm",
+            }
+            | extra
+        )
 
 
 # ----------------------------------------------------------------------------- BROAD sensor

@@ -252,7 +252,9 @@ class FuseConfig:
         MEMS-grade model whose scale factors are not both switched off)."""
         if self.scale_factors is None:
             model = self.imu
-            return model.grade == "mems" and (model.gyro_scale_factor + model.accel_scale_factor) > 0
+            return (
+                model.grade == "mems" and (model.gyro_scale_factor + model.accel_scale_factor) > 0
+            )
         return bool(self.scale_factors)
 
     @classmethod

@@ -124,8 +124,11 @@ def camera_model_toml(
             "gain": cam.gain,
             "efficiency": cam.efficiency,
             "dark_offset_dn": cam.dark_offset_dn,
-            **({} if cam.instrumental_dop_std is None
-               else {"instrumental_dop_std": cam.instrumental_dop_std}),  # fmt: skip
+            **(
+                {}
+                if cam.instrumental_dop_std is None
+                else {"instrumental_dop_std": cam.instrumental_dop_std}
+            ),
             **{MAP_FIELDS[f]: Path(p).as_posix() for f, p in paths.items()},
         },
         "noise": {

@@ -83,7 +83,10 @@ _MEASUREMENTS: dict[str, tuple[str, str]] = {
     "yaw_std_meas": (_ANG, "1-sigma of the yaw from the pixel noise alone (no model error)"),
     "yaw_std_noise": (_ANG, "pixel-noise part of yaw_std (docs/measurement.md §12)"),
     "yaw_std_model": (_ANG, "model-error part of yaw_std (sky-model misfit and camera-fixed part)"),
-    "yaw_std_correlated": (_ANG, "camera-fixed part of yaw_std_model, common to consecutive images"),
+    "yaw_std_correlated": (
+        _ANG,
+        "camera-fixed part of yaw_std_model, common to consecutive images",
+    ),
     "sun_bx": ("-", "measured unit sun vector, body x"),
     "sun_by": ("-", "measured unit sun vector, body y"),
     "sun_bz": ("-", "measured unit sun vector, body z"),
