@@ -122,6 +122,22 @@ def zero_sum_basis(n: int) -> FloatArray:
     return q[:, 1:]
 
 
+def gain_residual_dop_std(gain: ArrayLike, gain_std: ArrayLike) -> float | None:
+    """The camera-fixed polarization [-, 1-sigma per Stokes component] that channel gains
+    known to ``gain_std`` leave: the camera file's ``instrumental_dop_std``
+    (docs/measurement.md §12).
+
+    A relative gain error ``e_k`` of channel k adds ``(e_0 - e_90)/2`` to ``S1/S0`` and
+    ``(e_45 - e_135)/2`` to ``S2/S0``; with independent errors of 1-sigma ``s_k`` each
+    component has ``sqrt(s_a^2 + s_b^2)/2``, whose mean square over the two is
+    ``mean(s^2)/2``. None when a standard error is unknown (NaN).
+    """
+    rel = np.asarray(gain_std, dtype=float) / np.asarray(gain, dtype=float)
+    if not np.all(np.isfinite(rel)):
+        return None
+    return float(np.sqrt(np.mean(rel**2) / 2.0))
+
+
 def provenance(kind: str, method: str, n_images: int, **figures: Any) -> dict[str, Any]:
     """The provenance record of a calibration: kind, UTC date, method, images, fit figures."""
     return {

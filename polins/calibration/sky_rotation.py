@@ -60,7 +60,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from polins.calibration.images import centred_channels, channel_stack, provenance
+from polins.calibration.images import (
+    centred_channels,
+    channel_stack,
+    gain_residual_dop_std,
+    provenance,
+)
 from polins.calibration.malus import base_stokes, fit_turning_polarization
 from polins.compass.camera import doubled_aop_from_evector, fov_mask, pixel_rays_c
 from polins.errors import UserInputError
@@ -130,11 +135,15 @@ class SkyRotationResult:
 
     def camera_changes(self) -> dict[str, Any]:
         """The camera-model fields this calibration sets."""
-        return {
+        changes: dict[str, Any] = {
             "gain": self.gain.copy(),
             "transmission_angle": self.transmission_angle.copy(),
             "efficiency": self.efficiency.copy(),
         }
+        residual = gain_residual_dop_std(self.gain, self.gain_std)
+        if residual is not None:  # what the fit leaves: the sigma's camera-fixed part
+            changes["instrumental_dop_std"] = residual
+        return changes
 
 
 def ring_windows(cam: CameraModel, n_rings: int) -> tuple[FloatArray, FloatArray]:
