@@ -578,19 +578,20 @@ def test_graph_imu_gap_with_images_inside():
 
 # ----------------------------------------------------------------------------- MEMS defaults
 def test_rotation_proportional_gyro_noise():
-    """ARW^2 + m^2 |w|^2 tau + s_g^2 |dtheta_W|^2 / W per keyframe interval (filter.md 9)."""
+    """ARW^2 + m^2 |w|^2 tau + s_g^2 dtheta_W,i^2 / W per keyframe interval and body axis
+    (filter.md 9): a turn about z widens the z axis only."""
     broad = polins.load_imu("broad-aktos-t")
     m, s, tau = broad.gyro_misalignment, broad.gyro_scale_factor, broad.gyro_misalignment_corr_time
     assert (m, s, tau) == pytest.approx((6e-3, 7e-3, 0.1))
-    rate_sq, turn_rate_sq = np.array([0.0, 4.0]), np.array([0.0, 1.0])
+    rate_sq, turn_rate_sq = np.array([0.0, 4.0]), np.array([[0.0, 0.0, 0.0], [0.0, 0.25, 1.0]])
     np.testing.assert_allclose(
         G.gyro_noise_density(broad, rate_sq, turn_rate_sq, scale_factors=True),
-        broad.gyro_arw**2 + m**2 * tau * rate_sq + s**2 * turn_rate_sq,
+        broad.gyro_arw**2 + m**2 * tau * rate_sq[:, None] + s**2 * turn_rate_sq,
         rtol=1e-14,
     )
     np.testing.assert_allclose(
         G.gyro_noise_density(broad, rate_sq, turn_rate_sq, scale_factors=False),
-        broad.gyro_arw**2 + m**2 * tau * rate_sq,
+        np.repeat((broad.gyro_arw**2 + m**2 * tau * rate_sq)[:, None], 3, axis=1),
         rtol=1e-14,
     )
     # in the problem: a turntable at rest, then spinning at 2 rad/s from t = 5 s
@@ -612,11 +613,13 @@ def test_rotation_proportional_gyro_noise():
         items = polins.fusion.items.items_from_table(meas, use_sun=True)
         arr = imu[["gx", "gy", "gz"]].to_numpy(), imu[["ax", "ay", "az"]].to_numpy()
         prob = G.problem.Problem(cfg, False, imu["t"].to_numpy(), *arr, items, traj.rot_nb[0])
-        density = np.array([p.getGyroscopeCovariance()[0, 0] for p in prob.interval_params])
+        cov = np.array([p.getGyroscopeCovariance() for p in prob.interval_params])
+        density = cov[:, 2, 2]
         rest = prob.t_key[1:] < 4.999  # the last sample interval before 5 s turns
         np.testing.assert_allclose(density[rest], model.gyro_arw**2, rtol=1e-12)
         spin = prob.t_key[:-1] >= 5.0  # 2 rad turned per 1 s window: 4 rad^2/s
         np.testing.assert_allclose(density[spin], model.gyro_arw**2 + sg**2 * 4.0, rtol=1e-9)
+        np.testing.assert_allclose(cov[:, 0, 0], model.gyro_arw**2, rtol=1e-12)  # x: no turn
 
 
 def ugv_defaults(seeds, duration):

@@ -248,7 +248,7 @@ class Problem:
         for i, mf in enumerate(self.meas):
             self.meas_at[mf.k].append(i)
 
-    def _params(self, **densities: float) -> gtsam.PreintegrationCombinedParams:
+    def _params(self, **densities: Any) -> gtsam.PreintegrationCombinedParams:
         """Preintegration parameters of the run with the densities ``densities`` replaced
         (:func:`~polins.fusion.graph.factors.preintegration_params`); without a site the
         gyro bias random walk covers the unmechanized Earth rate, as the ESKF's
@@ -284,9 +284,9 @@ class Problem:
         half = 0.5 * SCALE_FACTOR_WINDOW_S
         lo, hi = (np.clip(mid + d, seg.t[0], seg.t[-1]) for d in (-half, half))
         turn = np.array([np.interp(hi, seg.t, a) - np.interp(lo, seg.t, a) for a in angle.T]).T
-        turn_rate_sq = np.einsum("ij,ij->i", turn, turn) / np.maximum(hi - lo, 1e-9)
+        turn_rate_sq = turn**2 / np.maximum(hi - lo, 1e-9)[:, None]
         gyro = gyro_noise_density(c.imu, rate_sq, turn_rate_sq, scale_factors=c.use_scale_factors)
-        accel = np.full(gyro.shape, c.imu.accel_vrw**2)
+        accel = np.full(gyro.shape[0], c.imu.accel_vrw**2)
         for t_a, t_b, (att_var, vel_var) in self.gaps:  # spread over the gap's intervals
             inside = (mid > t_a) & (mid < t_b)
             gyro[inside] += att_var / (t_b - t_a)
@@ -294,7 +294,7 @@ class Problem:
         if np.all(gyro == c.imu.gyro_arw**2) and np.all(accel == c.imu.accel_vrw**2):
             return [self.params] * len(rate_sq)
         return [
-            self._params(gyro_density=float(g), accel_density=float(a))
+            self._params(gyro_density=g, accel_density=float(a))
             for g, a in zip(gyro, accel, strict=True)
         ]
 
