@@ -124,12 +124,16 @@ def fov_mask(cam: CameraModel) -> BoolArray:
     with np.errstate(invalid="ignore"):
         mask = rays[..., 2] >= np.cos(cam.fov_max)
     if cam.occlusion_polygons:
-        occluded = np.zeros(cam.superpixel_shape, dtype=np.uint8)
-        polys = [np.round(p).astype(np.int32) for p in cam.occlusion_polygons]
-        cv2.fillPoly(occluded, polys, color=1)
-        mask &= occluded == 0
+        mask &= ~_inside_polygons(cam, cam.occlusion_polygons)
     mask.setflags(write=False)
     return mask
+
+
+def _inside_polygons(cam: CameraModel, polygons: tuple[FloatArray, ...]) -> BoolArray:
+    """Superpixels inside any of ``polygons`` (superpixel ``[u, v]``), ``(Hs, Ws)`` bool."""
+    inside = np.zeros(cam.superpixel_shape, dtype=np.uint8)
+    cv2.fillPoly(inside, [np.round(p).astype(np.int32) for p in polygons], color=1)
+    return inside == 1
 
 
 @lru_cache(maxsize=8)
@@ -143,10 +147,7 @@ def roi_mask(cam: CameraModel) -> BoolArray:
         with np.errstate(invalid="ignore"):
             mask &= pixel_rays_c(cam)[..., 2] >= np.cos(cam.roi_max_field_angle)
     if cam.roi_polygons:
-        inside = np.zeros(cam.superpixel_shape, dtype=np.uint8)
-        polys = [np.round(p).astype(np.int32) for p in cam.roi_polygons]
-        cv2.fillPoly(inside, polys, color=1)
-        mask &= inside == 1
+        mask &= _inside_polygons(cam, cam.roi_polygons)
     mask.setflags(write=False)
     return mask
 
