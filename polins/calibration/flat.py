@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from polins.calibration.images import channel_stack, gain_residual_dop_std, provenance
+from polins.calibration.images import channel_changes, channel_stack, provenance
 from polins.errors import UserInputError
 from polins.models import CameraModel
 
@@ -57,11 +57,7 @@ class FlatResult:
 
     def camera_changes(self) -> dict[str, Any]:
         """The camera-model fields this calibration sets."""
-        changes: dict[str, Any] = {"gain": self.gain.copy()}
-        residual = gain_residual_dop_std(self.gain, self.gain_std)
-        if residual is not None:  # what the fit leaves: the sigma's camera-fixed part
-            changes["instrumental_dop_std"] = residual
-        return changes
+        return channel_changes(self.gain, self.gain_std)
 
 
 def calibrate_flat(

@@ -122,20 +122,31 @@ def zero_sum_basis(n: int) -> FloatArray:
     return q[:, 1:]
 
 
-def gain_residual_dop_std(gain: ArrayLike, gain_std: ArrayLike) -> float | None:
-    """The camera-fixed polarization [-, 1-sigma per Stokes component] that channel gains
-    known to ``gain_std`` leave: the camera file's ``instrumental_dop_std``
-    (docs/measurement.md §12).
+def channel_changes(
+    gain: FloatArray,
+    gain_std: FloatArray,
+    transmission_angle: FloatArray | None = None,
+    efficiency: FloatArray | None = None,
+) -> dict[str, Any]:
+    """The camera-model fields a channel calibration sets: the fitted ``gain`` (and
+    ``transmission_angle`` [rad], ``efficiency`` when fitted) and ``instrumental_dop_std``,
+    the camera-fixed polarization [-, 1-sigma per Stokes component] that gains known to
+    ``gain_std`` leave (docs/measurement.md §12).
 
     A relative gain error ``e_k`` of channel k adds ``(e_0 - e_90)/2`` to ``S1/S0`` and
     ``(e_45 - e_135)/2`` to ``S2/S0``; with independent errors of 1-sigma ``s_k`` each
     component has ``sqrt(s_a^2 + s_b^2)/2``, whose mean square over the two is
-    ``mean(s^2)/2``. None when a standard error is unknown (NaN).
+    ``mean(s^2)/2``. Left out when a standard error is unknown (NaN).
     """
+    changes: dict[str, Any] = {"gain": gain.copy()}
+    if transmission_angle is not None:
+        changes["transmission_angle"] = transmission_angle.copy()
+    if efficiency is not None:
+        changes["efficiency"] = efficiency.copy()
     rel = np.asarray(gain_std, dtype=float) / np.asarray(gain, dtype=float)
-    if not np.all(np.isfinite(rel)):
-        return None
-    return float(np.sqrt(np.mean(rel**2) / 2.0))
+    if np.all(np.isfinite(rel)):
+        changes["instrumental_dop_std"] = float(np.sqrt(np.mean(rel**2) / 2.0))
+    return changes
 
 
 def provenance(kind: str, method: str, n_images: int, **figures: Any) -> dict[str, Any]:

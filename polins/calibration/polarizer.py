@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from polins.calibration.images import channel_stack, gain_residual_dop_std, provenance
+from polins.calibration.images import channel_changes, channel_stack, provenance
 from polins.calibration.malus import fit_turning_polarization
 from polins.errors import UserInputError
 from polins.models import CameraModel
@@ -79,15 +79,7 @@ class PolarizerResult:
 
     def camera_changes(self) -> dict[str, Any]:
         """The camera-model fields this calibration sets."""
-        changes: dict[str, Any] = {
-            "gain": self.gain.copy(),
-            "transmission_angle": self.transmission_angle.copy(),
-            "efficiency": self.efficiency.copy(),
-        }
-        residual = gain_residual_dop_std(self.gain, self.gain_std)
-        if residual is not None:  # what the fit leaves: the sigma's camera-fixed part
-            changes["instrumental_dop_std"] = residual
-        return changes
+        return channel_changes(self.gain, self.gain_std, self.transmission_angle, self.efficiency)
 
 
 def calibrate_polarizer(

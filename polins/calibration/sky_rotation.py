@@ -62,8 +62,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from polins.calibration.images import (
     centred_channels,
+    channel_changes,
     channel_stack,
-    gain_residual_dop_std,
     provenance,
 )
 from polins.calibration.malus import base_stokes, fit_turning_polarization
@@ -135,15 +135,7 @@ class SkyRotationResult:
 
     def camera_changes(self) -> dict[str, Any]:
         """The camera-model fields this calibration sets."""
-        changes: dict[str, Any] = {
-            "gain": self.gain.copy(),
-            "transmission_angle": self.transmission_angle.copy(),
-            "efficiency": self.efficiency.copy(),
-        }
-        residual = gain_residual_dop_std(self.gain, self.gain_std)
-        if residual is not None:  # what the fit leaves: the sigma's camera-fixed part
-            changes["instrumental_dop_std"] = residual
-        return changes
+        return channel_changes(self.gain, self.gain_std, self.transmission_angle, self.efficiency)
 
 
 def ring_windows(cam: CameraModel, n_rings: int) -> tuple[FloatArray, FloatArray]:
