@@ -565,7 +565,8 @@ class ESKF:
             s.mat_force += mat_h * (0.5 * (fc0 + fc1) * dt)
         s.n += 1
         s.dt += dt
-        s.rate_sq += float(np.sum((0.5 * (wc0 + wc1)) ** 2)) * dt
+        if self.model.gyro_misalignment:  # the rotation-proportional attitude noise
+            s.rate_sq += float(np.sum((0.5 * (wc0 + wc1)) ** 2)) * dt
         s.mat += mat_h * dt
         s.dv += dv_force
         self.set_nominal(t1, mat1, v1, lat1, lon1, h1)
