@@ -27,11 +27,21 @@ FloatArray = NDArray[np.float64]
 
 
 def yaw_offset(
-    item: MeasurementItem, mat_nb: FloatArray, vel_n: FloatArray | None, tilt_coupling: bool
+    item: MeasurementItem,
+    mat_nb: FloatArray,
+    vel_n: FloatArray | None,
+    tilt_coupling: bool,
+    tilt_cov: FloatArray | None = None,
 ) -> tuple[float, float]:
     """The yaw rotation [rad] that zeroes the residual of a yaw / sun ``item`` at the
-    attitude ``mat_nb``, and its 1-sigma [rad] (the item's, for a sun vector divided by
-    the cosine of the sun elevation)."""
+    attitude ``mat_nb``, and its 1-sigma [rad].
+
+    The sigma is the item's (for a sun vector divided by the cosine of the sun elevation).
+    A tilt-coupled yaw (docs/measurement.md, tilt coupling) also implies a yaw that moves
+    by ``-(H_tilt / H_yaw) dtheta`` with the estimate's tilt error ``dtheta``: with
+    ``tilt_cov`` (the 2 x 2 covariance [rad^2] of the navigation-frame tilt errors about
+    East and North) that part is added in quadrature (docs/filter.md §7.1).
+    """
     if item.kind == "yaw":
         # one step for the yaw of body x (exact), three Newton steps with the tilt
         # coupling (the model depends on the prior's tilt)
@@ -41,6 +51,9 @@ def yaw_offset(
             mat = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix() @ mat_nb
             lin = item_model(item, mat, vel_n, tilt_coupling)
             delta += float(lin.residual[0] / lin.H[0, 2])
+        if coupled and tilt_cov is not None:
+            a = lin.H[0, 0:2] / lin.H[0, 2]  # the last step's, at the converged yaw
+            std = math.hypot(std, math.sqrt(max(float(a @ tilt_cov @ a), 0.0)))
         return float(wrap_angle(delta)), std
     s_n = np.asarray(item.sun_n, dtype=float)
     s_n = s_n / np.linalg.norm(s_n)

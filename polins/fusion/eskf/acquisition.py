@@ -31,12 +31,11 @@ from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from polins.fusion.acquisition import consensus, yaw_offset
 from polins.fusion.eskf.alignment import rotate_yaw
 from polins.fusion.eskf.blocks import Layout, inject_nav
-from polins.fusion.items import MeasurementItem, UpdateRecord, item_model
+from polins.fusion.items import MeasurementItem, UpdateRecord
 from polins.fusion.result import FusionEvent
 
 FloatArray = NDArray[np.float64]
@@ -124,8 +123,7 @@ def hold_heading(filt: Filter, item: MeasurementItem, rec: UpdateRecord | None) 
         The heading's record.
     """
     mat = inject_nav(filt.mat_nb, filt.vel_n, filt.lat, filt.lon, filt.alt_m, filt.x[:9])[0]
-    offset, std = yaw_offset(item, mat, filt.vel_n, filt.tilt_coupling)
-    std = math.hypot(std, tilt_part(filt, item, offset, mat))
+    offset, std = yaw_offset(item, mat, filt.vel_n, filt.tilt_coupling, filt.P[0:2, 0:2])
     rec = rec or filt.reject(item, HELD)
     acq, records = filt.acquisition, filt.records
     for c in acq.hold(Candidate(item.t, offset, std, rec)):
@@ -153,19 +151,6 @@ def hold_heading(filt: Filter, item: MeasurementItem, rec: UpdateRecord | None) 
     filt.yaw_epoch += 1
     acq.clear()
     return records[-1]
-
-
-def tilt_part(filt: Filter, item: MeasurementItem, offset: float, mat_nb: FloatArray) -> float:
-    """The part of a heading's implied yaw offset [rad, 1-sigma] that comes from the
-    filter's tilt error: a tilt-coupled yaw (docs/measurement.md, tilt coupling) implies a
-    yaw that moves by ``-(H_tilt / H_yaw) dtheta`` with the tilt error ``dtheta``, whose
-    covariance is the filter's; zero without the coupling."""
-    if item.kind != "yaw" or not filt.tilt_coupling or item.sun_n is None:
-        return 0.0
-    mat = Rotation.from_rotvec([0.0, 0.0, offset]).as_matrix() @ mat_nb
-    H = item_model(item, mat, filt.vel_n, True).H[0]
-    a = H[0:2] / H[2]
-    return math.sqrt(max(float(a @ filt.P[0:2, 0:2] @ a), 0.0))
 
 
 def _amend(records: list[UpdateRecord], rec: UpdateRecord, accepted: bool, reason: str) -> None:

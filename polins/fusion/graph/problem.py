@@ -334,7 +334,7 @@ class Problem:
         vel_n0 = np.asarray(c.vel_n0, dtype=float)
         if rot_nb0 is not None:
             att_var = np.asarray(c.att_std0, dtype=float) ** 2
-            turn = self._acquire(rot_nb0, vel_n0, float(np.sqrt(att_var[2])))
+            turn = self._acquire(rot_nb0, vel_n0, float(np.sqrt(att_var[2])), att_var[:2])
             rot = Rotation.from_rotvec([0.0, 0.0, turn]) * rot_nb0
             if turn != 0.0:
                 att_var[2] = 1.0  # re-acquired: the prior's yaw is released
@@ -350,8 +350,10 @@ class Problem:
                     "self-alignment (rot_nb0=None) needs a valid yaw or sun-vector "
                     "measurement; give rot_nb0 or measurements"
                 )
-            rot = Rotation.from_rotvec([0.0, 0.0, self._acquire(level, vel_n0, None)]) * level
             std = max(m.accel_vrw / np.sqrt(duration), 1e-9)
+            tilt_var = np.full(2, (std**2 + m.accel_bias**2) / self.gravity**2)
+            rot = Rotation.from_rotvec([0.0, 0.0, self._acquire(level, vel_n0, None, tilt_var)])
+            rot = rot * level
             priors.append(levelling_factor(X(0), B(0), f_mean, self.gravity, std))
             # Tilt from the levelling factor only (1e4 rad is no information); yaw 1 rad
             # until the first yaw / sun measurement (the ESKF's P[2, 2] = 1).
@@ -371,12 +373,15 @@ class Problem:
         )
         return state0, bias0, priors
 
-    def _acquire(self, rot0: Rotation, vel_n0: FloatArray, yaw_std0: float | None) -> float:
+    def _acquire(
+        self, rot0: Rotation, vel_n0: FloatArray, yaw_std0: float | None, tilt_var: FloatArray
+    ) -> float:
         """The yaw acquisition of the graph (docs/filter.md §7.1, §9): the turn [rad] of the
         first keyframe's yaw.
 
         The keyframes are dead-reckoned from ``rot0`` (zero bias); each heading gives its
-        :func:`~polins.fusion.acquisition.yaw_offset` there, and the headings are taken in
+        :func:`~polins.fusion.acquisition.yaw_offset` there (with the first keyframe's
+        tilt variances ``tilt_var`` [rad^2], East and North), and the headings are taken in
         time order until ``acquire_k`` of the last ``acquire_n`` agree
         (:func:`~polins.fusion.acquisition.consensus`), as the ESKF does online.
 
@@ -401,7 +406,7 @@ class Problem:
                 state = self.preintegrate(k, bias, np.zeros(6)).predict(state, bias)
             k_state = max(k_state, mf.k)
             mat = state.attitude().matrix()
-            offset, std = yaw_offset(mf.item, mat, None, self.tilt_coupling)
+            offset, std = yaw_offset(mf.item, mat, None, self.tilt_coupling, np.diag(tilt_var))
             offsets.append(offset)
             stds.append(std)
             lo = max(0, len(offsets) - c.acquire_n)
