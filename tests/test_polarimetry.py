@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 import polins
 from polins.compass.paper import paper_algorithm1
-from polins.compass.pixels import check_raw, mosaic_channels, pixel_set
+from polins.compass.pixels import check_raw, gather_channels, mosaic_channels, pixel_set
 from polins.compass.polarimetry import (
     aop,
     dop,
@@ -16,8 +16,12 @@ from polins.compass.polarimetry import (
     relative_gradient,
     stokes_calibration,
     stokes_from_channels,
+    stokes_image,
+    stokes_noise_variance,
+    stokes_rows,
     unpolarized_intensity,
     validity_mask,
+    validity_rows,
 )
 from polins.compass.sunlight import stokes_compensated, stokes_with_sunlight, sunlight_direction
 
@@ -255,3 +259,39 @@ def test_relative_gradient_of_a_ramp():
     v, u = np.mgrid[0:hs, 0:ws].astype(float)
     s0 = (1000.0 + 3.0 * u + 4.0 * v).ravel()[pixels.index]
     np.testing.assert_allclose(relative_gradient(s0, pixels) * s0, 5.0, rtol=1e-12)
+
+
+@pytest.mark.parametrize("variant", ["odd", "shot noise", "dop cut, no gradient test"])
+def test_compiled_stokes_pass_is_bit_identical(variant):
+    # The compiled pass of an integer mosaic gives the very numbers of the numpy row kernels
+    # (docs/measurement.md §10), on a pixel set with holes (runs split inside rows),
+    # saturated channels and pixels that fail each test.
+    cam = _odd_camera().downscaled(4)
+    kw = {"s0_min": 10.0, "redundancy_max_sigma": 4.0, "gradient_max": 0.05, "dop_min": 0.0}
+    if variant == "shot noise":
+        cam = cam.with_changes(conversion_gain_e_per_dn=2.5)
+    if variant == "dop cut, no gradient test":
+        kw.update(gradient_max=None, dop_min=0.05)
+    rng = np.random.default_rng(7)
+    raw = render(cam, SUN_N, Rotation.from_euler("ZYX", [0.4, 0.05, -0.03]), epsilon=0.01,
+                 noise_std=1.5, rng=rng, dtype=np.uint16)  # fmt: skip
+    raw[rng.integers(0, raw.shape[0], 300), rng.integers(0, raw.shape[1], 300)] = 4095
+    raw[rng.integers(0, raw.shape[0], 300), rng.integers(0, raw.shape[1], 300)] = 0
+    holes = rng.random(cam.superpixel_shape) < 0.1
+    pixels = pixel_set(cam, np.asarray(polins.compass.camera.roi_mask(cam)) & ~holes)
+    cal = stokes_calibration(cam, True, pixels)
+    got = stokes_image(raw, pixels, cam, cal, **kw)
+    channels = gather_channels(raw, pixels, np.float32)
+    rows = stokes_rows(channels, cal, np.float32)
+    sigma2 = stokes_noise_variance(cam, rows[0])
+    valid = validity_rows(channels, rows, pixels, cam, sigma2, finite_check=False, **kw)
+    assert got.channels is None and got.rows.dtype == np.float32
+    np.testing.assert_array_equal(got.rows, rows)
+    np.testing.assert_array_equal(got.sigma2, sigma2)
+    np.testing.assert_array_equal(got.valid, valid)
+    np.testing.assert_array_equal(got.unsaturated, channels.max(axis=0) < cam.saturation_dn)
+    assert 0.5 < valid.mean() < 0.99 and not got.unsaturated.all()
+    # With the channels asked for (the numpy path), the same numbers again.
+    again = stokes_image(raw, pixels, cam, cal, channels=True, **kw)
+    np.testing.assert_array_equal(again.channels, channels)
+    np.testing.assert_array_equal(again.valid, got.valid)

@@ -67,13 +67,8 @@ from polins.compass.modelerror import (
     model_weights,
     sky_cells,
 )
-from polins.compass.pixels import check_raw, gather_channels
-from polins.compass.polarimetry import (
-    stokes_calibration,
-    stokes_noise_variance,
-    stokes_rows,
-    validity_rows,
-)
+from polins.compass.pixels import check_raw
+from polins.compass.polarimetry import stokes_calibration, stokes_image
 from polins.compass.prediction import PixelData, pixel_data
 from polins.compass.sectors import eigen_jackknife, jackknife_variance, sector_runs
 from polins.compass.selection import Selection, selection_mask
@@ -98,13 +93,13 @@ def _excluded_sun(sun_c: NDArray, rays: NDArray, cos_excl: float) -> NDArray:
 
 
 def _noise_ratio(
-    nu: NDArray, sigma2: NDArray | float, channels: NDArray, saturation: float, index: NDArray
+    nu: NDArray, sigma2: NDArray | float, unsaturated: NDArray, index: NDArray
 ) -> float:
     """Robust measured / declared channel noise on the unsaturated pixels among ``index``,
     before the redundancy test (which would truncate ``nu``): from the fraction ``f`` of
     ``|nu| < sigma``, ``1 / Phi^-1((1 + f)/2)`` for Gaussian noise (a quantile, like the
     MAD, but without a sort)."""
-    used = channels.take(index, axis=1).max(axis=0) < saturation  # False for NaN
+    used = unsaturated.take(index)  # False for NaN
     n = int(np.count_nonzero(used))
     if n == 0:
         return float("nan")
@@ -212,22 +207,18 @@ def measure_image(
     # rounding is 4 orders below the quantisation noise; float mosaics in float64.
     dtype = np.float64 if np.issubdtype(arr.dtype, np.floating) else np.float32
     cache = camera_constants(cam, dtype)
-    channels = gather_channels(arr, cache.pixels, dtype)
     cal = stokes_calibration(cam, opt.gain_correction, cache.pixels)  # per-pixel with maps
-    rows = stokes_rows(channels, cal, dtype)
-    sigma2 = stokes_noise_variance(cam, rows[0])
-    valid = validity_rows(
-        channels,
-        rows,
+    image = stokes_image(
+        arr,
         cache.pixels,
         cam,
-        sigma2,
-        dop_min=0.0,  # applied per selection, see below
+        cal,
         s0_min=opt.s0_min_dn,
         redundancy_max_sigma=opt.redundancy_max_sigma,
-        gradient_max=opt.gradient_max,
-        finite_check=dtype == np.float64,
+        gradient_max=opt.gradient_max,  # the DoP is cut per selection, see below
+        channels=compensation is not None,
     )
+    rows, sigma2, valid = image.rows, image.sigma2, image.valid
     if opt.max_field_angle is not None:
         valid &= cache.rays[2] >= dtype(np.cos(opt.max_field_angle))
     sigma_l2 = sigma2 * cal.sigma_l_factors() ** 2
@@ -240,14 +231,15 @@ def measure_image(
     stride = max(1, n_fov // opt.gn_pixels) if opt.gn_pixels > 0 else 1
     sub = subsample(cam, dtype, stride)
     # Every 4th subsample pixel: ~4,000 pixels give the ratio to ~2 %.
-    noise_ratio = _noise_ratio(rows[3], sigma2, channels, cam.saturation_dn, sub.index[::4])
+    noise_ratio = _noise_ratio(rows[3], sigma2, image.unsaturated, sub.index[::4])
 
     cos_excl = float(np.cos(opt.sun_exclusion))
     epsilon_px = None
     if compensation is not None:
         if s_n is None:
             raise UserInputError(f"method={method!r} needs sun_n")
-        est_rows, epsilon_px = compensation(channels, cam, mat_cn @ s_n)
+        assert image.channels is not None
+        est_rows, epsilon_px = compensation(image.channels, cam, mat_cn @ s_n)
         est_rows = est_rows.astype(dtype)
         valid &= np.isfinite(est_rows).all(axis=0)
     else:

@@ -1,13 +1,23 @@
-"""Row kernels: BLAS-free dot products of component-first rows, the inner loops of the chain.
+"""Row kernels: BLAS-free dot products of component-first rows, and the chain's compiled passes.
 
 The per-image pipeline stores per-pixel quantities component-first, one contiguous row of
 ``n`` pixels per component (``(3, n)``), because that layout makes every step one pass
 over memory (docs/measurement.md §10). Thin products of such rows use ``einsum`` (numpy's
 own loops), not BLAS: OpenBLAS threads stall for tens of milliseconds on a busy machine
 for these shapes, and single-threaded they are no faster.
+
+A full-resolution image is memory-bound: a pass over its 4e5 field-of-view pixels costs
+about as much as the arithmetic of several. The hottest chains of passes are therefore
+fused into single loops compiled with numba (:func:`compiled`, machine code cached on disk
+next to this module); each repeats the numpy expressions it replaces operation for
+operation, in the same dtype and order, so that its results are bit-identical to them
+(tests/test_polarimetry.py).
 """
 
 from __future__ import annotations
+
+import functools
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,3 +38,149 @@ def moment(e: NDArray, omega: NDArray) -> NDArray:
     """Weighted moment ``sum_i omega_i e_i e_i^T`` ``(3, 3)`` of component-first vectors
     ``e`` ``(3, n)`` with weights ``omega`` ``(n,)``, in float64."""
     return np.asarray(np.einsum("in,jn->ij", e * omega, e), dtype=float)
+
+
+def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    raw: NDArray,
+    runs: NDArray,
+    position: NDArray,
+    matrix: NDArray,
+    offset: NDArray,
+    limits: NDArray,
+    noise: NDArray,
+    vertical: NDArray,
+    rows: NDArray,
+    sigma2: NDArray,
+    valid: NDArray,
+    unsaturated: NDArray,
+) -> None:
+    """Raw mosaic -> Stokes rows, channel noise variance and validity in one pass per pixel
+    (:func:`polins.compass.polarimetry.stokes_image` for integer mosaics, float32 rows).
+
+    ``raw`` is the flat mosaic of width ``2 Ws``; ``runs (m + 1, 3)`` the pixel set's runs
+    (superpixel row, first column, first position; a final row holds the set size);
+    ``position (4,)`` the mosaic position ``2 r + c`` of each channel; ``matrix (4, 4)``
+    and ``offset (4,)`` float32 the Stokes rows (S0, S1, S2, nu) and their dark-offset
+    part; ``limits`` = (saturation, s0_min, redundancy^2 [float32 when the noise is one
+    number], dop_min^2, gradient_max^2 or -1); ``noise`` = (read^2, mean(g)/2, G_e,
+    per-pixel flag); ``vertical (n,)`` the :class:`polins.compass.pixels.PixelSet`'s.
+    ``sigma2`` is written only with the per-pixel flag.
+    """
+    f32 = np.float32
+    zero = f32(0.0)
+    sat, s0_min, dop2 = f32(limits[0]), f32(limits[1]), f32(limits[3])
+    red2, grad2 = limits[2], limits[4]
+    read2, gain_half, conversion_gain = noise[0], noise[1], noise[2]
+    per_pixel = noise[3] != 0.0
+    red2_read2 = f32(red2 * read2)  # a common sigma^2: numpy compares in float32
+    # The matrix and offsets as scalars: the compiler cannot hoist them out of the loop
+    # past the stores into ``rows``.
+    m00, m01, m02, m03 = matrix[0, 0], matrix[0, 1], matrix[0, 2], matrix[0, 3]
+    m10, m11, m12, m13 = matrix[1, 0], matrix[1, 1], matrix[1, 2], matrix[1, 3]
+    m20, m21, m22, m23 = matrix[2, 0], matrix[2, 1], matrix[2, 2], matrix[2, 3]
+    m30, m31, m32, m33 = matrix[3, 0], matrix[3, 1], matrix[3, 2], matrix[3, 3]
+    o0, o1, o2, o3 = offset[0], offset[1], offset[2], offset[3]
+    n_runs = runs.shape[0] - 1
+    for k in range(n_runs):
+        i2, p0, p1 = 2 * runs[k, 0], runs[k, 2], runs[k + 1, 2]
+        col0 = 2 * runs[k, 1]
+        ch_a = raw[i2 + position[0] // 2, col0 + position[0] % 2 :: 2]
+        ch_b = raw[i2 + position[1] // 2, col0 + position[1] % 2 :: 2]
+        ch_c = raw[i2 + position[2] // 2, col0 + position[2] % 2 :: 2]
+        ch_d = raw[i2 + position[3] // 2, col0 + position[3] % 2 :: 2]
+        r0, r1, r2, r3 = rows[0, p0:p1], rows[1, p0:p1], rows[2, p0:p1], rows[3, p0:p1]
+        ok_run, unsat_run = valid[p0:p1], unsaturated[p0:p1]
+        # Two loops per run (a few kB, in cache): branch-free arithmetic the compiler
+        # vectorises, then the tests.
+        for q in range(p1 - p0):
+            a, b, c, d = f32(ch_a[q]), f32(ch_b[q]), f32(ch_c[q]), f32(ch_d[q])
+            # einsum's order: ((m0 a + m1 b) + m2 c) + m3 d, then the offset
+            r0[q] = (((zero + m00 * a) + m01 * b) + m02 * c) + m03 * d - o0
+            r1[q] = (((zero + m10 * a) + m11 * b) + m12 * c) + m13 * d - o1
+            r2[q] = (((zero + m20 * a) + m21 * b) + m22 * c) + m23 * d - o2
+            r3[q] = (((zero + m30 * a) + m31 * b) + m32 * c) + m33 * d - o3
+        for q in range(p1 - p0):
+            unsat = (f32(ch_a[q]) < sat) & (f32(ch_b[q]) < sat)
+            unsat &= (f32(ch_c[q]) < sat) & (f32(ch_d[q]) < sat)
+            unsat_run[q] = unsat
+            s0, s1, s2 = r0[q], r1[q], r2[q]
+            ok_run[q] = unsat & (s0 >= s0_min) & (s1 * s1 + s2 * s2 >= dop2 * (s0 * s0))
+        if per_pixel:
+            for q in range(p1 - p0):
+                var = read2 + (max(np.float64(r0[q]), 0.0) * gain_half) / conversion_gain
+                sigma2[p0 + q] = var
+                ok_run[q] &= np.float64(r3[q] * r3[q]) <= red2 * var
+        else:
+            for q in range(p1 - p0):
+                ok_run[q] &= r3[q] * r3[q] <= red2_read2
+    if grad2 < 0.0:
+        return
+    g2 = f32(grad2)
+    half = f32(0.5)
+    s0_row = rows[0]
+    for k in range(n_runs):
+        p0, p1 = runs[k, 2], runs[k + 1, 2]
+        length = p1 - p0
+        s, below, ok_run = s0_row[p0:p1], vertical[p0:p1], valid[p0:p1]
+        for q in range(1, length - 1):  # central difference inside the run
+            gx = ((s[q + 1] - s[q]) + (s[q] - s[q - 1])) * half
+            gy = s0_row[below[q]] - s[q]
+            ok_run[q] &= gx * gx + gy * gy < g2 * (s[q] * s[q])
+        # One-sided at the ends (the same pixel when the run has one): the numbers of
+        # numpy's sum of forward differences, where the missing side adds an exact zero.
+        last = length - 1
+        for q in (0, last):
+            if q < last:
+                gx = s[q + 1] - s[q]
+            elif q > 0:
+                gx = s[q] - s[q - 1]
+            else:
+                gx = zero
+            gy = s0_row[below[q]] - s[q]
+            ok_run[q] &= gx * gx + gy * gy < g2 * (s[q] * s[q])
+
+
+def select_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    s0: NDArray,
+    s1: NDArray,
+    s2: NDArray,
+    n1: NDArray,
+    n2: NDArray,
+    e2: NDArray,
+    valid: NDArray,
+    rays: NDArray,
+    sun_c: NDArray,
+    p_min: NDArray,
+    limits: NDArray,
+    mask: NDArray,
+) -> None:
+    """The pixel selection of :func:`polins.compass.selection.select_pixels` in one pass:
+    ``mask`` (n,) of the pixels whose polarized intensity along the predicted direction
+    ``along = n1 S1 + n2 S2`` clears ``dop_min E^2 S0`` and ``E^2 p_min`` (``p_min`` (n,),
+    or (1,) for one value, or (0,) for none), that are valid and outside the sun circle;
+    ``limits`` = (dop_min, cos_exclusion), ``sun_c`` (3,) in the rows' dtype."""
+    dop_min, cos_exclusion = limits[0], limits[1]
+    sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
+    zero = sx - sx
+    px, py, pz = rays[0], rays[1], rays[2]
+    per_pixel, common = p_min.size > 1, p_min.size == 1
+    p_common = p_min[0] if common else zero
+    for i in range(s0.size):
+        along = n1[i] * s1[i]
+        along += n2[i] * s2[i]
+        ok = along >= (dop_min * e2[i]) * s0[i]
+        if per_pixel:
+            ok &= along >= e2[i] * p_min[i]
+        elif common:
+            ok &= along >= e2[i] * p_common
+        cos_sun = ((zero + sx * px[i]) + sy * py[i]) + sz * pz[i]  # einsum's order
+        mask[i] = ok & valid[i] & (cos_sun <= cos_exclusion)
+
+
+@functools.cache
+def compiled(name: str) -> Any:
+    """The numba-compiled version of this module's kernel ``name`` (numba is imported here,
+    not with polins; the machine code is cached on disk next to this module)."""
+    import numba
+
+    return numba.njit(cache=True, nogil=True)(globals()[name])

@@ -93,6 +93,10 @@ class PixelSet:
     vertical_step : (n,) float32
         +1 (lower neighbour), -1 (upper) or 0 (none): the one-sided vertical difference is
         ``(s0[vertical] - s0) * vertical_step``.
+    runs : (m + 1, 3) int
+        The set as runs of horizontally adjacent superpixels: superpixel row, first column
+        and first position of every run; a last row ``(0, 0, n)`` closes the final run (the
+        compiled passes stream the mosaic rows run by run).
     """
 
     shape: tuple[int, int]
@@ -103,6 +107,7 @@ class PixelSet:
     horizontal_scale: NDArray[np.float32]
     vertical: IntArray
     vertical_step: NDArray[np.float32]
+    runs: IntArray
 
     @property
     def size(self) -> int:
@@ -140,7 +145,11 @@ def _build_pixel_set(cam: CameraModel, mask: BoolArray) -> PixelSet:
     horizontal_scale = np.where(count > 0, 1.0 / np.maximum(count, 1), 0.0).astype(np.float32)
     vertical = np.where(down >= 0, down, np.where(up >= 0, up, own))
     vertical_step = np.where(down >= 0, 1.0, np.where(up >= 0, -1.0, 0.0)).astype(np.float32)
-    arrays = (index, pair_index, channel_at, right_step, horizontal_scale, vertical, vertical_step)
+    start = np.flatnonzero(np.r_[index.size > 0, (index[1:] != index[:-1] + 1) | (j[1:] == 0)])
+    runs = np.stack([i[start], j[start], start], -1)
+    runs = np.vstack([runs, [0, 0, index.size]]).astype(np.intp)
+    arrays = (index, pair_index, channel_at, right_step, horizontal_scale, vertical, vertical_step,
+              runs)  # fmt: skip
     for arr in arrays:
         arr.setflags(write=False)
     return PixelSet((hs, ws), *arrays)

@@ -17,7 +17,9 @@ maps the calibration is one constant matrix, as before.
 
 The row kernels :func:`stokes_rows` and :func:`validity_rows` work on component-first
 arrays (``(k, n)``, one contiguous row per component), the layout of the per-image chain
-(:mod:`polins.compass.chain`); the other public functions take and return the library's
+(:mod:`polins.compass.chain`); :func:`stokes_image` runs them on a raw image, for an
+integer mosaic fused into one compiled pass (:func:`polins.compass.kernels.stokes_pass`,
+bit-identical). The other public functions take and return the library's
 trailing-component layout.
 """
 
@@ -32,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from polins.compass.camera import pixel_rays_c
+from polins.compass.kernels import compiled
 from polins.compass.pixels import PixelSet, check_raw, gather_channels, pixel_set
 from polins.models import CameraModel
 
@@ -41,6 +44,7 @@ BoolArray = NDArray[np.bool_]
 __all__ = [
     "PixelStokes",
     "StokesCalibration",
+    "StokesImage",
     "aop",
     "dop",
     "pixel_stokes",
@@ -48,6 +52,7 @@ __all__ = [
     "relative_gradient",
     "stokes_calibration",
     "stokes_from_channels",
+    "stokes_image",
     "stokes_noise_variance",
     "stokes_rows",
     "unpolarized_intensity",
@@ -375,6 +380,87 @@ def validity_rows(
                 s0 * s0
             )
     return ok
+
+
+@dataclass(frozen=True, eq=False)
+class StokesImage:
+    """Stokes rows and the sun-independent validity of a raw image's pixel set.
+
+    Attributes
+    ----------
+    rows : (4, n)
+        (S0, S1, S2, nu) [DN] (:func:`stokes_rows`).
+    sigma2 : (n,) or float
+        Channel noise variance [DN^2] (:func:`stokes_noise_variance`).
+    valid : (n,) bool
+        :func:`validity_rows`.
+    unsaturated : (n,) bool
+        No channel at or above the saturation level (False for a non-finite channel).
+    channels : (4, n) or None
+        The channels [DN], when asked for.
+    """
+
+    rows: NDArray
+    sigma2: NDArray | float
+    valid: BoolArray
+    unsaturated: BoolArray
+    channels: NDArray | None
+
+
+def stokes_image(
+    raw: NDArray,
+    pixels: PixelSet,
+    cam: CameraModel,
+    cal: StokesCalibration,
+    *,
+    s0_min: float,
+    redundancy_max_sigma: float,
+    gradient_max: float | None,
+    dop_min: float = 0.0,
+    channels: bool = False,
+) -> StokesImage:
+    """:func:`gather_channels`, :func:`stokes_rows`, :func:`stokes_noise_variance` and
+    :func:`validity_rows` of a raw mosaic (checked) on ``pixels`` (docs/model.md §7).
+
+    An unsigned-integer mosaic is processed in float32, a float mosaic in float64 (with the
+    finite checks). Without per-pixel calibration rows and without ``channels``, an
+    integer mosaic takes one compiled pass over its rows (the same numbers:
+    :func:`polins.compass.kernels.stokes_pass`), which reads the mosaic once instead of
+    writing and re-reading the channels and the rows several times.
+    """
+    integer = not np.issubdtype(raw.dtype, np.floating)
+    dtype = np.float32 if integer else np.float64
+    if integer and cal.pixel is None and not channels:
+        matrix = np.vstack([cal.estimator, cal.null]).astype(np.float32)
+        offset = np.zeros(4, np.float32)
+        if np.any(cal.offset):
+            offset = matrix @ cal.offset.astype(np.float32)
+        shot = np.isfinite(cam.conversion_gain_e_per_dn)
+        noise = np.array([cam.read_noise_dn**2, 0.5 * float(np.mean(cam.gain)),
+                          cam.conversion_gain_e_per_dn, float(shot)])  # fmt: skip
+        grad2 = -1.0 if gradient_max is None else gradient_max * gradient_max
+        limits = np.array([cam.saturation_dn, s0_min, redundancy_max_sigma**2,
+                           dop_min * dop_min, grad2])  # fmt: skip
+        n = pixels.size
+        rows = np.empty((4, n), np.float32)
+        sigma2_px = np.empty(n if shot else 0)
+        valid = np.empty(n, bool)
+        unsaturated = np.empty(n, bool)
+        position = np.argsort(np.asarray(pixels.channel_at).ravel())  # channel -> 2 r + c
+        compiled("stokes_pass")(np.ascontiguousarray(raw), pixels.runs, position, matrix,
+                                offset, limits, noise, pixels.vertical, rows, sigma2_px, valid,
+                                unsaturated)  # fmt: skip
+        common = float(stokes_noise_variance(cam, 0.0)) if not shot else 0.0
+        return StokesImage(rows, sigma2_px if shot else common, valid, unsaturated, None)
+    chan = gather_channels(raw, pixels, dtype)
+    rows = stokes_rows(chan, cal, dtype)
+    sigma2 = stokes_noise_variance(cam, rows[0])
+    valid = validity_rows(chan, rows, pixels, cam, sigma2, dop_min=dop_min, s0_min=s0_min,
+                          redundancy_max_sigma=redundancy_max_sigma, gradient_max=gradient_max,
+                          finite_check=not integer)  # fmt: skip
+    with np.errstate(invalid="ignore"):
+        unsaturated = chan.max(axis=0) < cam.saturation_dn
+    return StokesImage(rows, sigma2, valid, unsaturated, chan if channels else None)
 
 
 def validity_mask(

@@ -4,7 +4,9 @@ The final selection of the per-image chain (docs/measurement.md §4) keeps a pix
 is valid (:func:`polins.compass.polarimetry.validity_rows`), outside the sun circle, and
 its polarized intensity *along the predicted direction* clears both a DoP and a noise
 threshold. That component's noise is independent of the residual's, so the cut selects no
-noise (a cut on |L| would, and bias epsilon near the sun).
+noise (a cut on |L| would, and bias epsilon near the sun). On the chain's arrays (one dtype)
+the rule runs as one compiled pass, :func:`polins.compass.kernels.select_pass`, with the
+numbers of the numpy expressions.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.compass.kernels import dot_rows
+from polins.compass.kernels import compiled, dot_rows
 from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
 
 __all__ = ["Selection", "select_pixels", "selection_mask"]
@@ -51,6 +53,19 @@ def select_pixels(
 ) -> NDArray:
     """Mask ``(n,)`` of the selected pixels for the camera-frame sun ``sun_c`` whose
     :func:`polins.compass.prediction.doubled_prediction` is ``(n1, n2, e2)``."""
+    dt = data.s0.dtype
+    p_min = np.asarray(select.p_min)
+    arrays = (data.s1, data.s2, n1, n2, e2, select.rays) + ((p_min,) if p_min.ndim else ())
+    if all(a.dtype == dt for a in arrays) and select.valid.dtype == np.bool_:
+        # One compiled pass, the same numbers as the numpy expressions below.
+        if not np.any(p_min):
+            p_min = np.zeros(0)
+        mask = np.empty(data.s0.shape, dtype=bool)
+        compiled("select_pass")(data.s0, data.s1, data.s2, n1, n2, e2, select.valid,
+                                select.rays, sun_c.astype(dt), p_min.astype(dt).reshape(-1),
+                                np.array([select.dop_min, select.cos_exclusion], dtype=dt),
+                                mask)  # fmt: skip
+        return mask
     along = n1 * data.s1
     along += n2 * data.s2
     mask = along >= (select.dop_min * e2) * data.s0

@@ -1,0 +1,50 @@
+"""The compiled passes of the per-image chain give the numbers of the numpy expressions they
+replace, bit for bit (docs/measurement.md §10); the Stokes pass is tested in
+tests/test_polarimetry.py."""
+
+import numpy as np
+import pytest
+
+from polins.compass.kernels import dot_rows
+from polins.compass.prediction import doubled_prediction, pixel_data
+from polins.compass.selection import Selection, select_pixels
+
+
+def _numpy_selection(data, select, sun_c, n1, n2, e2):
+    """docs/measurement.md §4, written out with numpy."""
+    along = n1 * data.s1
+    along += n2 * data.s2
+    mask = along >= (select.dop_min * e2) * data.s0
+    if np.any(select.p_min):
+        mask &= along >= e2 * select.p_min
+    mask &= select.valid
+    mask &= dot_rows(sun_c.astype(data.s0.dtype), select.rays) <= select.cos_exclusion
+    return mask
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("p_min", ["per pixel", "common", "none"])
+def test_compiled_selection_is_bit_identical(dtype, p_min):
+    rng = np.random.default_rng(3)
+    n = 20_000
+    s0 = rng.uniform(50.0, 500.0, n).astype(dtype)
+    dop = rng.uniform(0.0, 0.3, n)
+    aop = rng.uniform(0.0, np.pi, n)
+    s1 = (s0 * dop * np.cos(2 * aop)).astype(dtype)
+    s2 = (s0 * dop * np.sin(2 * aop)).astype(dtype)
+    rays = rng.normal(size=(3, n))
+    rays[2] = np.abs(rays[2])
+    rays = (rays / np.linalg.norm(rays, axis=0)).astype(dtype)
+    sun_c = np.array([0.3, -0.5, 0.8])
+    sun_c /= np.linalg.norm(sun_c)
+    x = np.ascontiguousarray(sun_c[1] * rays[2] - sun_c[2] * rays[1])  # s x p, image plane
+    y = np.ascontiguousarray(sun_c[2] * rays[0] - sun_c[0] * rays[2])
+    n1, n2, e2 = doubled_prediction(x.astype(dtype), y.astype(dtype))
+    threshold = {"per pixel": rng.uniform(0.0, 20.0, n).astype(dtype), "common": 7.5, "none": 0.0}
+    select = Selection(rng.random(n) < 0.9, rays, float(np.cos(np.radians(10.0))), 0.03,
+                       threshold[p_min])  # fmt: skip
+    data = pixel_data(s0, s1, s2, None, 1.0, rays=rays)
+    got = select_pixels(data, select, sun_c, n1, n2, e2)
+    want = _numpy_selection(data, select, sun_c, n1, n2, e2)
+    np.testing.assert_array_equal(got, want)
+    assert 0.2 < want.mean() < 0.9
