@@ -5,7 +5,7 @@ tests/test_polarimetry.py."""
 import numpy as np
 import pytest
 
-from polins.compass.kernels import dot_rows
+from polins.compass.kernels import compiled, dot_rows, moment
 from polins.compass.prediction import doubled_prediction, pixel_data
 from polins.compass.selection import Selection, select_pixels
 
@@ -48,3 +48,23 @@ def test_compiled_selection_is_bit_identical(dtype, p_min):
     want = _numpy_selection(data, select, sun_c, n1, n2, e2)
     np.testing.assert_array_equal(got, want)
     assert 0.2 < want.mean() < 0.9
+
+
+def test_compiled_float64_sums_match_numpy():
+    # The float64 reductions (moment, the eigen jackknife's run sums) are summed in vector
+    # lanes: numpy's numbers to float64 rounding.
+    rng = np.random.default_rng(5)
+    n = 50_000
+    e = rng.normal(size=(3, n))
+    omega = rng.uniform(0.0, 2.0, n)
+    want = np.einsum("in,jn->ij", e * omega, e)
+    np.testing.assert_allclose(moment(e, omega), want, rtol=1e-12)
+    np.testing.assert_allclose(moment(np.ascontiguousarray(e.T).T, omega), want, rtol=1e-12)
+    assert moment(e.astype(np.float32), omega.astype(np.float32)).dtype == np.float64
+    starts = np.r_[0, np.cumsum(rng.integers(1, 300, 400))]
+    starts = starts[starts < n]
+    wr = rng.normal(size=n)
+    got = np.empty((starts.size, 4))
+    compiled("eigen_run_sums")(e, wr, omega, starts, got)
+    rows = np.vstack([e * wr, omega])
+    np.testing.assert_allclose(got.T, np.add.reduceat(rows, starts, axis=1), rtol=1e-9, atol=1e-9)

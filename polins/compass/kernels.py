@@ -36,7 +36,12 @@ def dot_rows(v: NDArray, rows: NDArray) -> NDArray:
 
 def moment(e: NDArray, omega: NDArray) -> NDArray:
     """Weighted moment ``sum_i omega_i e_i e_i^T`` ``(3, 3)`` of component-first vectors
-    ``e`` ``(3, n)`` with weights ``omega`` ``(n,)``, in float64."""
+    ``e`` ``(3, n)`` with weights ``omega`` ``(n,)``, in float64 (float64 input: one
+    compiled pass, :func:`moment_pass`)."""
+    if e.dtype == np.float64 and omega.dtype == np.float64:
+        out = np.empty((3, 3))
+        compiled("moment_pass")(e, omega, out)
+        return out
     return np.asarray(np.einsum("in,jn->ij", e * omega, e), dtype=float)
 
 
@@ -177,10 +182,56 @@ def select_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
         mask[i] = ok & valid[i] & (cos_sun <= cos_exclusion)
 
 
+def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> None:  # pragma: no cover
+    """``out (3, 3) = sum_i omega_i e_i e_i^T`` of ``e (3, n)``, ``omega (n,)`` in one pass
+    (a float64 reduction: compiled with reassociation, i.e. summed in vector lanes)."""
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for i in range(omega.size):
+        w = omega[i]
+        x, y, z = e[0, i], e[1, i], e[2, i]
+        wx, wy = w * x, w * y
+        a00 += wx * x
+        a01 += wx * y
+        a02 += wx * z
+        a11 += wy * y
+        a12 += wy * z
+        a22 += (w * z) * z
+    out[0, 0], out[1, 1], out[2, 2] = a00, a11, a22
+    out[0, 1] = out[1, 0] = a01
+    out[0, 2] = out[2, 0] = a02
+    out[1, 2] = out[2, 1] = a12
+
+
+def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    e: NDArray, wr: NDArray, omega: NDArray, starts: NDArray, out: NDArray
+) -> None:
+    """Per-run sums ``out (m, 4)`` = (``sum wr_i e_i`` (3), ``sum omega_i``) over the runs
+    of pixels beginning at ``starts (m,)`` (the last run ends at ``n``): the sector sums
+    of the eigen jackknife (:func:`polins.compass.sectors.eigen_jackknife`), a float64
+    reduction compiled with reassociation."""
+    n, m = omega.size, starts.size
+    for r in range(m):
+        end = starts[r + 1] if r + 1 < m else n
+        s0 = s1 = s2 = s3 = 0.0
+        for i in range(starts[r], end):
+            w = wr[i]
+            s0 += e[0, i] * w
+            s1 += e[1, i] * w
+            s2 += e[2, i] * w
+            s3 += omega[i]
+        out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
+
+
+_REDUCTIONS = ("moment_pass", "eigen_run_sums")
+"""Kernels that only sum in float64: compiled with reassociation (vector lanes), which moves
+their results by float64 rounding only; the others keep numpy's order exactly."""
+
+
 @functools.cache
 def compiled(name: str) -> Any:
     """The numba-compiled version of this module's kernel ``name`` (numba is imported here,
     not with polins; the machine code is cached on disk next to this module)."""
     import numba
 
-    return numba.njit(cache=True, nogil=True)(globals()[name])
+    fastmath = {"reassoc"} if name in _REDUCTIONS else False
+    return numba.njit(cache=True, nogil=True, fastmath=fastmath)(globals()[name])

@@ -17,7 +17,8 @@ The leave-one-out estimates are one linearized step from the full-set normal equ
 and for the eigen solution the first-order change of its smallest eigenvector when the
 sector's moment ``M_g`` is removed. The per-sector sums
 run over the pixels in index order as ``np.add.reduceat`` over runs of equal sector
-(sectors are contiguous in the image, so a row holds few runs).
+(sectors are contiguous in the image, so a row holds few runs); the eigen jackknife's in
+one compiled pass (:func:`polins.compass.kernels.eigen_run_sums`).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from polins.compass.eigen import EigenSolution
+from polins.compass.kernels import compiled
 from polins.compass.lens import camera_constants
 from polins.models import CameraModel
 
@@ -39,6 +41,7 @@ __all__ = [
     "SECTOR_RINGS",
     "SectorRuns",
     "eigen_jackknife",
+    "group_sums",
     "jackknife_variance",
     "ml_jackknife",
     "sector_runs",
@@ -110,6 +113,12 @@ def sector_sums(rows: NDArray, runs: SectorRuns, sun_c: NDArray) -> FloatArray:
     camera-frame sun ``sun_c``. The runs (about a hundred pixels each) are summed in the
     rows' dtype, the runs' sums in float64."""
     run_sums = np.add.reduceat(rows, runs.starts, axis=1).astype(np.float64)
+    return group_sums(run_sums, runs, sun_c)
+
+
+def group_sums(run_sums: NDArray, runs: SectorRuns, sun_c: NDArray) -> FloatArray:
+    """Per-group sums ``(G, m)`` of per-run sums ``(m, n_runs)`` (the groups of
+    :meth:`SectorRuns.mirror_groups` for the camera-frame sun ``sun_c``)."""
     group_of_run = runs.mirror_groups(sun_c)[runs.labels]
     n_groups = SECTOR_AZIMUTHS * SECTOR_RINGS
     return np.stack(
@@ -167,11 +176,9 @@ def eigen_jackknife(
     the full-set level-frame sun.
     """
     sun_c = mat_lc.T @ sun_l
-    rows = np.empty((4, e.shape[1]), dtype=e.dtype)
-    for j in range(3):
-        np.multiply(e[j], wr, out=rows[j])
-    rows[3] = omega
-    sums = sector_sums(rows, runs, sun_c)
+    run_sums = np.empty((runs.starts.size, 4))
+    compiled("eigen_run_sums")(e, wr, omega, runs.starts, run_sums)  # one pass, float64
+    sums = group_sums(run_sums.T, runs, sun_c)
     lam, vec = solution.eigenvalues, solution.eigenvectors
     a_plus = sum(np.outer(vec[:, j], vec[:, j]) / (lam[j] - lam[0]) for j in (1, 2))
     ds = (sums[:, :3] @ mat_lc.T) @ np.asarray(a_plus).T  # (G, 3) level frame
