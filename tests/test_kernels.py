@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from polins.compass.kernels import compiled, dot_rows, moment
-from polins.compass.prediction import doubled_prediction, pixel_data
-from polins.compass.selection import Selection, select_pixels
+from polins.compass.prediction import doubled_prediction, image_plane_evector, pixel_data
+from polins.compass.selection import Selection, select_pixels, selection_mask
 
 
 def _numpy_selection(data, select, sun_c, n1, n2, e2):
@@ -47,6 +47,12 @@ def test_compiled_selection_is_bit_identical(dtype, p_min):
     got = select_pixels(data, select, sun_c, n1, n2, e2)
     want = _numpy_selection(data, select, sun_c, n1, n2, e2)
     np.testing.assert_array_equal(got, want)
+    assert 0.2 < want.mean() < 0.9
+    # With the prediction in the same pass (the projection lens model's rays).
+    xy = image_plane_evector(data, sun_c[:, None])
+    n1, n2, e2 = doubled_prediction(xy[0, :n], xy[0, n:])
+    want = _numpy_selection(data, select, sun_c, n1, n2, e2)
+    np.testing.assert_array_equal(selection_mask(data, select, sun_c), want)
     assert 0.2 < want.mean() < 0.9
 
 

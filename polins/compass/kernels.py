@@ -182,6 +182,48 @@ def select_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
         mask[i] = ok & valid[i] & (cos_sun <= cos_exclusion)
 
 
+def predicted_select_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    s0: NDArray,
+    s1: NDArray,
+    s2: NDArray,
+    lens_rays: NDArray,
+    valid: NDArray,
+    rays: NDArray,
+    sun_c: NDArray,
+    p_min: NDArray,
+    limits: NDArray,
+    mask: NDArray,
+) -> None:
+    """:func:`select_pass` with the prediction of the projection lens model (rays
+    ``lens_rays (3, n)``) computed in the same pass
+    (:func:`polins.compass.selection.selection_mask`): ``(x, y) = (s_y p_z - s_z p_y,
+    s_z p_x - s_x p_z)``, ``n1 = x^2 - y^2``, ``n2 = 2 x y``, ``E^2 = x^2 + y^2 + 1e-30``
+    in the order of :func:`polins.compass.prediction.image_plane_evector` and
+    :func:`polins.compass.prediction.doubled_prediction`; ``limits`` = (dop_min,
+    cos_exclusion, 1e-30)."""
+    dop_min, cos_exclusion, tiny = limits[0], limits[1], limits[2]
+    sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
+    zero = sx - sx
+    px, py, pz = rays[0], rays[1], rays[2]
+    qx, qy, qz = lens_rays[0], lens_rays[1], lens_rays[2]
+    per_pixel, common = p_min.size > 1, p_min.size == 1
+    p_common = p_min[0] if common else zero
+    for i in range(s0.size):
+        x = qz[i] * sy - sz * qy[i]
+        y = qx[i] * sz - sx * qz[i]
+        xx, yy, xy = x * x, y * y, x * y
+        e2 = (xx + yy) + tiny
+        along = (xx - yy) * s1[i]
+        along += (xy + xy) * s2[i]
+        ok = along >= (dop_min * e2) * s0[i]
+        if per_pixel:
+            ok &= along >= e2 * p_min[i]
+        elif common:
+            ok &= along >= e2 * p_common
+        cos_sun = ((zero + sx * px[i]) + sy * py[i]) + sz * pz[i]  # einsum's order
+        mask[i] = ok & valid[i] & (cos_sun <= cos_exclusion)
+
+
 def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> None:  # pragma: no cover
     """``out (3, 3) = sum_i omega_i e_i e_i^T`` of ``e (3, n)``, ``omega (n,)`` in one pass
     (a float64 reduction: compiled with reassociation, i.e. summed in vector lanes)."""

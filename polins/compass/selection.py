@@ -53,18 +53,11 @@ def select_pixels(
 ) -> NDArray:
     """Mask ``(n,)`` of the selected pixels for the camera-frame sun ``sun_c`` whose
     :func:`polins.compass.prediction.doubled_prediction` is ``(n1, n2, e2)``."""
-    dt = data.s0.dtype
-    p_min = np.asarray(select.p_min)
-    arrays = (data.s1, data.s2, n1, n2, e2, select.rays) + ((p_min,) if p_min.ndim else ())
-    if all(a.dtype == dt for a in arrays) and select.valid.dtype == np.bool_:
+    compiled_args = _compiled_arguments(data, select, sun_c, (n1, n2, e2))
+    if compiled_args is not None:
         # One compiled pass, the same numbers as the numpy expressions below.
-        if not np.any(p_min):
-            p_min = np.zeros(0)
         mask = np.empty(data.s0.shape, dtype=bool)
-        compiled("select_pass")(data.s0, data.s1, data.s2, n1, n2, e2, select.valid,
-                                select.rays, sun_c.astype(dt), p_min.astype(dt).reshape(-1),
-                                np.array([select.dop_min, select.cos_exclusion], dtype=dt),
-                                mask)  # fmt: skip
+        compiled("select_pass")(data.s0, data.s1, data.s2, n1, n2, e2, *compiled_args, mask)
         return mask
     along = n1 * data.s1
     along += n2 * data.s2
@@ -76,9 +69,31 @@ def select_pixels(
     return mask
 
 
+def _compiled_arguments(
+    data: PixelData, select: Selection, sun_c: NDArray, more: tuple[NDArray, ...]
+) -> tuple[NDArray, ...] | None:
+    """``(valid, rays, sun_c, p_min, limits)`` for the compiled passes, in the rows' dtype,
+    or None when the arrays do not share it (the numpy expressions then run)."""
+    dt = data.s0.dtype
+    p_min = np.asarray(select.p_min)
+    arrays = (data.s1, data.s2, select.rays, *more) + ((p_min,) if p_min.ndim else ())
+    if not all(a.dtype == dt for a in arrays) or select.valid.dtype != np.bool_:
+        return None
+    p_min = p_min.astype(dt).reshape(-1) if np.any(p_min) else np.zeros(0, dt)
+    limits = np.array([select.dop_min, select.cos_exclusion, 1e-30], dtype=dt)
+    return select.valid, select.rays, np.asarray(sun_c, dtype=float).astype(dt), p_min, limits
+
+
 def selection_mask(data: PixelData, select: Selection, sun_c: NDArray) -> NDArray:
     """:func:`select_pixels` for a given camera-frame sun ``(3,)`` (no residuals)."""
     n = data.s0.size
+    if data.rays is not None:  # the projection lens model: one compiled pass
+        compiled_args = _compiled_arguments(data, select, sun_c, (data.rays,))
+        if compiled_args is not None:
+            mask = np.empty(n, dtype=bool)
+            compiled("predicted_select_pass")(data.s0, data.s1, data.s2, data.rays,
+                                              *compiled_args, mask)  # fmt: skip
+            return mask
     xy = image_plane_evector(data, np.asarray(sun_c, dtype=float)[:, None])
     n1, n2, e2 = doubled_prediction(xy[0, :n], xy[0, n:])
     return select_pixels(data, select, sun_c, n1, n2, e2)
