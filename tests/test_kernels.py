@@ -1,5 +1,6 @@
 """The compiled passes of the per-image chain give the numbers of the numpy expressions they
-replace, bit for bit (docs/measurement.md §10); the Stokes pass is tested in
+replace: bit for bit where they decide the pixel selection, to float64 rounding for the
+float64 sums (docs/measurement.md §10); the Stokes pass is tested in
 tests/test_polarimetry.py."""
 
 import numpy as np
@@ -57,8 +58,8 @@ def test_compiled_selection_is_bit_identical(dtype, p_min):
 
 
 def test_compiled_float64_sums_match_numpy():
-    # The float64 reductions (moment, the eigen jackknife's run sums) are summed in vector
-    # lanes: numpy's numbers to float64 rounding.
+    # The float64 reductions (moment, the eigen jackknife's run sums) are summed in another
+    # order than numpy's: its numbers to float64 rounding.
     rng = np.random.default_rng(5)
     n = 50_000
     e = rng.normal(size=(3, n))

@@ -249,8 +249,9 @@ def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cann
 ) -> None:
     """Per-run sums ``out (m, 4)`` = (``sum wr_i e_i`` (3), ``sum omega_i``) over the runs
     of pixels beginning at ``starts (m,)`` (the last run ends at ``n``): the sector sums
-    of the eigen jackknife (:func:`polins.compass.sectors.eigen_jackknife`), a float64
-    reduction compiled with reassociation."""
+    of the eigen jackknife (:func:`polins.compass.sectors.eigen_jackknife`), in float64,
+    pixel after pixel (runs of about 50 pixels: vector lanes would cost more than they
+    save)."""
     n, m = omega.size, starts.size
     for r in range(m):
         end = starts[r + 1] if r + 1 < m else n
@@ -264,9 +265,10 @@ def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cann
         out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
 
 
-_REDUCTIONS = ("moment_pass", "eigen_run_sums")
-"""Kernels that only sum in float64: compiled with reassociation (vector lanes), which moves
-their results by float64 rounding only; the others keep numpy's order exactly."""
+_REDUCTIONS = ("moment_pass",)
+"""Kernels that only sum in float64 over long loops: compiled with reassociation (vector
+lanes), which moves their results by float64 rounding only; the others keep numpy's order
+exactly."""
 
 
 @functools.cache

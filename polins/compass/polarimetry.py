@@ -420,13 +420,14 @@ def stokes_image(
     channels: bool = False,
 ) -> StokesImage:
     """:func:`gather_channels`, :func:`stokes_rows`, :func:`stokes_noise_variance` and
-    :func:`validity_rows` of a raw mosaic (checked) on ``pixels`` (docs/model.md §7).
+    :func:`validity_rows` (``finite_check`` for float mosaics) of a raw mosaic, already
+    checked with :func:`polins.compass.pixels.check_raw`, on ``pixels`` (docs/model.md §7).
 
-    An unsigned-integer mosaic is processed in float32, a float mosaic in float64 (with the
-    finite checks). Without per-pixel calibration rows and without ``channels``, an
-    integer mosaic takes one compiled pass over its rows (the same numbers:
-    :func:`polins.compass.kernels.stokes_pass`), which reads the mosaic once instead of
-    writing and re-reading the channels and the rows several times.
+    An unsigned-integer mosaic is processed in float32, a float mosaic in float64. Without
+    per-pixel calibration rows and without ``channels``, an integer mosaic takes one
+    compiled pass (:func:`polins.compass.kernels.stokes_pass`: the same numbers), which
+    reads the mosaic once instead of writing and re-reading the channels and the rows
+    (docs/measurement.md §10).
     """
     integer = not np.issubdtype(raw.dtype, np.floating)
     dtype = np.float32 if integer else np.float64
@@ -447,11 +448,14 @@ def stokes_image(
         valid = np.empty(n, bool)
         unsaturated = np.empty(n, bool)
         position = np.argsort(np.asarray(pixels.channel_at).ravel())  # channel -> 2 r + c
-        compiled("stokes_pass")(np.ascontiguousarray(raw), pixels.runs, position, matrix,
+        native = np.ascontiguousarray(raw, dtype=raw.dtype.newbyteorder("="))
+        compiled("stokes_pass")(native, pixels.runs, position, matrix,
                                 offset, limits, noise, pixels.vertical, rows, sigma2_px, valid,
                                 unsaturated)  # fmt: skip
-        common = float(stokes_noise_variance(cam, 0.0)) if not shot else 0.0
-        return StokesImage(rows, sigma2_px if shot else common, valid, unsaturated, None)
+        sigma2: NDArray | float = sigma2_px
+        if not shot:  # one number (read noise only), as stokes_noise_variance gives it
+            sigma2 = float(stokes_noise_variance(cam, 0.0))
+        return StokesImage(rows, sigma2, valid, unsaturated, None)
     chan = gather_channels(raw, pixels, dtype)
     rows = stokes_rows(chan, cal, dtype)
     sigma2 = stokes_noise_variance(cam, rows[0])
