@@ -3,6 +3,7 @@ against a fine-step reference, consistency Monte-Carlo."""
 
 import functools
 import logging
+import math
 import subprocess
 import sys
 
@@ -39,7 +40,10 @@ from polins.site import Site
 
 SITE = {"lat_deg": 45.6234, "lon_deg": 126.7264, "alt_m": 148.74}
 # the 15-state layout in a world that does not rotate (structural tests)
-CFG = FuseConfig(site=Site(**SITE), scale_factors=False, earth_rate=False)
+# the paper's 15-state filter: no scale factors, no Earth rate, no heading-bias state
+CFG = FuseConfig(
+    site=Site(**SITE), scale_factors=False, earth_rate=False, heading_bias_std=math.inf
+)
 YAW_STD = np.radians(0.3)
 
 
@@ -184,7 +188,8 @@ def test_discretisation_matches_van_loan(scale_factors, dt):
     step = _step(mat, [0.3, -0.2, 9.8], [5.0, 1.0, 0.2], 0.8, 100.0, Mechanization(), sf,
                  mat * [0.1, 0.2, 0.5], mat * [0.3, -0.2, 9.8])  # fmt: skip
     F = layout.dynamics(step)[0]
-    assert F.shape == (layout.n, layout.n) == ((21, 21) if scale_factors else (15, 15))
+    # the default blocks: 15 navigation and IMU errors, the scale factors, the heading bias
+    assert F.shape == (layout.n, layout.n) == ((22, 22) if scale_factors else (16, 16))
     Phi, Q = (m[0] for m in discretize(F[None], np.array([dt]), qc))
     n = F.shape[0]
     # Van Loan (1978): expm([[-F, Qc], [0, F^T]] dt) = [[., Phi^-1 Q], [0, Phi^T]]

@@ -261,7 +261,9 @@ def test_relative_gradient_of_a_ramp():
     np.testing.assert_allclose(relative_gradient(s0, pixels) * s0, 5.0, rtol=1e-12)
 
 
-@pytest.mark.parametrize("variant", ["odd", "shot noise", "dop cut, no gradient test"])
+@pytest.mark.parametrize(
+    "variant", ["odd", "shot noise", "dop cut, no gradient test", "per-pixel maps"]
+)
 def test_compiled_stokes_pass_is_bit_identical(variant):
     # The compiled pass of an integer mosaic gives the very numbers of the numpy row kernels
     # (docs/measurement.md §10), on a pixel set with holes (runs split inside rows),
@@ -273,6 +275,12 @@ def test_compiled_stokes_pass_is_bit_identical(variant):
     if variant == "dop cut, no gradient test":
         kw.update(gradient_max=None, dop_min=0.05)
     rng = np.random.default_rng(7)
+    if variant == "per-pixel maps":
+        shape = (*cam.superpixel_shape, 4)
+        cam = cam.with_changes(
+            gain_map=cam.gain * (1.0 + 0.01 * rng.normal(size=shape)),
+            transmission_angle_map=cam.transmission_angle + 0.005 * rng.normal(size=shape),
+        )
     raw = render(cam, SUN_N, Rotation.from_euler("ZYX", [0.4, 0.05, -0.03]), epsilon=0.01,
                  noise_std=1.5, rng=rng, dtype=np.uint16)  # fmt: skip
     raw[rng.integers(0, raw.shape[0], 300), rng.integers(0, raw.shape[1], 300)] = 4095
@@ -280,6 +288,7 @@ def test_compiled_stokes_pass_is_bit_identical(variant):
     holes = rng.random(cam.superpixel_shape) < 0.1
     pixels = pixel_set(cam, np.asarray(polins.compass.camera.roi_mask(cam)) & ~holes)
     cal = stokes_calibration(cam, True, pixels)
+    assert (cal.pixel is not None) == (variant == "per-pixel maps")
     got = stokes_image(raw, pixels, cam, cal, **kw)
     channels = gather_channels(raw, pixels, np.float32)
     rows = stokes_rows(channels, cal, np.float32)

@@ -161,7 +161,8 @@ def test_result_does_not_depend_on_the_executor():
         st = nav.state()
         assert st.heading_known
         headings.append(st.nav.row()["heading_deg"])
-    assert headings[0] == pytest.approx(headings[1], abs=1e-9)
+    # the thread executor replays from a snapshot: the same updates, other rounding
+    assert headings[0] == pytest.approx(headings[1], abs=1e-8)
 
 
 def test_buffers_are_bounded_and_count_what_they_drop():

@@ -5,6 +5,7 @@ and the gyro bias allow. Also the 2x2 sun-direction covariance and the heading-b
 
 import functools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -18,6 +19,7 @@ from polins.fusion import build_filter, run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.items import MeasurementItem, item_model, items_from_table, measurement_items
 from polins.fusion.measurement import sun_azimuth_kernel, sun_direction_cov_b
+from polins.fusion.sky_states import ModelPart, without_bias_part
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
 from polins.site import Site
@@ -55,7 +57,7 @@ def drive(seed, duration_s):
     return model, traj, imu, meas, tuple(t_rest)
 
 
-def relative_z(seed, duration_s, **options):
+def relative_z(seed, duration_s, backend="eskf", **options):
     """Relative-heading errors / sigma of the solution rows after 5 s, and the solution."""
     model, traj, imu, meas, t_rest = drive(seed, duration_s)
     config = FuseConfig.from_options(
@@ -63,7 +65,7 @@ def relative_z(seed, duration_s, **options):
         stationary=t_rest, **options,
     )  # fmt: skip
     with pytest.warns(UserWarning, match="no-clock mode"):
-        sol = run_fusion(imu, meas, config=config).solution
+        sol = run_fusion(imu, meas, backend, config=config).solution
     k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
     yaw_true = traj.rot_nb[k].as_euler("ZYX")[:, 0]
     yaw_true0 = traj.rot_nb[0].as_euler("ZYX")[0]
@@ -102,11 +104,9 @@ def test_no_clock_rows_become_sun_azimuth_items():
     assert [it.kind for it in items_from_table(rows)] == ["yaw", "yaw"]
 
 
-def test_no_clock_refused_on_the_graph():
+def test_no_clock_false_is_refused_on_a_no_clock_table():
     model, _traj, imu, meas, _ = drive(0, 20.0)
     config = FuseConfig.from_options(None, imu_model=model, site=SITE)
-    with pytest.raises(UserInputError, match="need the ESKF"):
-        run_fusion(imu, meas, backend="graph", config=config)
     with pytest.raises(UserInputError, match="no_clock=False"):
         run_fusion(imu, meas, config=FuseConfig.from_options(config, no_clock=False))
 
@@ -152,7 +152,8 @@ CORR_TAU_S = 60.0
 def biased_drive(seed):
     """A 120 s MEMS UGV drive with a 5 Hz yaw whose error is white (0.1 deg) plus a
     Gauss-Markov part (0.5 deg, 60 s): each row reports both parts, as polins.measure
-    does (``yaw_std`` the total, ``yaw_std_correlated`` the correlated part)."""
+    does (``yaw_std`` the total, ``yaw_std_model`` and ``yaw_std_correlated`` the
+    correlated part)."""
     model = polins.load_imu("mems-typical")
     rng = np.random.default_rng(100 + seed)
     traj = ugv_drive(duration_s=120.0, rate_hz=100.0, rng=rng)
@@ -168,6 +169,7 @@ def biased_drive(seed):
     meas = pd.DataFrame({"t": tm, "yaw": wrap_angle(yaw)})
     meas["yaw_std"] = math.hypot(WHITE_STD, CORR_STD)
     meas["yaw_std_correlated"] = CORR_STD
+    meas["yaw_std_model"] = CORR_STD
     speed = np.linalg.norm(traj.vel_n, axis=1)
     t_rest = traj.t[(speed < 1e-6) & (np.round(traj.t * 10.0, 6) % 1.0 == 0.0)]
     return model, traj, imu, meas, tuple(t_rest)
@@ -192,16 +194,42 @@ def heading_z(seeds, **options):
 
 def test_heading_bias_state_pairs_with_the_correlated_sigma():
     # honest per-image sigmas (0.51 deg) whose 0.5 deg part is correlated over 60 s: without
-    # the bias state the filter averages them down; with it (sigma and time of the sky's
-    # correlated error) it is consistent
+    # the bias state (inf) the filter averages them down; with it (sigma and time of the
+    # sky's correlated error) it is consistent, and so are the defaults, whose bias variance
+    # follows the rows' yaw_std_model (correlation time 300 s, not the true 60 s)
     seeds = range(4)
-    z_without = heading_z(seeds)
+    z_without = heading_z(seeds, heading_bias_std=math.inf)
     z_with = heading_z(seeds, heading_bias_std=CORR_STD, heading_bias_tau_s=CORR_TAU_S)
-    rms_without = float(np.sqrt(np.mean(z_without**2)))
-    rms_with = float(np.sqrt(np.mean(z_with**2)))
-    assert rms_without > 2.0, rms_without
-    assert 0.6 < rms_with < 1.4, rms_with
+    z_default = heading_z(seeds)
+    rms = [float(np.sqrt(np.mean(z**2))) for z in (z_without, z_with, z_default)]
+    assert rms[0] > 2.0, rms
+    assert 0.6 < rms[1] < 1.4, rms
+    assert 0.6 < rms[2] < 1.4, rms
     assert np.mean(np.abs(z_with) < 3.0) >= 0.98
+    assert np.mean(np.abs(z_default) < 3.0) >= 0.98
+
+
+def test_bias_part_taken_out_of_the_heading_items():
+    # a yaw keeps its white part; a sun vector loses the part from its azimuth displacement
+    # (the heading variance times cos^2 of the body elevation), not from its elevation
+    yaw = MeasurementItem(0.0, "yaw", math.hypot(0.003, 0.004), yaw=0.1, model_std=0.004)
+    assert without_bias_part(yaw, 1.0).std == pytest.approx(0.003)
+    assert without_bias_part(yaw, 0.002**2).std == pytest.approx(math.sqrt(0.005**2 - 0.002**2))
+    assert without_bias_part(replace(yaw, model_std=0.0), 1.0).std == yaw.std
+    elev = 0.5
+    s = np.array([math.cos(elev) * math.cos(1.0), math.cos(elev) * math.sin(1.0), math.sin(elev)])
+    az_std = math.cos(elev) * 0.005  # the heading sigma 0.005 rad as a tangent displacement
+    cov = sun_direction_cov_b(s, az_std, 0.02)
+    sun = MeasurementItem(0.0, "sun", 0.01, sun_b=s, sun_n=s, cov_b=cov, model_std=0.004)
+    white = without_bias_part(sun, 1.0).cov_b
+    np.testing.assert_allclose(white, sun_direction_cov_b(s, math.cos(elev) * 0.003, 0.02),
+                               atol=1e-15)  # fmt: skip
+    # the default bias variance: the median of the rows' squared model parts
+    part, P = ModelPart(300.0), np.zeros((1, 1))
+    densities = [part.take(replace(yaw, model_std=m), P, 0)[1] for m in (0.001, 0.003, 0.002)]
+    assert part.var == pytest.approx(0.002**2)
+    assert P[0, 0] == pytest.approx((0.001**2 + 0.003**2) / 2)  # the largest median seen
+    assert densities[-1] == pytest.approx(2.0 * 0.002**2 / 300.0)
 
 
 # ----------------------------------------------------------------------------- 2x2 sun covariance

@@ -92,7 +92,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         sim = simulate_log(out.path, scenario=args.scenario, duration_s=args.duration,
                            image_rate_hz=args.image_rate, downscale=args.downscale,
                            imu=args.imu, seed=args.seed, epoch_utc=args.epoch, lat_deg=args.lat,
-                           lon_deg=args.lon, alt_m=args.alt, progress=not args.quiet)  # fmt: skip
+                           lon_deg=args.lon, alt_m=args.alt, sky=args.sky,
+                           progress=not args.quiet)  # fmt: skip
     elapsed = time.perf_counter() - start
     traj, cam = sim.trajectory, sim.camera
     elevation = np.degrees(np.arcsin(np.clip(sim.sun_n[:, 2], -1.0, 1.0)))
@@ -109,6 +110,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
               f"{'/'.join(f'{a:g}' for a in v['lever_arm_b'])} m")  # fmt: skip
         print(f"odometer          {len(sim.odometry)} speeds in {v['odometer']} "
               f"(sigma {v['odometer_std']:g} m/s, scale error +1 %)")  # fmt: skip
+    if sim.real_sky is not None:
+        rs = sim.real_sky
+        print(f"sky               realistic: CIE type {rs.sky_type}, neutral points "
+              f"{np.degrees(rs.neutral_sep):.0f} deg apart, {len(rs.clouds)} thin clouds, "
+              f"vignetting {rs.vignetting:.2f}, channel-gain residual "
+              f"{'/'.join(f'{100 * g:+.2f}' for g in rs.gain_residual)} %")  # fmt: skip
     print(f"epoch (UTC)       {sim.epoch_utc.isoformat()}")
     print(f"sun elevation     {elevation.min():.2f} .. {elevation.max():.2f} deg")
     if elevation.min() <= 0.0:
@@ -145,6 +152,10 @@ def add_simulate(sub: Any) -> None:
                    help="render at 1/K resolution (1, 2, 4, 8); 8 writes about 1/64 of the "
                    "full-resolution images' size")  # fmt: skip
     p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--sky", choices=["model", "realistic"], default="model",
+                   help="model: the estimator's own sky, exact camera calibration; realistic: "
+                   "CIE radiance, neutral points, thin clouds, vignetting and a channel-gain "
+                   "residual, rendered independently of the estimator")  # fmt: skip
     p.add_argument("--epoch", default="2023-09-05T15:06+08:00", help="timezone-aware time of t = 0")
     p.add_argument("--lat", type=finite, default=45.6234, help="site latitude [deg]")
     p.add_argument("--lon", type=finite, default=126.7264, help="site longitude [deg]")

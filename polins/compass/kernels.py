@@ -62,14 +62,15 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
     """Raw mosaic -> Stokes rows, channel noise variance and validity in one pass per pixel
     (:func:`polins.compass.polarimetry.stokes_image` for integer mosaics, float32 rows).
 
-    ``raw`` is the flat mosaic of width ``2 Ws``; ``runs (m + 1, 3)`` the pixel set's runs
-    (superpixel row, first column, first position; a final row holds the set size);
-    ``position (4,)`` the mosaic position ``2 r + c`` of each channel; ``matrix (4, 4)``
-    and ``offset (4,)`` float32 the Stokes rows (S0, S1, S2, nu) and their dark-offset
-    part; ``limits`` = (saturation, s0_min, redundancy^2 [float32 when the noise is one
-    number], dop_min^2, gradient_max^2 or -1); ``noise`` = (read^2, mean(g)/2, G_e,
-    per-pixel flag); ``vertical (n,)`` the :class:`polins.compass.pixels.PixelSet`'s.
-    ``sigma2`` is written only with the per-pixel flag.
+    ``raw (H, W)`` is the mosaic; ``runs (m + 1, 3)`` the pixel set's runs (superpixel
+    row, first column, first position; a final row holds the set size); ``position (4,)``
+    the mosaic position ``2 r + c`` of each channel; ``matrix (4, 4, 1)`` and ``offset
+    (4, 1)`` float32 the Stokes rows (S0, S1, S2, nu) and their dark-offset part, or
+    ``(4, 4, n)`` and ``(4, n)`` per pixel; ``limits`` = (saturation, s0_min,
+    redundancy^2 [float32 when the noise is one number], dop_min^2, gradient_max^2 or -1);
+    ``noise`` = (read^2, mean(g)/2, G_e, per-pixel flag); ``vertical (n,)`` the
+    :class:`polins.compass.pixels.PixelSet`'s. ``sigma2`` is written only with the
+    per-pixel flag.
     """
     f32 = np.float32
     zero = f32(0.0)
@@ -80,11 +81,13 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
     red2_read2 = f32(red2 * read2)  # a common sigma^2: numpy compares in float32
     # The matrix and offsets as scalars: the compiler cannot hoist them out of the loop
     # past the stores into ``rows``.
-    m00, m01, m02, m03 = matrix[0, 0], matrix[0, 1], matrix[0, 2], matrix[0, 3]
-    m10, m11, m12, m13 = matrix[1, 0], matrix[1, 1], matrix[1, 2], matrix[1, 3]
-    m20, m21, m22, m23 = matrix[2, 0], matrix[2, 1], matrix[2, 2], matrix[2, 3]
-    m30, m31, m32, m33 = matrix[3, 0], matrix[3, 1], matrix[3, 2], matrix[3, 3]
-    o0, o1, o2, o3 = offset[0], offset[1], offset[2], offset[3]
+    per_pixel_rows = matrix.shape[2] > 1
+    m = matrix
+    m00, m01, m02, m03 = m[0, 0, 0], m[0, 1, 0], m[0, 2, 0], m[0, 3, 0]
+    m10, m11, m12, m13 = m[1, 0, 0], m[1, 1, 0], m[1, 2, 0], m[1, 3, 0]
+    m20, m21, m22, m23 = m[2, 0, 0], m[2, 1, 0], m[2, 2, 0], m[2, 3, 0]
+    m30, m31, m32, m33 = m[3, 0, 0], m[3, 1, 0], m[3, 2, 0], m[3, 3, 0]
+    o0, o1, o2, o3 = offset[0, 0], offset[1, 0], offset[2, 0], offset[3, 0]
     n_runs = runs.shape[0] - 1
     for k in range(n_runs):
         i2, p0, p1 = 2 * runs[k, 0], runs[k, 2], runs[k + 1, 2]
@@ -97,7 +100,14 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
         ok_run, unsat_run = valid[p0:p1], unsaturated[p0:p1]
         # Two loops per run (a few kB, in cache): branch-free arithmetic the compiler
         # vectorises, then the tests.
-        for q in range(p1 - p0):
+        if per_pixel_rows:  # einsum("ikn,kn->in") order, then the offsets
+            for i in range(4):
+                ma, mb, mc = m[i, 0, p0:p1], m[i, 1, p0:p1], m[i, 2, p0:p1]
+                md, oi, ri = m[i, 3, p0:p1], offset[i, p0:p1], rows[i, p0:p1]
+                for q in range(p1 - p0):
+                    a, b, c, d = f32(ch_a[q]), f32(ch_b[q]), f32(ch_c[q]), f32(ch_d[q])
+                    ri[q] = (((zero + ma[q] * a) + mb[q] * b) + mc[q] * c) + md[q] * d - oi[q]
+        for q in range(0 if per_pixel_rows else p1 - p0):
             a, b, c, d = f32(ch_a[q]), f32(ch_b[q]), f32(ch_c[q]), f32(ch_d[q])
             # einsum's order: ((m0 a + m1 b) + m2 c) + m3 d, then the offset
             r0[q] = (((zero + m00 * a) + m01 * b) + m02 * c) + m03 * d - o0

@@ -424,18 +424,24 @@ def stokes_image(
     checked with :func:`polins.compass.pixels.check_raw`, on ``pixels`` (docs/model.md §7).
 
     An unsigned-integer mosaic is processed in float32, a float mosaic in float64. Without
-    per-pixel calibration rows and without ``channels``, an integer mosaic takes one
-    compiled pass (:func:`polins.compass.kernels.stokes_pass`: the same numbers), which
-    reads the mosaic once instead of writing and re-reading the channels and the rows
+    ``channels``, an integer mosaic takes one compiled pass
+    (:func:`polins.compass.kernels.stokes_pass`: the same numbers), which reads the mosaic
+    once instead of writing and re-reading the channels and the rows
     (docs/measurement.md §10).
     """
     integer = not np.issubdtype(raw.dtype, np.floating)
     dtype = np.float32 if integer else np.float64
-    if integer and cal.pixel is None and not channels:
-        matrix = np.vstack([cal.estimator, cal.null]).astype(np.float32)
-        offset = np.zeros(4, np.float32)
-        if np.any(cal.offset):
-            offset = matrix @ cal.offset.astype(np.float32)
+    if integer and not channels:
+        if cal.pixel is not None:
+            matrix, offset = cal.pixel.arrays(np.float32)  # (4, 4, n), (4, n)
+            if offset.shape[1] != pixels.size:
+                raise ValueError("per-pixel Stokes rows of another pixel set")
+        else:
+            constant = np.vstack([cal.estimator, cal.null]).astype(np.float32)
+            offset = np.zeros((4, 1), np.float32)
+            if np.any(cal.offset):
+                offset = (constant @ cal.offset.astype(np.float32))[:, None]
+            matrix = constant[:, :, None]
         shot = np.isfinite(cam.conversion_gain_e_per_dn)
         noise = np.array([cam.read_noise_dn**2, 0.5 * float(np.mean(cam.gain)),
                           cam.conversion_gain_e_per_dn, float(shot)])  # fmt: skip

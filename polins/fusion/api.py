@@ -24,7 +24,12 @@ from polins.fusion.inputs import (
     validate_imu,
     validate_measurements,
 )
-from polins.fusion.items import MeasurementItem, items_from_table, no_clock_table, records_table
+from polins.fusion.items import (
+    MeasurementItem,
+    items_from_table,
+    no_clock_table,
+    records_table,
+)
 from polins.fusion.result import FusionEvent, FusionResult, events_table
 from polins.fusion.vehicle import odometer_items
 from polins.ins.state import solution_table
@@ -98,7 +103,7 @@ def run_fusion(
     arrays = validate_imu(imu, max_gap_s=cfg.max_gap_s, model=cfg.imu)
     t, W, A = arrays.t, arrays.gyro_b, arrays.accel_b
     filt = ESKF(cfg, float(t[0]), arrays.dt, rot_nb0)
-    items = items_from_table(meas, use_sun=cfg.use_sun, white_only=cfg.heading_bias_std is not None)
+    items = items_from_table(meas, use_sun=cfg.use_sun, heading_bias=cfg.heading_bias)
     if odometry is not None:
         assert cfg.odometer_std is not None
         items += odometer_items(odometry, cfg.odometer_std)

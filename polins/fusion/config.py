@@ -170,7 +170,9 @@ class FuseConfig:
     heading_bias_std: float | None = _opt(
         None,
         "1-sigma of a Gauss-Markov heading-measurement bias [rad] (sky-model errors "
-        "correlated from image to image, e.g. yaw_std_correlated); None: no bias state",
+        "correlated from image to image; the rows' yaw_std_correlated is its part); None: "
+        "from the images, each heading row's yaw_std_model is its correlated part (a bias "
+        "state when the rows carry yaw_std_model); inf: no bias state",
         ESKF,
     )
     heading_bias_tau_s: float = _opt(
@@ -245,6 +247,25 @@ class FuseConfig:
         """The zero-velocity 1-sigma at (detected) standstill [m/s], or None: off."""
         kind_default = STANDSTILL_STD if self.vehicle in ("ground", "static") else None
         return _sigma_in_use(self.standstill_std, kind_default)
+
+    @property
+    def heading_bias(self) -> str:
+        """The heading-measurement bias state (docs/filter.md §5.7): ``"model"`` (None: its
+        variance from the heading rows' ``yaw_std_model``), ``"fixed"`` (a value: that
+        1-sigma [rad], the rows lose ``yaw_std_correlated``) or ``"off"`` (inf)."""
+        if self.heading_bias_std is None:
+            return "model"
+        return "off" if math.isinf(self.heading_bias_std) else "fixed"
+
+    @property
+    def heading_bias_sigma(self) -> float | None:
+        """The initial 1-sigma [rad] of the heading-bias state: the value for ``"fixed"``,
+        0 for ``"model"`` (the images' model parts set it,
+        :class:`polins.fusion.sky_states.ModelPart`), None when off."""
+        mode = self.heading_bias
+        if mode == "off":
+            return None
+        return 0.0 if mode == "model" else float(self.heading_bias_std)  # type: ignore[arg-type]
 
     @property
     def use_scale_factors(self) -> bool:
@@ -334,14 +355,14 @@ def _check(c: FuseConfig) -> None:
         value = getattr(c, name)
         if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
             raise UserInputError(f"{name} must be a finite number > 0, got {value!r}")
-    for name in ("nhc_std", "standstill_std"):
+    for name in ("nhc_std", "standstill_std", "heading_bias_std"):
         value = getattr(c, name)
         if value is not None and not (isinstance(value, int | float) and value > 0):
-            raise UserInputError(f"{name} must be > 0 [m/s], inf (off) or None, got {value!r}")
+            unit = "rad" if name == "heading_bias_std" else "m/s"
+            raise UserInputError(f"{name} must be > 0 [{unit}], inf (off) or None, got {value!r}")
     if c.vehicle not in VEHICLE_KINDS:
         raise UserInputError(f"vehicle={c.vehicle!r}: expected one of {VEHICLE_KINDS}")
-    for name in ("zupt_std", "output_rate_hz", "max_gap_s", "odometer_std", "site_std",
-                 "heading_bias_std"):  # fmt: skip
+    for name in ("zupt_std", "output_rate_hz", "max_gap_s", "odometer_std", "site_std"):
         value = getattr(c, name)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise UserInputError(f"{name} must be > 0 or None, got {value!r}")

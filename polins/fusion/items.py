@@ -36,6 +36,9 @@ FloatArray = NDArray[np.float64]
 
 _KIND_ORDER = {"gap": -1, "yaw": 0, "sun": 1, "sun_azimuth": 1, "zupt": 2, "nhc": 3, "odo": 4}
 HEADING_KINDS = ("yaw", "sun", "sun_azimuth")  # the measurements of the heading
+# A heading row's model part counts as correlated from image to image beyond this many
+# times its noise part (docs/filter.md §5.7): below it the jackknife may report pixel noise.
+NOISE_ALLOWANCE = 2.0
 # the name of the no-clock state of the sun's ENU azimuth (docs/filter.md, "No clock")
 SUN_AZIMUTH_STATE = "sun_azimuth_n"
 
@@ -76,6 +79,7 @@ class MeasurementItem:
     speed: float = math.nan  # "odo": the odometer's forward speed [m/s]
     mat_vb: FloatArray | None = None  # "nhc", "odo": IMU mounting, body -> vehicle frame
     lever_vel_b: FloatArray | None = None  # "nhc", "odo": omega_b x lever_arm_b [m/s]
+    model_std: float = 0.0  # heading kinds: the sigma's part correlated between images [rad]
 
     @property
     def order(self) -> tuple[float, int]:
@@ -144,7 +148,7 @@ def items_from_table(
     measurements: pd.DataFrame | Mapping[str, ArrayLike],
     *,
     use_sun: bool = True,
-    white_only: bool = False,
+    heading_bias: str = "off",
 ) -> list[MeasurementItem]:
     """The filter's measurement items of a validated measurements table, in row order.
 
@@ -155,10 +159,17 @@ def items_from_table(
     covariance of ``sun_std`` (azimuth) and ``sun_elevation_b_std`` (elevation) when the
     row has the latter; a table without yaw and ``sun_n`` but with ``sun_azimuth_b,
     sun_azimuth_b_std`` gives ``"sun_azimuth"`` items (no clock; docs/filter.md), an axis
-    where ``sun_azimuth_b_alt`` is given (the 180 deg branch is ambiguous). With
-    ``white_only`` (a heading-bias state carries the correlated part) the yaw and sun-azimuth
-    sigmas lose their part ``yaw_std_correlated`` when the table has it,
-    ``sqrt(std^2 - yaw_std_correlated^2)``, at least a tenth of ``std``.
+    where ``sun_azimuth_b_alt`` is given (the 180 deg branch is ambiguous).
+
+    ``heading_bias`` (``FuseConfig.heading_bias``, docs/filter.md §5.7) says which part of
+    a heading row's sigma a heading-bias state carries: ``"fixed"``: its
+    ``yaw_std_correlated``, and the yaw, sun-azimuth and sun-vector sigmas keep the rest (for
+    a sun vector its azimuth part), ``std sqrt(1 - (part / yaw_std)^2)``, at least a tenth
+    of ``std``; ``"model"``: its ``yaw_std_model`` [rad] beyond ``NOISE_ALLOWANCE`` times
+    its ``yaw_std_noise`` becomes the item's ``model_std`` (0 without the column; on a sky
+    that follows the estimator's model the jackknife's model part is pixel noise, below
+    twice the noise part), and the backend takes its share out when it applies the item
+    (:func:`polins.fusion.sky_states.without_bias_part`).
     """
     df = measurements
     n = len(df) if isinstance(df, pd.DataFrame) else len(np.atleast_1d(df["t"]))
@@ -192,16 +203,22 @@ def items_from_table(
         has_yaw, yaw, yaw_std = True, col("sun_azimuth_b"), col("sun_azimuth_b_std")
         with np.errstate(invalid="ignore"):
             yaw_ok = np.isfinite(yaw) & _sigma_ok(yaw_std)
-    if white_only and "yaw_std_correlated" in df:
-        corr = np.nan_to_num(col("yaw_std_correlated"))
-        with np.errstate(invalid="ignore"):
-            white = np.sqrt(np.maximum(yaw_std**2 - corr**2, (0.1 * yaw_std) ** 2))
-        yaw_std = np.where(yaw_ok, white, yaw_std)
+    model_std = np.zeros(n)
+    if heading_bias == "fixed" and "yaw_std_correlated" in df:
+        part = np.nan_to_num(col("yaw_std_correlated"))
+        with np.errstate(invalid="ignore", divide="ignore"):  # a share of the heading sigma
+            white = np.sqrt(np.maximum(1.0 - (part / yaw_std) ** 2, 0.01))
+        white = np.where(np.isfinite(white), white, 1.0)
+        yaw_std = np.where(yaw_ok, yaw_std * white, yaw_std)
+        sun_std = np.where(sun_ok, sun_std * white, sun_std)
+    elif heading_bias == "model":
+        model_std = correlated_model_std(col("yaw_std_model"), col("yaw_std_noise"))
     elev_b, elev_std = col("sun_elevation_b"), col("sun_elevation_b_std")
     axis = np.isfinite(col("sun_azimuth_b_alt")) & (heading == "sun_azimuth")
     with np.errstate(invalid="ignore"):
         cov_ok = (sun_ok & _sigma_ok(elev_std)).tolist()
     t_l, yaw_l, yaw_std_l, sun_std_l = t.tolist(), yaw.tolist(), yaw_std.tolist(), sun_std.tolist()
+    model_l = model_std.tolist()
     zupt_l, sun_ok_l, yaw_ok_l, zupt_ok_l = (
         zupt_std.tolist(), sun_ok.tolist(), yaw_ok.tolist(), zupt_ok.tolist()
     )  # fmt: skip
@@ -221,6 +238,7 @@ def items_from_table(
                     sun_b=sun_b[i].copy(),
                     sun_n=sun_n[i].copy(),
                     cov_b=cov_b,
+                    model_std=model_l[i],
                 )
             )
         elif has_yaw:
@@ -237,6 +255,7 @@ def items_from_table(
                     reason="" if ok else _invalid_reason(heading, yaw_l[i], yaw_std_l[i]),
                     elevation_b=float(elev_b[i]),
                     axis=bool(axis[i]),
+                    model_std=model_l[i],
                 )
             )
         elif has_sun:
@@ -249,6 +268,17 @@ def items_from_table(
                 MeasurementItem(ti, "zupt", zupt_l[i] if ok else math.nan, valid=ok, reason=reason)
             )
     return items
+
+
+def correlated_model_std(yaw_std_model: ArrayLike, yaw_std_noise: ArrayLike) -> FloatArray:
+    """The part [rad] of heading rows' model part taken as correlated from image to image:
+    ``sqrt(max(yaw_std_model^2 - (NOISE_ALLOWANCE yaw_std_noise)^2, 0))``, 0 where unknown
+    (docs/filter.md §5.7; NaN noise counts as 0)."""
+    model = np.asarray(yaw_std_model, dtype=float)
+    noise = np.nan_to_num(np.asarray(yaw_std_noise, dtype=float))
+    with np.errstate(invalid="ignore"):
+        excess = model**2 - (NOISE_ALLOWANCE * noise) ** 2
+    return np.sqrt(np.maximum(np.nan_to_num(excess), 0.0))
 
 
 def _sigma_ok(std: FloatArray) -> NDArray[np.bool_]:
@@ -278,7 +308,7 @@ def measurement_items(
     use_sun: bool = True,
     rot_nb_prior: Rotation | None = None,
     sky: Mapping[str, float] | None = None,
-    white_only: bool = False,
+    heading_bias: str = "off",
 ) -> list[MeasurementItem]:
     """The measurement items of one row, by the rules of :func:`items_from_table`.
 
@@ -286,8 +316,8 @@ def measurement_items(
     is the prior ``polins.measure`` used for the yaw (tilt coupling); ``sky`` more columns
     by name: ``sun_azimuth_b, sun_azimuth_b_std`` (without ``yaw`` and ``sun_n``: a no-clock
     row, for ``ESKF.add_items``), ``sun_elevation_b, sun_elevation_b_std``,
-    ``yaw_std_correlated`` (subtracted from the sigma with ``white_only``, as with a
-    heading-bias state).
+    ``yaw_std_model``, ``yaw_std_correlated`` (the parts a heading-bias state carries,
+    ``heading_bias`` as in :func:`items_from_table`).
     """
     row: dict[str, list[float]] = {"t": [float(t)]}
     row.update({name: [float(value)] for name, value in (sky or {}).items()})
@@ -306,7 +336,7 @@ def measurement_items(
     if rot_nb_prior is not None:
         y, p, r = euler_from_rot_nb(rot_nb_prior)
         row.update(prior_yaw=[float(y)], prior_pitch=[float(p)], prior_roll=[float(r)])
-    return items_from_table(row, use_sun=use_sun, white_only=white_only)
+    return items_from_table(row, use_sun=use_sun, heading_bias=heading_bias)
 
 
 @dataclass(frozen=True)

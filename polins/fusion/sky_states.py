@@ -21,11 +21,17 @@ bias"):
 * **Heading-measurement bias** ``b`` [rad], the measured heading minus the true one, a
   first-order Gauss-Markov process: it enters every heading measurement as a rotation of
   the measured sun about the vertical, ``d h / d b = H_theta[2]`` (:func:`heading_bias_jacobian`).
+  By default its 1-sigma comes from the images: each heading row's ``yaw_std_model`` is
+  its part correlated from image to image, the state's variance follows the median of
+  their squares (:class:`ModelPart`) and each row keeps the rest of its sigma
+  (:func:`without_bias_part`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections import deque
 from collections.abc import Mapping
 
 import numpy as np
@@ -130,3 +136,57 @@ def link_acquired_yaw(
     P[:, yaw] = row
     P[yaw, yaw] = var
     return P
+
+
+def without_bias_part(item: MeasurementItem, var: float) -> MeasurementItem:
+    """A heading item without the part of its sigma a heading-bias state of variance ``var``
+    [rad^2] carries: ``min(item.model_std^2, var)``, at least 1 % of the heading variance
+    left (docs/filter.md §5.7).
+
+    A yaw or sun azimuth loses it from ``std``; a sun vector from its azimuth displacement,
+    the heading variance times ``cos^2`` of the sun's body elevation (along the unit
+    tangent of the body azimuth, as :func:`polins.fusion.measurement.sun_direction_cov_b`).
+    Other items and items without a model part are returned unchanged.
+    """
+    part = min(item.model_std**2, var)
+    if item.kind not in HEADING_KINDS or not part > 0.0 or not item.valid:
+        return item
+    if item.kind != "sun":
+        return dataclasses.replace(item, std=math.sqrt(max(item.std**2 - part, 0.01 * item.std**2)))
+    assert item.sun_b is not None  # a valid sun item
+    s = item.sun_b / np.linalg.norm(item.sun_b)
+    horiz = math.hypot(float(s[0]), float(s[1]))
+    if horiz < 1e-9:  # the sun at the body zenith: no azimuth
+        return item
+    u_a = np.array([-s[1], s[0], 0.0]) / horiz
+    cov = item.std**2 * np.eye(3) if item.cov_b is None else item.cov_b
+    var_a = float(u_a @ cov @ u_a)
+    cut = min(part * horiz * horiz, 0.99 * var_a)
+    return dataclasses.replace(item, cov_b=cov - cut * np.outer(u_a, u_a))
+
+
+class ModelPart:
+    """The variance of the default heading-bias state, from the images' model parts.
+
+    With ``FuseConfig.heading_bias == "model"`` (docs/filter.md §5.7) the Gauss-Markov
+    bias (correlation time ``tau_s`` [s]) has the variance ``var``: the median of the
+    squared ``model_std`` of the last ``window`` heading items (0 for those without a
+    correlated model part). Each heading item raises the state's variance by the growth of ``var`` (a new, independent part)
+    and sets its noise density to ``2 var / tau_s``; the item keeps the rest of its sigma
+    (:func:`without_bias_part`).
+    """
+
+    def __init__(self, tau_s: float, window: int = 256) -> None:
+        self.tau_s = float(tau_s)
+        self.parts: deque[float] = deque(maxlen=window)
+        self.var = 0.0
+
+    def take(self, item: MeasurementItem, P: FloatArray, i: int) -> tuple[MeasurementItem, float]:
+        """The item without its carried part, and the bias state's noise density
+        [rad^2/s]; ``P[i, i]`` (the bias state's variance) is raised in place."""
+        self.parts.append(item.model_std**2)
+        var = float(np.median(self.parts))
+        if var > self.var:
+            P[i, i] += var - self.var
+        self.var = var
+        return without_bias_part(item, var), 2.0 * var / self.tau_s

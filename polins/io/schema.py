@@ -50,7 +50,11 @@ _SOLUTION: dict[str, tuple[str, str]] = {
     "sun_azimuth_n_std": (_ANG, "1-sigma of sun_azimuth_n"),
     "sun_azimuth_rate": ("rad/s", "rate of the sun's ENU azimuth (no clock)"),
     "sun_azimuth_rate_std": ("rad/s", "1-sigma of sun_azimuth_rate"),
-    "heading_bias": (_ANG, "heading-measurement bias (only with heading_bias_std)"),
+    "heading_bias": (
+        _ANG,
+        "heading-measurement bias: the images' correlated error (not with heading_bias_std "
+        "= inf; zero without a correlated model part)",
+    ),
     "heading_bias_std": (_ANG, "1-sigma of heading_bias"),
     "ve": ("m/s", "velocity, East"),
     "vn": ("m/s", "velocity, North"),

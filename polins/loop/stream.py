@@ -76,7 +76,10 @@ from polins.loop.tables import EventBuffer, measurement_frame
 from polins.models import CameraModel, ImuModel
 from polins.site import Site, utc_timestamp
 
-SUN_2X2 = ("sun_elevation_b", "sun_elevation_b_std")  # the sun fit's 2x2 covariance columns
+# the further columns of a measured row the filter uses: the sun fit's 2x2 covariance and
+# the sigma's parts a heading-bias state carries (docs/filter.md §5.7)
+SKY_COLUMNS = ("sun_elevation_b", "sun_elevation_b_std", "yaw_std_model", "yaw_std_noise",
+               "yaw_std_correlated")  # fmt: skip
 
 FloatArray = NDArray[np.float64]
 
@@ -460,14 +463,14 @@ class NavigationStream:
             row.update(accepted=False, update_reason="not measured")
             self._rows.append(row)
             return
-        cols: dict[str, Any] = {}
+        cols: dict[str, Any] = {"sky": {c: row[c] for c in SKY_COLUMNS if c in row}}
         if "yaw" in row:
             cols.update(yaw=row["yaw"], yaw_std=row["yaw_std"])
             if f.ready and f.yaw_aligned:
                 row["innovation"] = float(wrap_angle(row["yaw"] - self._predicted_yaw(img.t)))
         if "sun_bx" in row:
             cols.update(sun_b=[row["sun_bx"], row["sun_by"], row["sun_bz"]],
-                        sun_std=row["sun_std"], sky={c: row[c] for c in SUN_2X2 if c in row})  # fmt: skip
+                        sun_std=row["sun_std"])  # fmt: skip
         if all(np.isfinite(row.get(c, np.nan)) for c in PRIOR_COLUMNS):
             cols["rot_nb_prior"] = rot_nb_from_euler(
                 row["prior_yaw"], row["prior_pitch"], row["prior_roll"]

@@ -36,6 +36,7 @@ from tqdm import tqdm
 from polins.io.log import write_log
 from polins.models import CameraModel, ImuModel, load_camera, load_imu
 from polins.sim.imu import ideal_imu, imu_errors
+from polins.sim.realsky import RealSky, random_real_sky, render_real_raw
 from polins.sim.render import render_raw
 from polins.sim.reproduction import PAPER_EPOCH
 from polins.sim.trajectory import Trajectory, turntable, ugv_drive
@@ -54,6 +55,7 @@ from polins.sky.ephemeris import sun_position, sun_vector_n
 FloatArray = NDArray[np.float64]
 
 SCENARIOS = ("turntable", "ugv")
+SKIES = ("model", "realistic")
 DEFAULT_DURATION_S = {"turntable": 100.0, "ugv": 300.0}
 DEFAULT_EPOCH = PAPER_EPOCH  # the paper's Sec. 4.1 simulation (Harbin)
 TURNTABLE_RATE = np.radians(7.2)  # [rad/s]: the paper's 720 deg in 100 s
@@ -88,6 +90,8 @@ class SimulatedLog:
         ``"ugv"``: the odometer stream written (``t, speed``, :mod:`polins.sim.vehicle`).
     vehicle_trajectory : Trajectory or None
         ``"ugv"``: the vehicle's motion (``trajectory`` is the IMU's, mounted on it).
+    real_sky : RealSky or None
+        ``sky="realistic"``: the sky and camera imperfections every image was rendered with.
     """
 
     manifest: Path
@@ -104,6 +108,7 @@ class SimulatedLog:
     vehicle: dict[str, Any] | None = None  # the manifest's [vehicle] table (ugv)
     odometry: pd.DataFrame | None = None  # t, speed of the odometer (ugv)
     vehicle_trajectory: Trajectory | None = None  # the vehicle's reference point (ugv)
+    real_sky: RealSky | None = None  # sky="realistic"
 
     @property
     def truth(self) -> pd.DataFrame:
@@ -180,6 +185,7 @@ def simulate_log(
     alt_m: float = PAPER_SITE.alt_m,
     imu_rate_hz: float | None = None,
     render_options: Mapping[str, Any] | None = None,
+    sky: str = "model",
     imu_format: str = "csv",
     progress: bool = True,
 ) -> SimulatedLog:
@@ -214,7 +220,16 @@ def simulate_log(
         IMU rate [Hz]; default the model's ``sample_rate_hz``.
     render_options : mapping, optional
         Keyword arguments for ``polins.sim.render_raw`` (``dop_max``, ``radiance``,
-        ``epsilon``, ``noise_std``, ``sky``, ``clouds``, ``occluders``, ...).
+        ``epsilon``, ``noise_std``, ``sky``, ``clouds``, ``occluders``, ...); only with
+        ``sky="model"``.
+    sky : {"model", "realistic"}
+        ``"model"``: the estimator's own sky (``polins.sim.render_raw``) and a camera file
+        whose calibration is exact (``instrumental_dop_std = 0``). ``"realistic"``: one
+        random realistic sky for the whole log (``polins.sim.random_real_sky``: CIE
+        radiance, Berry neutral points, two thin clouds fixed in the sky, vignetting, a
+        channel-gain residual of the camera that its file does not know), rendered by the
+        independent ``polins.sim.render_real_raw``; the log's camera file keeps its
+        ``instrumental_dop_std`` (docs/measurement.md §12).
     imu_format : {"csv", "parquet"}
     progress : bool
         Show a tqdm progress bar while rendering images.
@@ -236,16 +251,22 @@ def simulate_log(
         cam = cam_full if downscale == 1 else cam_full.downscaled(int(downscale))
     except ValueError as exc:
         raise ValueError(f"downscale={downscale}: {exc}") from None
-    # the images are rendered with the camera file's own calibration: it is exact, and the
-    # log's camera file says so (its sigma then has no camera-fixed part, docs/measurement.md)
-    cam = dataclasses.replace(cam, instrumental_dop_std=0.0)
+    if sky not in SKIES:
+        raise ValueError(f"sky={sky!r}: expected one of {SKIES}")
+    if sky == "model":
+        # the images are rendered with the camera file's own calibration: it is exact, and
+        # the log's camera file says so (its sigma then has no camera-fixed part,
+        # docs/measurement.md)
+        cam = dataclasses.replace(cam, instrumental_dop_std=0.0)
     rate_hz = imu_model.sample_rate_hz if imu_rate_hz is None else float(imu_rate_hz)
     options = dict(render_options or {})
     if "rng" in options:
         raise ValueError("render_options must not contain 'rng': the seed drives the noise")
+    if options and sky != "model":
+        raise ValueError(f"render_options apply to sky='model' only, not sky={sky!r}")
 
-    rng_traj, rng_imu, rng_img, rng_vib, rng_odo = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)
+    rng_traj, rng_imu, rng_img, rng_vib, rng_odo, rng_sky = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)
     )
     traj = scenario_trajectory(
         scenario,
@@ -276,13 +297,17 @@ def simulate_log(
     sun = sun_position(times, lat_deg, lon_deg, alt_m)
     sun_n = sun_vector_n(sun.azimuth, sun.zenith)
     rot_nb = traj.rot_nb
+    real_sky = random_real_sky(rng_sky, sun_n[0]) if sky == "realistic" else None
 
     def images() -> Iterator[tuple[float, NDArray]]:
         bar = tqdm(
             idx, desc=f"rendering {cam.shape[1]}x{cam.shape[0]} images", disable=not progress
         )
         for j, k in enumerate(bar):
-            raw = render_raw(cam, sun_n[j], rot_nb[int(k)], rng=rng_img, **options)
+            if real_sky is None:
+                raw = render_raw(cam, sun_n[j], rot_nb[int(k)], rng=rng_img, **options)
+            else:
+                raw = render_real_raw(cam, sun_n[j], rot_nb[int(k)], real_sky, rng_img)
             yield float(traj.t[k]), raw
 
     # Shipped models are named in the manifest; objects and paths are copied into the log.
@@ -303,7 +328,7 @@ def simulate_log(
         description=(
             f"polins simulate: scenario={scenario} duration_s={traj.t[-1]:g} "
             f"image_rate_hz={image_rate_hz:g} downscale={downscale} imu={imu_model.name} "
-            f"seed={seed}"
+            f"sky={sky} seed={seed}"
         ),
     )
     return SimulatedLog(
@@ -318,6 +343,7 @@ def simulate_log(
         imu_model=imu_model,
         epoch_utc=epoch,
         render_options=options,
+        real_sky=real_sky,
         vehicle=vehicle,
         odometry=odometry,
         vehicle_trajectory=vehicle_traj,

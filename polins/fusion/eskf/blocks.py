@@ -184,8 +184,8 @@ def sky_blocks(config: FuseConfig) -> tuple[Block, ...]:
                   lambda m, c: c.sun_azimuth_rate_std,
                   lambda m: rate_std**2 / SUN_RATE_CHANGE_S),
         )  # fmt: skip
-    if config.heading_bias_std is not None:
-        sig, tau = config.heading_bias_std, config.heading_bias_tau_s
+    if config.heading_bias_sigma is not None:
+        sig, tau = config.heading_bias_sigma, config.heading_bias_tau_s
         out += (Block("heading_bias", 1,
                       lambda step: {"heading_bias": np.full((step.dt.shape[0], 1, 1), -1.0 / tau)},
                       lambda m, c: sig, lambda m: 2.0 * sig**2 / tau, heading_bias_jacobian,

@@ -53,6 +53,7 @@ from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav
 from polins.fusion.eskf.dynamics import StepNominal, StepSums, discretize, step_nominal
 from polins.fusion.eskf.propagate import advance
 from polins.fusion.items import (
+    HEADING_KINDS,
     MeasurementItem,
     UpdateRecord,
     gate_limit,
@@ -60,6 +61,7 @@ from polins.fusion.items import (
 )
 from polins.fusion.measurement import Linearized
 from polins.fusion.result import FusionEvent
+from polins.fusion.sky_states import ModelPart
 from polins.fusion.vehicle import VehicleAiding, yaw_consider_update
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown_increment
@@ -128,6 +130,8 @@ class ESKF:
         self.yaw_aligned = rot_nb0 is not None
         self.yaw_epoch = 0  # (re-)acquisitions of the yaw: a new smoother chain each
         self.acquisition = Acquisition(config.acquire_k, config.acquire_n, config.reacquire_after)
+        model = config.heading_bias == "model"  # the bias variance from the images
+        self.model_part = ModelPart(config.heading_bias_tau_s) if model else None
         self.t_reset = float(t0)
         self.n_resets = 0
         self.count = 0  # real IMU samples consumed
@@ -171,6 +175,7 @@ class ESKF:
         new.x, new.P, new.correction = self.x.copy(), self.P.copy(), self.correction.copy()
         new.records, new.events = [], []
         new.acquisition, new.vehicle = copy.deepcopy(self.acquisition), self.vehicle.copy()
+        new.model_part = copy.deepcopy(self.model_part)
         new._pending = list(self._pending)
         if self._align_buffer is not None:
             new._align_buffer = list(self._align_buffer)
@@ -288,6 +293,7 @@ class ESKF:
         items = measurement_items(
             t, yaw=yaw, yaw_std=yaw_std, sun_b=sun_b, sun_n=sun_n, sun_std=sun_std,
             zupt_std=zupt_std, use_sun=self.config.use_sun, rot_nb_prior=rot_nb_prior, sky=sky,
+            heading_bias=self.config.heading_bias,
         )  # fmt: skip
         return self.add_items(items)
 
@@ -421,6 +427,11 @@ class ESKF:
             return None
         if not item.valid:
             return self.reject(item, item.reason or "invalid measurement")
+        if self.model_part is not None and item.kind in HEADING_KINDS:
+            i = self.layout.index["heading_bias"].start
+            item, density = self.model_part.take(item, self.P, i)
+            self.qc = self.qc.copy()  # shared with copies of the filter
+            self.qc[i] = density
         if not self.yaw_aligned and item.kind in ("yaw", "sun"):
             return hold_heading(self, item, None)
         if item.kind == "odo":  # the lever arm at the current rate, the scale estimate
