@@ -170,9 +170,9 @@ class FuseConfig:
     heading_bias_std: float | None = _opt(
         None,
         "1-sigma of a Gauss-Markov heading-measurement bias [rad] (sky-model errors "
-        "correlated from image to image; the rows' yaw_std_correlated is its part); None: "
-        "from the images, each heading row's yaw_std_model is its correlated part (a bias "
-        "state when the rows carry yaw_std_model); inf: no bias state",
+        "correlated from image to image; the rows lose yaw_std_correlated); None: from "
+        "the images, the part of each heading row's yaw_std_model beyond twice its "
+        "yaw_std_noise (docs/filter.md 5.7); inf: no bias state",
         ESKF,
     )
     heading_bias_tau_s: float = _opt(

@@ -56,7 +56,12 @@ def rts_smooth(
     for i in range(G - 2, -1, -1):
         if not linked[i + 1]:
             continue
-        C = np.linalg.solve(P_pre[i + 1], Phi[i + 1] @ P_post[i]).T
+        # a state with no variance yet (the default heading bias before the images set
+        # it) takes no gain: solve over the others
+        live = np.diag(P_pre[i + 1]) > 0.0
+        C = np.zeros((n, n))
+        cross = Phi[i + 1] @ P_post[i]
+        C[:, live] = np.linalg.solve(P_pre[i + 1][np.ix_(live, live)], cross[live]).T
         delta[i] = C @ (dx[i + 1] + delta[i + 1])
         P_s[i] = P_post[i] + C @ (P_s[i + 1] - P_pre[i + 1]) @ C.T
     return delta, P_s
