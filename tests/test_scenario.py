@@ -109,6 +109,26 @@ def test_ugv_scenario_deterministic_and_streams_independent(tmp_path):
     assert 1.0 < moved < 12.0 * 10.0
 
 
+def test_realistic_sky_log_keeps_the_camera_file_honest(tmp_path):
+    # sky="realistic": one random realistic sky for the log (the independent renderer), and
+    # the camera file keeps its instrumental_dop_std (its gain residual is not the file's)
+    kw = {**TINY, "duration_s": 1.0}
+    model = simulate_log(tmp_path / "m", scenario="turntable", seed=2, **kw)
+    real = simulate_log(tmp_path / "r", scenario="turntable", seed=2, sky="realistic", **kw)
+    assert model.real_sky is None and real.real_sky is not None
+    assert model.camera.instrumental_dop_std == 0.0
+    assert real.camera.instrumental_dop_std is None  # the measurement's default then
+    assert np.array_equal(model.imu.to_numpy(), real.imu.to_numpy())  # the same drive, IMU
+    img_m = read_image(tmp_path / "m" / "images" / "000001.png").astype(float)
+    img_r = read_image(tmp_path / "r" / "images" / "000001.png").astype(float)
+    assert np.mean(np.abs(img_r - img_m)) > 5.0  # another sky
+    assert np.max(np.abs(real.real_sky.gain_residual)) <= 0.005
+    with pytest.raises(ValueError, match="sky='cloudy'"):
+        simulate_log(tmp_path / "x", sky="cloudy", **kw)
+    with pytest.raises(ValueError, match="render_options apply to sky='model'"):
+        simulate_log(tmp_path / "y", sky="realistic", render_options={"epsilon": 0.01}, **kw)
+
+
 def test_image_indices_snap_to_samples():
     t = np.arange(2001) / 200.0
     idx = image_indices(t, 22.0)
