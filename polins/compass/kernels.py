@@ -9,9 +9,11 @@ for these shapes, and single-threaded they are no faster.
 A full-resolution image is memory-bound: a pass over its 4e5 field-of-view pixels costs
 about as much as the arithmetic of several. The hottest chains of passes are therefore
 fused into single loops compiled with numba (:func:`compiled`, machine code cached on disk
-next to this module); each repeats the numpy expressions it replaces operation for
-operation, in the same dtype and order, so that its results are bit-identical to them
-(tests/test_polarimetry.py).
+next to this module). The passes that make Stokes rows and pixel masks repeat the numpy
+expressions they replace operation for operation, in the same dtype and order, so that
+their results are bit-identical to them; the float64 sums (:func:`moment_pass`,
+:func:`eigen_run_sums`) add in another order, to float64 rounding (tests/test_polarimetry.py,
+tests/test_kernels.py).
 """
 
 from __future__ import annotations
