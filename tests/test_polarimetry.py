@@ -300,8 +300,7 @@ def test_compiled_stokes_pass_is_bit_identical(variant):
     np.testing.assert_array_equal(got.valid, valid)
     np.testing.assert_array_equal(got.unsaturated, channels.max(axis=0) < cam.saturation_dn)
     assert 0.5 < valid.mean() < 0.99 and not got.unsaturated.all()
-    # With the channels asked for (the numpy path), the same numbers again; and from a
-    # big-endian mosaic.
+    # With the channels asked for, the same numbers again; and from a big-endian mosaic.
     again = stokes_image(raw, pixels, cam, cal, channels=True, **kw)
     np.testing.assert_array_equal(again.channels, channels)
     np.testing.assert_array_equal(again.valid, got.valid)

@@ -60,6 +60,7 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
     sigma2: NDArray,
     valid: NDArray,
     unsaturated: NDArray,
+    channels: NDArray,
 ) -> None:
     """Raw mosaic -> Stokes rows, channel noise variance and validity in one pass per pixel
     (:func:`polins.compass.polarimetry.stokes_image` for integer mosaics, float32 rows).
@@ -72,7 +73,7 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
     redundancy^2 [float32 when the noise is one number], dop_min^2, gradient_max^2 or -1);
     ``noise`` = (read^2, mean(g)/2, G_e, per-pixel flag); ``vertical (n,)`` the
     :class:`polins.compass.pixels.PixelSet`'s. ``sigma2`` is written only with the
-    per-pixel flag.
+    per-pixel flag, ``channels (4, n)`` float32 only when it is not empty.
     """
     f32 = np.float32
     zero = f32(0.0)
@@ -100,6 +101,12 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
         ch_d = raw[i2 + position[3] // 2, col0 + position[3] % 2 :: 2]
         r0, r1, r2, r3 = rows[0, p0:p1], rows[1, p0:p1], rows[2, p0:p1], rows[3, p0:p1]
         ok_run, unsat_run = valid[p0:p1], unsaturated[p0:p1]
+        if channels.shape[1] > 0:
+            for q in range(p1 - p0):
+                channels[0, p0 + q] = f32(ch_a[q])
+                channels[1, p0 + q] = f32(ch_b[q])
+                channels[2, p0 + q] = f32(ch_c[q])
+                channels[3, p0 + q] = f32(ch_d[q])
         # Two loops per run (a few kB, in cache): branch-free arithmetic the compiler
         # vectorises, then the tests.
         if per_pixel_rows:  # einsum("ikn,kn->in") order, then the offsets

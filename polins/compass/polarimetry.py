@@ -423,15 +423,15 @@ def stokes_image(
     :func:`validity_rows` (``finite_check`` for float mosaics) of a raw mosaic, already
     checked with :func:`polins.compass.pixels.check_raw`, on ``pixels`` (docs/model.md §7).
 
-    An unsigned-integer mosaic is processed in float32, a float mosaic in float64. Without
-    ``channels``, an integer mosaic takes one compiled pass
+    An unsigned-integer mosaic is processed in float32 by one compiled pass
     (:func:`polins.compass.kernels.stokes_pass`: the same numbers), which reads the mosaic
-    once instead of writing and re-reading the channels and the rows
-    (docs/measurement.md §10).
+    once instead of writing and re-reading the channels and the rows (docs/measurement.md
+    §10); a float mosaic in float64 by the numpy row kernels. ``channels`` also returns
+    the channels ``(4, n)`` [DN].
     """
     integer = not np.issubdtype(raw.dtype, np.floating)
     dtype = np.float32 if integer else np.float64
-    if integer and not channels:
+    if integer:
         if cal.pixel is not None:
             matrix, offset = cal.pixel.arrays(np.float32)  # (4, 4, n), (4, n)
             if offset.shape[1] != pixels.size:
@@ -453,15 +453,16 @@ def stokes_image(
         sigma2_px = np.empty(n if shot else 0)
         valid = np.empty(n, bool)
         unsaturated = np.empty(n, bool)
+        chan = np.empty((4, n if channels else 0), np.float32)
         position = np.argsort(np.asarray(pixels.channel_at).ravel())  # channel -> 2 r + c
         native = np.ascontiguousarray(raw, dtype=raw.dtype.newbyteorder("="))
         compiled("stokes_pass")(native, pixels.runs, position, matrix,
                                 offset, limits, noise, pixels.vertical, rows, sigma2_px, valid,
-                                unsaturated)  # fmt: skip
+                                unsaturated, chan)  # fmt: skip
         sigma2: NDArray | float = sigma2_px
         if not shot:  # one number (read noise only), as stokes_noise_variance gives it
             sigma2 = float(stokes_noise_variance(cam, 0.0))
-        return StokesImage(rows, sigma2, valid, unsaturated, None)
+        return StokesImage(rows, sigma2, valid, unsaturated, chan if channels else None)
     chan = gather_channels(raw, pixels, dtype)
     rows = stokes_rows(chan, cal, dtype)
     sigma2 = stokes_noise_variance(cam, rows[0])
