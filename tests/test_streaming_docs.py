@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import polins
+from polins.compass.measure import NoiseModelWarning
 from polins.errors import UserInputError
 from polins.loop import LoopOptions, NavigationStream
 from polins.sim import render_raw
@@ -209,3 +210,25 @@ def test_add_imu_checks_units_like_the_cli_and_drops_out_of_range_samples():
     with pytest.raises(UserInputError, match="looks like g"):
         for row in imu:
             in_g.add_imu(row[0], row[1:4], row[4:7] / 9.80665)
+
+
+def test_a_wrong_noise_model_is_reported_once():
+    # images of 1.5 DN read noise measured with a camera file that says 0.3 DN: every image's
+    # noise_ratio shows it, one noise-model event and one warning say so
+    quiet = CAMERA.with_changes(read_noise_dn=0.3)
+    nav = NavigationStream(quiet, MODEL, site=PAPER_SITE, epoch_utc=PAPER_EPOCH)
+    imu = static_imu(2.5)
+    feed(nav, imu, 1.1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for t_img in (1.2, 1.4, 1.6, 1.8):
+            feed(nav, imu, t_img + 0.05)
+            nav.add_image(t_img, sky_image(t_img))
+        feed(nav, imu, 2.5)
+        nav.close()
+    noise = [w for w in caught if issubclass(w.category, NoiseModelWarning)]
+    assert len(noise) == 1 and "reported once" in str(noise[0].message)
+    events = nav.drain_events()
+    assert list(events["kind"]).count("noise-model") == 1
+    rows = nav.drain_measurements()
+    assert len(rows) == 4 and np.all(rows["noise_ratio"] > 3.0)

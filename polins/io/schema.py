@@ -119,6 +119,11 @@ _MEASUREMENTS: dict[str, tuple[str, str]] = {
         "RMS of the fit residuals normalised by the pixel noise; about 1 when the sky model "
         "fits, 25-35 for swapped 45/135 deg channels (docs/measurement.md 8)",
     ),
+    "noise_ratio": (
+        "-",
+        "pixel noise measured in the image / the camera file's noise model; outside "
+        "[0.5, 2] the file's noise or gains are wrong (one noise-model event per run)",
+    ),
     "prior_t": ("s", "time of the filter state the image prior was taken from"),
     "prior_roll": (_ANG, "attitude prior given to the measurement: roll"),
     "prior_pitch": (_ANG, "attitude prior: pitch"),

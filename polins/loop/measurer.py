@@ -13,6 +13,7 @@ import math
 import multiprocessing as mp
 import signal
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -23,8 +24,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.compass.measure import check_measure_options, measure
+from polins.compass.measure import NoiseModelWarning, check_measure_options, measure
+from polins.compass.measurement import NOISE_RATIO_BAND
 from polins.io.images import ImageReadError, load_raw
+from polins.loop.tables import EventBuffer
 from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
@@ -69,9 +72,11 @@ class ImageMeasurer:
             row.update(reason=f"unreadable image: {exc}", event="image-unreadable")
         else:
             try:
-                m = measure(raw, self.camera, sun_n=sun_n,
-                            rot_nb_prior=Rotation.from_quat(quat_prior), method=self.method,
-                            **self.options)  # fmt: skip
+                with warnings.catch_warnings():  # the loop reports it once per run
+                    warnings.simplefilter("ignore", NoiseModelWarning)
+                    m = measure(raw, self.camera, sun_n=sun_n,
+                                rot_nb_prior=Rotation.from_quat(quat_prior),
+                                method=self.method, **self.options)  # fmt: skip
             except cv2.error as exc:
                 row.update(reason=f"measurement failed: OpenCV: {exc}", event="image-error")
             else:
@@ -99,9 +104,30 @@ class ImageMeasurer:
                     sun_elevation_b_std=m.sun_elevation_b_std,
                     eigen_gap=m.eigen_gap,
                     residual_rms=m.residual_rms,
+                    noise_ratio=m.noise_ratio,
                 )
         row["measure_s"] = time.perf_counter() - start
         return row
+
+
+def report_noise_model(row: Mapping[str, Any], events: EventBuffer, t: float) -> None:
+    """Report the first image of a run whose measured noise is outside ``NOISE_RATIO_BAND``
+    times the camera file's noise model: one ``noise-model`` event and one
+    ``NoiseModelWarning`` (``polins.measure`` warns per image; the loop once, and every
+    image's ``noise_ratio`` is in its row)."""
+    ratio = float(row.get("noise_ratio", math.nan))
+    low, high = NOISE_RATIO_BAND
+    if not row.get("ok") or not ratio > 1e-3 or low <= ratio <= high:
+        return
+    if events.counts["noise-model"]:
+        return
+    detail = (
+        f"measured noise is {ratio:.2f} x the camera file's noise model (outside [{low:g}, "
+        f"{high:g}]): check read_noise_dn, the channel gains and dark offsets (reported once; "
+        "every image's noise_ratio is in measurements.csv)"
+    )
+    events.add(t, "noise-model", detail)
+    warnings.warn(detail, NoiseModelWarning, stacklevel=4)
 
 
 # The measurer of a worker process, set once by the pool's initializer (so the camera and

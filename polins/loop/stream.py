@@ -67,7 +67,13 @@ from polins.fusion.items import UpdateRecord
 from polins.fusion.vehicle import odometer_items
 from polins.ins.state import NavState
 from polins.loop.imu_gate import ImuGate
-from polins.loop.measurer import EXECUTORS, ImageMeasurer, PendingImage, make_executor
+from polins.loop.measurer import (
+    EXECUTORS,
+    ImageMeasurer,
+    PendingImage,
+    make_executor,
+    report_noise_model,
+)
 from polins.loop.options import LoopOptions
 from polins.loop.prior import Sample, SunGrid, propagate_nominal
 from polins.loop.runner import FilterRunner
@@ -459,6 +465,7 @@ class NavigationStream:
             row[f"sun_n{c}"] = float(v)
         if row.get("event"):
             self._events.add(img.t, row["event"], row["reason"])
+        report_noise_model(row, self._events, img.t)
         if not row.get("ok"):
             row.update(accepted=False, update_reason="not measured")
             self._rows.append(row)

@@ -46,7 +46,7 @@ EVENT_KINDS = (
     "image-unreadable",
     "image-error",
     "path-outside-log",
-    "odometer-ignored",
+    "noise-model",
 )
 EVENT_COLUMNS = ("t", "kind", "detail")
 MEASUREMENT_COLUMNS = (
@@ -54,7 +54,7 @@ MEASUREMENT_COLUMNS = (
     "epsilon_std", "n_pixels", "yaw_std_meas", "yaw_std_noise", "yaw_std_model",
     "yaw_std_correlated", "sun_bx", "sun_by", "sun_bz", "sun_nx",
     "sun_ny", "sun_nz", "sun_std", "sun_azimuth_b", "sun_azimuth_b_std", "sun_elevation_b",
-    "sun_elevation_b_std", "eigen_gap", "residual_rms", "prior_t", "prior_roll",
+    "sun_elevation_b_std", "eigen_gap", "residual_rms", "noise_ratio", "prior_t", "prior_roll",
     "prior_pitch", "prior_yaw", "accepted", "update_reason", "innovation", "nis", "nis_dof",
     "measure_s", "image",
 )  # fmt: skip
