@@ -224,8 +224,9 @@ def check_gyro_against_headings(
     t_m, yaw = measurements["t"].to_numpy(dtype=float)[ok], np.unwrap(yaw[ok])
     data = imu[list(IMU_COLUMNS)].to_numpy(dtype=float)
     data = data[np.isfinite(data).all(axis=1)]
-    f_norm = np.linalg.norm(data[:, 4:7], axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    # impossible samples (dropped later by the fusion, with an event) may overflow here
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        f_norm = np.linalg.norm(data[:, 4:7], axis=1)
         rate_up = np.einsum("ij,ij->i", data[:, 1:4], data[:, 4:7]) / f_norm
     rate_up = np.where(np.isfinite(rate_up), rate_up, 0.0)
     t = data[:, 0]
