@@ -573,7 +573,9 @@ def test_public_sun_vector_functions(model):
             if ref is not None:
                 assert np.allclose(got.theta, ref.theta, atol=1e-6)
     fixed = sun_joint_ml(stokes, forward, mat_cl, start, sigma_l=2.0, zenith=np.radians(55.0))
-    assert fixed.covariance.shape == (2, 2) and fixed.covariance[0, 0] <= sol.covariance[0, 0]
+    # (each at its own optimum, so to the 1e-5 the sunlight terms of the Jacobian move it)
+    assert fixed.covariance.shape == (2, 2)
+    assert fixed.covariance[0, 0] <= sol.covariance[0, 0] * (1 + 1e-4)
     # Weighted eigen solution and its sandwich covariance in the level frame.
     e_l = evectors_from_stokes(stokes, lens_basis(rays, model)) @ mat_cl
     weights = np.sum(stokes[:, 1:] ** 2, -1)

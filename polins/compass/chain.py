@@ -54,7 +54,6 @@ from polins.compass.heading import (
 from polins.compass.jointml import (
     MLSolution,
     epsilon_correlation,
-    gauss_newton,
     ml_evaluate,
     sun_covariance,
 )
@@ -63,6 +62,7 @@ from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import METHODS, Measurement, MeasurementMaps, MeasureOptions
 from polins.compass.modelerror import (
     cloudy_cells,
+    fitted_sensitivity,
     instrumental_sensitivity,
     model_weights,
     sky_cells,
@@ -72,6 +72,8 @@ from polins.compass.polarimetry import stokes_calibration, stokes_image
 from polins.compass.prediction import PixelData, pixel_data
 from polins.compass.sectors import eigen_jackknife, jackknife_variance, sector_runs
 from polins.compass.selection import Selection, selection_mask
+from polins.compass.skymodel import sky_model
+from polins.compass.solve import compensated_solution
 from polins.errors import UserInputError
 from polins.frames import heading_deg_from_yaw, wrap_angle
 from polins.models import CameraModel
@@ -113,7 +115,7 @@ def _ml_problem(ml: MLSolution, opt: MeasureOptions, converged: bool) -> str:
     """Why a joint ML solution cannot be used ("" if it can; docs/measurement.md §11)."""
     corr = epsilon_correlation(ml.covariance)
     if corr > opt.separability_max:
-        what = "zenith" if ml.theta.size == 3 else "sun azimuth"
+        what = "zenith" if ml.sun_parameters == 2 else "sun azimuth"
         return f"epsilon and {what} not separable (corr {corr:.4f})"
     if converged and not ml.converged:
         return "joint ML did not converge"
@@ -298,8 +300,8 @@ def measure_image(
     if s_n is not None:
         sun_l0 = resolve_sun_sign(eig0.sun, s_n, yaw_prior, opt.horizon_fallback)
 
+    cells = sky_cells(cam)
     if opt.cloud_dop_ratio is not None:  # thin clouds: cells with a DoP deficit (§4)
-        cells = sky_cells(cam)
         cloudy = cloudy_cells(rows_sub, sub.rays, mat_cl @ sun_l0, opt.cloud_dop_ratio,
                               valid_sub, cells.take(sub.index))  # fmt: skip
         if cloudy.any():
@@ -320,7 +322,10 @@ def measure_image(
     zen_arg = zenith if fixed else None
     a0 = float(np.arctan2(sun_l0[1], sun_l0[0]))
     z0 = float(np.arccos(np.clip(sun_l0[2], -1.0, 1.0)))
-    theta = np.array([a0, opt.epsilon0] if fixed else [a0, z0, opt.epsilon0])
+    extra = [opt.neutral_sep**2] * (opt.fit_sep and opt.sky_model == "berry") + [
+        0.0
+    ] * opt.fit_delta
+    theta = np.array([a0, *([] if fixed else [z0]), *extra, opt.epsilon0])
     data_sub = pixel_data(
         rows_sub[0],
         rows_sub[1],
@@ -348,37 +353,11 @@ def measure_image(
     mask: NDArray
     mask_sub: NDArray | None = None
     if method == "compensated":
-        ml, mask_ml = None, None
-        if stride > 1:
-            ml, mask_sub = gauss_newton(
-                data_sub,
-                theta,
-                zen_arg,
-                mat_cl,
-                loss=opt.loss,
-                max_iterations=opt.max_iterations,
-                tol_sigma=0.1,  # the full-set step that follows removes the rest
-                select=sel_sub,
-                epsilon_bound=opt.epsilon_max,
-                sectors=sector_runs(cam, stride),
-            )
-            fallback = _ml_problem(ml, opt, converged=True)
-            theta = ml.theta
-        if not fallback:
-            # 3. One Gauss-Newton step on all valid pixels (iterate if there is no subsample).
-            ml, mask_ml = gauss_newton(
-                data_full,
-                theta,
-                zen_arg,
-                mat_cl,
-                loss=opt.loss,
-                max_iterations=1 if stride > 1 else opt.max_iterations,
-                select=full_select,
-                epsilon_bound=opt.epsilon_max,
-                sectors=sector_runs(cam),
-                sector_h=None if ml is None else ml.sector_h,
-            )
-            fallback = _ml_problem(ml, opt, converged=stride == 1)
+        ml, mask_ml, mask_sub, fallback = compensated_solution(
+            data_sub if stride > 1 else data_full, data_full, theta, zen_arg, mat_cl, sel_sub,
+            full_select, cells, sub.index, (sector_runs(cam, stride), sector_runs(cam)),
+            (sub.rays, cache.rays), lambda ml, conv: _ml_problem(ml, opt, conv), opt,
+        )  # fmt: skip
         if fallback:
             used_method = "traditional"  # weighted, with the reason (docs/measurement.md §11)
             fallback = f"compensated -> traditional: {fallback}"
@@ -434,13 +413,15 @@ def measure_image(
     # The camera-fixed polarization's effect, on the subsample (a ratio of sums, §12).
     if mask_sub is None or used_method != "compensated":
         mask_sub = selection_mask(data_sub, sel_sub, mat_cl @ sun_l)
-    std_instrumental = opt.instrumental_dop_std * instrumental_sensitivity(
-        dataclasses.replace(data_sub, mask=mask_sub),
-        theta,
-        zen_arg,
-        mat_cl,
-        with_epsilon=used_method == "compensated",
-    )
+    data_used = dataclasses.replace(data_sub, mask=mask_sub)
+    if used_method == "compensated" and opt.fit_delta:
+        sky_r = sky_model(sub.rays, False, 0.0, False, True)
+        assert sky_r is not None
+        sensitivity = fitted_sensitivity(data_used, theta, zen_arg, mat_cl, sky_r)
+    else:
+        sensitivity = instrumental_sensitivity(data_used, theta, zen_arg, mat_cl,
+                                               with_epsilon=used_method == "compensated")  # fmt: skip
+    std_instrumental = opt.instrumental_dop_std * sensitivity
     n_pixels = int(np.count_nonzero(mask))
     if n_pixels < opt.min_pixels:
         reason = f"too few valid pixels ({n_pixels} < {opt.min_pixels})"

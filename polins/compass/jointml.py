@@ -22,6 +22,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from polins.compass.kernels import dot
+from polins.compass.losses import (
+    LOSSES,
+    loss_objective,
+    loss_weights,
+    robust_variance_factor,
+)
 from polins.compass.prediction import (
     PixelData,
     doubled_prediction,
@@ -30,6 +36,7 @@ from polins.compass.prediction import (
 )
 from polins.compass.sectors import SectorRuns, ml_jackknife, sector_sums
 from polins.compass.selection import Selection, select_pixels
+from polins.compass.skymodel import SkyModel, sky_evector
 from polins.compass.sunlight import sunlight_direction, sunlight_unpolarized
 from polins.frames import wrap_angle
 
@@ -46,9 +53,6 @@ __all__ = [
     "sun_joint_ml",
 ]
 
-LOSSES = ("linear", "huber", "cauchy")
-_HUBER_K = 1.345
-_CAUCHY_C = 2.3849
 _SUN_STEP_MAX = 0.3  # largest Gauss-Newton step of a sun angle [rad] (docs/measurement.md §11)
 _HALVINGS_MAX = 6  # step halvings of the line search before giving up
 
@@ -85,6 +89,7 @@ def ml_evaluate(
     mat_cl: NDArray,
     jacobian: bool,
     select: Selection | None = None,
+    sky: SkyModel | None = None,
 ) -> tuple[NDArray, NDArray | None, NDArray, NDArray | None]:
     """Residuals ``r`` (n,), Jacobian ``(k, n)``, exact unpolarized intensities ``u`` and the
     mask in force, at ``theta = (A[, Z], eps)`` (docs/model.md §9.2).
@@ -100,7 +105,11 @@ def ml_evaluate(
     cols = mat_cl @ np.column_stack([sun_l, *dsun_l])  # camera frame, (3, 1 + k_sun)
     sun_c = cols[:, 0]
     w = sunlight_direction(sun_c)
-    xy = image_plane_evector(data, cols if jacobian else cols[:, :1])
+    delta = 0.0
+    if sky is None:
+        xy = image_plane_evector(data, cols if jacobian else cols[:, :1])
+    else:  # the Berry sky and/or the camera-fixed polarization (polins.compass.skymodel)
+        cols, xy, delta = sky_evector(data, sky, theta, zenith, mat_cl, jacobian)
     x, y = xy[0, :n], xy[0, n:]
     n1, n2, e2 = doubled_prediction(x, y)
     mask = data.mask
@@ -117,28 +126,51 @@ def ml_evaluate(
     # r = n . (L - eps u w) = (c2 S2 - s2 S1) - eps u (n . w),  n . w = c2 w1 - s2 w0
     n_dot_w = c2 * dt.type(w[1])
     n_dot_w -= s2 * dt.type(w[0])
-    u_nw = np.multiply(u, n_dot_w, out=n_dot_w)
+    u_nw = u * n_dot_w if delta != 0.0 else np.multiply(u, n_dot_w, out=n_dot_w)
     r = c2 * data.s2
     r -= s2 * data.s1
     r -= dt.type(eps) * u_nw
+    fit_delta = sky is not None and sky.fit_delta
+    k_par = cols.shape[1] - 1 + fit_delta if jacobian else 0
+    delta_col = k_par - 1 if fit_delta else None
+    if delta != 0.0:  # - delta S0 (n . w_perp), n . w_perp = r_hat . w
+        r_w0 = c2 * dt.type(w[0])
+        r_w0 += s2 * dt.type(w[1])
+        r_w0 *= data.s0
+        r -= dt.type(delta) * r_w0
     weight = data.inv_sigma if isinstance(data.inv_sigma, np.ndarray) else None
     if weight is not None:
         r *= weight
     if not jacobian:
         return r, None, u, mask
-    # Jacobian. d r / d theta_sun = -d(2 zeta_R) (r_hat . L): the O(eps u / p) terms (through
-    # w and u) are left out, so the Jacobian is exact for eps = 0 and within ~1% otherwise;
-    # the residual, hence the estimate, is exact. d r / d eps = -u (n . w).
+    # Jacobian (docs/measurement.md §3). d r / d theta_sun = -d(2 zeta) r_hat . (L - eps u w)
+    # - eps u n . dw/dtheta, with n . dw/dtheta = 2 alpha_s' (r_hat . w) (alpha_s the sun's
+    # image-plane azimuth); only the O(eps^2) term through u is left out. dr/deps = -u (n . w).
     proj = c2 * data.s1
     proj += s2 * data.s2
+    t_w = c2 * dt.type(w[0])  # eps u (r_hat . w) [- delta S0 (n . w)]
+    t_w += s2 * dt.type(w[1])
+    r_w = t_w.copy() if delta_col is not None else None
+    t_w *= u
+    t_w *= dt.type(eps)
+    if delta != 0.0:
+        t_w -= dt.type(delta) * n_dot_w * data.s0
+    proj -= t_w
     proj *= inv_e
     proj *= -2.0
-    jac = np.empty((cols.shape[1], n), dtype=dt)
+    jac = np.empty((k_par + 1, n), dtype=dt)
+    rho2 = sun_c[0] ** 2 + sun_c[1] ** 2
     for j in range(1, cols.shape[1]):
         xj, yj = xy[j, :n], xy[j, n:]
         d2zeta = np.multiply(x, yj, out=jac[j - 1])
         d2zeta -= y * xj
         d2zeta *= proj
+        alpha_j = (sun_c[0] * cols[1, j] - sun_c[1] * cols[0, j]) / rho2
+        if alpha_j != 0.0:
+            d2zeta -= dt.type(2.0 * alpha_j) * t_w
+    if r_w is not None:
+        np.multiply(r_w, data.s0, out=jac[-2])
+        jac[-2] *= -1.0
     np.negative(u_nw, out=jac[-1])
     if weight is not None:
         jac *= weight
@@ -159,38 +191,6 @@ def _normal_equations(
     jtr = np.array([dot(jw[a], r) for a in range(k)])
     rss = dot(r, r) if weights is None else dot(r * weights, r)
     return jtj, jtr, rss
-
-
-def _loss_weights(r: NDArray, loss: str, n: int) -> tuple[NDArray | None, float]:
-    """IRLS weights of the robust loss and the residual scale (MAD of the n counted
-    residuals; zeros from masked pixels are left out) used for them."""
-    if loss == "linear":
-        return None, 1.0
-    a = np.abs(r)
-    if n < r.size:
-        a_used = np.sort(a)[r.size - n :]  # masked pixels have r = 0 exactly
-    else:
-        a_used = a
-    scale = max(1.4826 * float(np.median(a_used)), 1e-12)
-    t = a / scale
-    if loss == "huber":
-        return np.minimum(1.0, _HUBER_K / np.maximum(t, 1e-30)).astype(r.dtype), scale
-    if loss == "cauchy":
-        return (1.0 / (1.0 + (t / _CAUCHY_C) ** 2)).astype(r.dtype), scale
-    raise ValueError(f"loss={loss!r}: expected one of {LOSSES}")
-
-
-def _objective(r: NDArray, loss: str, scale: float) -> float:
-    """The loss ``sum rho(r_i / scale) scale^2`` that Gauss-Newton/IRLS decreases (the
-    line search compares it between iterations at one scale)."""
-    if loss == "linear":
-        return dot(r, r)
-    t = np.abs(r.astype(float)) / scale
-    if loss == "huber":
-        rho = np.where(t <= _HUBER_K, 0.5 * t * t, _HUBER_K * (t - 0.5 * _HUBER_K))
-    else:
-        rho = 0.5 * _CAUCHY_C**2 * np.log1p((t / _CAUCHY_C) ** 2)
-    return float(np.sum(rho)) * scale**2
 
 
 def _bounded_step(step: NDArray, k_sun: int) -> NDArray:
@@ -222,20 +222,6 @@ def epsilon_correlation(covariance: ArrayLike) -> float:
     return float(np.sqrt(max(0.0, 1.0 - 1.0 / vif)))
 
 
-def _robust_variance_factor(r: NDArray, loss: str, scale: float, n: int, dof: int) -> float:
-    """``sigma^2`` of ``Cov = sigma^2 (J^T J)^-1`` (Huber's M-estimator sandwich)."""
-    t = r.astype(float) / scale
-    if loss == "huber":
-        psi = np.clip(t, -_HUBER_K, _HUBER_K)
-        dpsi_sum = float(np.count_nonzero(np.abs(t) <= _HUBER_K)) - (r.size - n)
-    else:
-        q = 1.0 + (t / _CAUCHY_C) ** 2
-        psi = t / q
-        dpsi_sum = float(np.sum((1.0 - (t / _CAUCHY_C) ** 2) / (q * q))) - (r.size - n)
-    mean_dpsi = max(dpsi_sum / max(n, 1), 1e-12)
-    return scale**2 * dot(psi, psi) / max(n - dof, 1) / mean_dpsi**2
-
-
 @dataclass(frozen=True)
 class MLSolution:
     """Joint ML estimate of docs/model.md §9.2.
@@ -261,6 +247,8 @@ class MLSolution:
         Each group's share of the azimuth information ``H_g[0, 0] / H[0, 0]``.
     sector_h : (G, k, k) or None
         The groups' parts ``H_g`` of the normal matrix (unscaled).
+    sun_parameters : int
+        1 (the azimuth) or 2 (azimuth and zenith): the leading entries of ``theta``.
     """
 
     theta: FloatArray
@@ -273,6 +261,7 @@ class MLSolution:
     jackknife: FloatArray | None = None
     sector_share: FloatArray | None = None
     sector_h: FloatArray | None = None
+    sun_parameters: int = 1
 
 
 def gauss_newton(
@@ -289,6 +278,7 @@ def gauss_newton(
     epsilon_bound: float = np.inf,
     sectors: SectorRuns | None = None,
     sector_h: FloatArray | None = None,
+    sky: SkyModel | None = None,
 ) -> tuple[MLSolution, NDArray | None]:
     """Gauss-Newton (IRLS for robust losses) on ``data``; with ``max_iterations=1`` it is the
     single full-set step of the subsample-then-full scheme (docs/measurement.md). ``select``
@@ -325,7 +315,7 @@ def gauss_newton(
     theta_prev, step, loss_prev, halvings = theta, np.zeros_like(theta), np.inf, 0
     accepted: tuple[NDArray, NDArray, NDArray | None, NDArray] | None = None
     for it in range(1, max_iterations + 1):  # noqa: B007
-        r, jac, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select)
+        r, jac, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, sky)
         if select is not None:
             data = dataclasses.replace(data, mask=mask)
             select = None
@@ -337,14 +327,14 @@ def gauss_newton(
         if (
             np.isfinite(loss_prev)
             and halvings < _HALVINGS_MAX
-            and _objective(r, loss, scale) * post_scale**2 > loss_prev * (1.0 + 1e-6)
+            and loss_objective(r, loss, scale) * post_scale**2 > loss_prev * (1.0 + 1e-6)
         ):
             step *= 0.5  # line search: back towards the previous point
             theta = theta_prev + step
             theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
             halvings += 1
             continue
-        weights, scale = _loss_weights(r, loss, n)
+        weights, scale = loss_weights(r, loss, n)
         jtj, jtr, rss = _normal_equations(r, jac, weights)
         jtj *= post_scale**2
         jtr *= post_scale**2
@@ -355,7 +345,7 @@ def gauss_newton(
             jtj_inv = np.linalg.inv(jtj)
         except np.linalg.LinAlgError:
             break
-        loss_prev = rss if loss == "linear" else _objective(r, loss, scale) * post_scale**2
+        loss_prev = loss_objective(r, loss, scale) * post_scale**2
         theta_prev, halvings = theta, 0
         theta = theta + step
         if not -epsilon_bound <= theta[-1] <= epsilon_bound:
@@ -363,8 +353,10 @@ def gauss_newton(
             step = theta - theta_prev
         # Converged when the sun step is below tol [rad], or negligible (tol_sigma sigma)
         # against the statistical uncertainty (e.g. the float32 floor of noise-free data).
-        sigma_sun = np.sqrt(rss / max(n - theta.size, 1) * np.abs(np.diag(jtj_inv)[:k_sun]))
-        if np.all(np.abs(step[:k_sun]) <= np.maximum(tol, tol_sigma * sigma_sun)):
+        # The nuisance parameters (neutral_sep^2, delta_perp) to one sigma.
+        sigma = np.sqrt(rss / max(n - theta.size, 1) * np.abs(np.diag(jtj_inv)[:-1]))
+        sigma[:k_sun] *= tol_sigma
+        if np.all(np.abs(step[:-1]) <= np.maximum(tol, sigma)):
             converged = True
             break
     dof = theta.size
@@ -377,7 +369,7 @@ def gauss_newton(
         var = rss_after / max(n - dof, 1)
         rms = float(np.sqrt(rss_after / max(n, 1)))
     else:
-        var = _robust_variance_factor(r, loss, scale, n, dof)
+        var = robust_variance_factor(r, loss, scale, n, dof)
         rms = float(np.sqrt(dot(r, r) / max(n, 1)))
     try:
         cov = var * np.linalg.inv(jtj)
@@ -413,6 +405,7 @@ def gauss_newton(
         jackknife,
         share,
         None if sector_parts is None else sector_parts[0],
+        k_sun,
     )
     return solution, mask
 
@@ -447,10 +440,10 @@ def _sector_normal_equations(
 def sun_covariance(solution: MLSolution) -> FloatArray:
     """Level-frame covariance ``(3, 3)`` of the unit sun of a joint ML solution:
     ``J C_sun J^T`` with ``J`` the derivatives of the sun by ``A_l`` (and ``Z_l`` when the
-    zenith was estimated, ``theta`` of size 3)."""
+    zenith was estimated, ``sun_parameters`` 2)."""
     s = solution.sun_l
     cols = [np.array([-s[1], s[0], 0.0])]  # d sun / d A_l
-    if solution.theta.size == 3:
+    if solution.sun_parameters == 2:
         a, z = solution.theta[0], solution.theta[1]
         cols.append(np.array([np.cos(z) * np.cos(a), np.cos(z) * np.sin(a), -np.sin(z)]))
     jac = np.column_stack(cols)

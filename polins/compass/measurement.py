@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.compass.jointml import LOSSES
+from polins.compass.losses import LOSSES
+from polins.compass.skymodel import SKY_MODELS
 from polins.errors import UnknownOptionError, UserInputError
 
 FloatArray = NDArray[np.float64]
@@ -99,6 +100,29 @@ class MeasureOptions:
         this fraction of the clear sky's ``d_max sin^2 T / (1 + cos^2 T) S0`` (d_max fitted
         per image) are not used, away from the sun and the antisun (docs/measurement.md
         §4); None: no cloud mask.
+    sky_model : {"berry", "rayleigh"}
+        ``"compensated"``: the sky the joint ML predicts: the Berry four-neutral-point sky
+        (docs/model.md §6.3) or the single-scattering Rayleigh sky.
+    neutral_sep : float
+        Berry sky: separation of the Babinet and Brewster points [rad], the start of its fit
+        (or its value with ``fit_sep=False``).
+    fit_sep : bool
+        Berry sky: fit the separation per image (a nuisance parameter of the joint ML).
+    sep_z_min : float
+        Berry sky: a fitted separation below this many of its sigmas is not identified
+        (its effect grows as its square: near zero the linearised sigma is optimistic), and
+        the image is solved with the Rayleigh sky.
+    fit_delta : bool
+        ``"compensated"``: also estimate the camera-fixed polarization across the sunlight
+        direction, ``delta_perp``, per image (a channel-gain residual; docs/measurement.md
+        §12): it removes most of a gain residual's error, costs about 10 % of noise sigma on
+        clean skies, and leaves the cloud errors to the jackknife.
+    cloud_aop_z : float or None
+        Thin-cloud cells by their AoP residual: sky cells (and their neighbours) whose mean
+        E-vector rotation exceeds this many sigmas and ``cloud_aop_min`` are dropped and the
+        joint ML solved again (docs/measurement.md §4); None: no such test.
+    cloud_aop_min : float
+        Smallest mean rotation of a cell that counts as cloud [rad].
     tilt_std : float
         1-sigma roll/pitch error about the horizontal axis towards the sun [rad]; adds
         ``cot(Z) tilt_std`` to the heading sigma.
@@ -165,6 +189,13 @@ class MeasureOptions:
     model_field_angle: float = float(np.radians(60.0))
     model_neutral_angle: float = float(np.radians(10.0))
     cloud_dop_ratio: float | None = 0.95
+    sky_model: str = "berry"
+    neutral_sep: float = float(np.radians(32.0))
+    fit_sep: bool = True
+    sep_z_min: float = 10.0
+    fit_delta: bool = False
+    cloud_aop_z: float | None = 4.0
+    cloud_aop_min: float = float(np.radians(0.1))
     tilt_std: float = 0.0
     yaw_gate: float | None = None
     gradient_max: float | None = 0.05
@@ -211,6 +242,14 @@ class MeasureOptions:
             raise UserInputError(f"cloud_dop_ratio={self.cloud_dop_ratio} outside (0, 1)")
         if not self.model_field_angle > 0:
             raise UserInputError(f"model_field_angle={self.model_field_angle} must be > 0 [rad]")
+        if self.sky_model not in SKY_MODELS:
+            raise UserInputError(f"sky_model={self.sky_model!r}: expected one of {SKY_MODELS}")
+        if not 0 <= self.neutral_sep < np.pi / 2 or not self.sep_z_min >= 0:
+            raise UserInputError("neutral_sep in [0, pi/2) rad and sep_z_min >= 0 required")
+        if self.cloud_aop_z is not None and not self.cloud_aop_z > 0:
+            raise UserInputError(f"cloud_aop_z={self.cloud_aop_z} must be > 0 (or None)")
+        if not self.cloud_aop_min >= 0:
+            raise UserInputError(f"cloud_aop_min={self.cloud_aop_min} must be >= 0 [rad]")
         if not 0 < self.separability_max <= 1:
             raise UserInputError(f"separability_max={self.separability_max} outside (0, 1]")
         if self.min_pixels < 3 or self.max_iterations < 1 or self.gn_pixels < 0:

@@ -25,9 +25,18 @@ from polins.compass.jointml import ml_evaluate
 from polins.compass.lens import camera_constants
 from polins.compass.measurement import MeasureOptions
 from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
+from polins.compass.skymodel import SkyModel
 from polins.models import CameraModel
 
-__all__ = ["CLOUD_CELLS", "cloudy_cells", "instrumental_sensitivity", "model_weights", "sky_cells"]
+__all__ = [
+    "CLOUD_CELLS",
+    "cloudy_cells",
+    "fitted_sensitivity",
+    "instrumental_sensitivity",
+    "model_weights",
+    "rotated_cells",
+    "sky_cells",
+]
 
 _SHAPE_FIT = 0.5  # Rayleigh DoP shape above which d_max is fitted
 _SHAPE_TEST = 0.3  # ... and above which a pixel is tested (near the sun and the antisun the
@@ -95,6 +104,87 @@ def cloudy_cells(
     sum_p = np.bincount(cells_t, weights=p[tested], minlength=n_cells)
     sum_clear = np.bincount(cells_t, weights=(shape * rows[0])[tested], minlength=n_cells)
     return (count >= _CELL_MIN_PIXELS) & (sum_p < (ratio * d_max) * sum_clear)
+
+
+def rotated_cells(
+    data: PixelData,
+    theta: NDArray,
+    zenith: float | None,
+    mat_cl: NDArray,
+    sky: SkyModel | None,
+    cells: NDArray,
+    z_min: float,
+    angle_min: float,
+) -> NDArray:
+    """Sky cells ``(CLOUD_CELLS**2,)`` bool whose mean AoP residual is significant: a thin
+    cloud turns the E-vector by a few degrees (docs/measurement.md §4).
+
+    A rotation ``dzeta`` of the sky's E-vector changes the residual by ``2 p dzeta``; per
+    cell its weighted estimate is ``dzeta_c = sum r p / (2 sum p^2)`` (residuals and
+    polarized intensities in units of sigma_L) with the noise sigma ``1 / (2 sqrt(sum
+    p^2))``; the ratios ``z_c = |dzeta_c| / sigma_c`` are divided by their robust spread
+    ``1.4826 median(z_c)`` when it exceeds 1. A cell is flagged, with its four neighbours
+    (a cloud's rim is turned too), when ``z_c > z_min`` and ``|dzeta_c| > angle_min`` [rad].
+
+    Parameters
+    ----------
+    data : PixelData
+        The pixels with the mask the estimate used.
+    theta, zenith, mat_cl, sky
+        The estimate and its model (:func:`polins.compass.jointml.ml_evaluate`).
+    cells : (n,) int
+        The pixels' :func:`sky_cells`.
+    """
+    r, _, _, mask = ml_evaluate(data, theta, zenith, mat_cl, False, None, sky)
+    r = data.sigma_scaled(r).astype(np.float64)
+    p = np.hypot(data.s1, data.s2).astype(np.float64)
+    p = p * data.inv_sigma if isinstance(data.inv_sigma, np.ndarray) else p * float(data.inv_sigma)
+    if mask is not None:
+        p = p * mask
+    n_cells = CLOUD_CELLS * CLOUD_CELLS
+    num = np.bincount(cells, weights=r * p, minlength=n_cells)
+    den = np.bincount(cells, weights=p * p, minlength=n_cells)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rot = 0.5 * num / den
+        z = np.abs(rot) * 2.0 * np.sqrt(den)
+    used = den > 0
+    if np.any(used):  # in units of the cells' own spread (the residuals are not all noise)
+        z = z / max(1.0, 1.4826 * float(np.median(z[used])))
+    flagged = (used & (z > z_min) & (np.abs(rot) > angle_min)).reshape(CLOUD_CELLS, -1)
+    grown = flagged.copy()  # and their neighbours: a cloud's rim is turned too
+    grown[1:] |= flagged[:-1]
+    grown[:-1] |= flagged[1:]
+    grown[:, 1:] |= flagged[:, :-1]
+    grown[:, :-1] |= flagged[:, 1:]
+    return grown.ravel() & (den > 0)
+
+
+def fitted_sensitivity(
+    data: PixelData, theta: NDArray, zenith: float | None, mat_cl: NDArray, sky: SkyModel
+) -> float:
+    """Yaw change per unit camera-fixed polarization ``sqrt(g_1^2 + g_2^2)`` [rad] of a
+    joint ML that estimates ``delta_perp`` (``theta = (A_l[, Z_l], delta_perp, eps)``,
+    ``sky`` with ``fit_delta``): that component is absorbed, what is left is the part
+    along the sunlight direction that epsilon does not absorb (docs/measurement.md §12).
+    Same arguments as :func:`instrumental_sensitivity`."""
+    _, jac, _, _ = ml_evaluate(data, theta, zenith, mat_cl, True, None, sky)
+    assert jac is not None
+    j = jac.astype(np.float64)
+    sun_l = _sun_level(theta, zenith)
+    xy = image_plane_evector(data, (mat_cl @ sun_l)[:, None])
+    n = data.s0.size
+    n1, n2, e2 = doubled_prediction(xy[0, :n], xy[0, n:])
+    scale = data.s0.astype(np.float64) / e2
+    if data.mask is not None:
+        scale = scale * data.mask
+    if isinstance(data.inv_sigma, np.ndarray):
+        scale = scale * data.inv_sigma
+    dr = np.stack([-n2 * scale, n1 * scale])
+    try:
+        dtheta = -np.linalg.solve(j @ j.T, j @ dr.T)
+    except np.linalg.LinAlgError:
+        return float("nan")
+    return float(np.hypot(dtheta[0, 0], dtheta[0, 1]))
 
 
 def model_weights(

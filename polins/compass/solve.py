@@ -1,0 +1,205 @@
+"""The compensated solve of one image: joint ML on a subsample, rotated-cloud cells, full-set step.
+
+Step 3 of :mod:`polins.compass.chain` (docs/measurement.md §5, §12):
+
+1. Gauss-Newton of the joint ML with the sky model of the options (Rayleigh or Berry with
+   its neutral-point separation, the camera-fixed ``delta_perp``;
+   :mod:`polins.compass.skymodel`) on the pixel subsample;
+2. with ``cloud_aop_z``: sky cells whose mean AoP residual is significant (a thin cloud
+   turns the E-vector, :func:`polins.compass.modelerror.rotated_cells`) are dropped and the
+   subsample is solved again, up to :data:`CLOUD_ROUNDS` times;
+3. one Gauss-Newton step on all valid pixels, the neutral-point separation kept at the
+   subsample's value (the Berry prediction is one compiled pass over the pixels).
+   Without a subsample (``stride == 1``) the full set is solved directly, to a tenth of a
+   sigma (the epsilon column of the Jacobian is approximate to ~2 %, so the iteration can
+   circle the optimum by a few hundredths of a sigma).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from polins.compass.jointml import MLSolution, gauss_newton
+from polins.compass.measurement import MeasureOptions
+from polins.compass.modelerror import CLOUD_CELLS, rotated_cells
+from polins.compass.prediction import PixelData
+from polins.compass.sectors import SectorRuns
+from polins.compass.selection import Selection
+from polins.compass.skymodel import SkyModel, sky_model
+
+__all__ = ["CLOUD_ROUNDS", "SEP_MIN", "compensated_solution"]
+
+CLOUD_ROUNDS = 3
+"""Largest number of rotated-cloud passes (each drops cells and solves again)."""
+
+
+SEP_MIN = float(np.radians(5.0))
+"""Smallest neutral-point separation that counts [rad]: the points are then within 2.5 deg
+of the sun, inside its exclusion radius (10 deg by default)."""
+
+
+def _sky(rays: NDArray, opt: MeasureOptions, berry: bool = True) -> SkyModel | None:
+    return sky_model(rays, berry and opt.sky_model == "berry", opt.neutral_sep,
+                     opt.fit_sep, opt.fit_delta)  # fmt: skip
+
+
+def _without(ml: MLSolution, k: int) -> MLSolution:
+    """The solution without its parameter ``k`` (the neutral-point separation): the
+    marginal covariance and jackknife of the others."""
+    cov = np.delete(np.delete(ml.covariance, k, axis=0), k, axis=1)
+    jack = None if ml.jackknife is None else np.delete(ml.jackknife, k, axis=1)
+    h = None if ml.sector_h is None else np.delete(np.delete(ml.sector_h, k, axis=1), k, axis=2)
+    theta = np.delete(ml.theta, k)
+    return dataclasses.replace(ml, theta=theta, covariance=cov, jackknife=jack, sector_h=h)
+
+
+def _separation_identified(ml: MLSolution, k: int, opt: MeasureOptions) -> bool:
+    """The fitted square of the neutral-point separation ``theta[k]`` is significant (above
+    ``sep_z_min`` of its sigma, the sigma at least the pixel noise's) and the separation in
+    range (:data:`SEP_MIN` to 90 deg)."""
+    tau = float(ml.theta[k])
+    var = float(ml.covariance[k, k]) / min(ml.residual_rms**2, 1.0)
+    ok = SEP_MIN**2 < tau < (np.pi / 2) ** 2 and np.isfinite(var)
+    return ok and tau > opt.sep_z_min * np.sqrt(var)
+
+
+def _drop_clouds(
+    ml: MLSolution,
+    mask: NDArray | None,
+    data: PixelData,
+    select: Selection,
+    cells: NDArray,
+    solve: Callable[[NDArray, Selection], tuple[MLSolution, NDArray | None]],
+    problem: Callable[[MLSolution], str],
+    zenith: float | None,
+    mat_cl: NDArray,
+    sky: SkyModel | None,
+    opt: MeasureOptions,
+) -> tuple[MLSolution, NDArray | None, NDArray]:
+    """Rotated-cloud passes on one pixel set: the solution, its mask and the dropped cells
+    ``(CLOUD_CELLS**2,)`` bool."""
+    dropped = np.zeros(CLOUD_CELLS * CLOUD_CELLS, dtype=bool)
+    if opt.cloud_aop_z is None:
+        return ml, mask, dropped
+    for _ in range(CLOUD_ROUNDS):
+        if problem(ml):
+            break
+        flagged = rotated_cells(dataclasses.replace(data, mask=mask), ml.theta, zenith, mat_cl,
+                                sky, cells, opt.cloud_aop_z, opt.cloud_aop_min)  # fmt: skip
+        flagged &= ~dropped
+        if not flagged.any():
+            break
+        dropped |= flagged
+        select = dataclasses.replace(select, valid=select.valid & ~flagged.take(cells))
+        ml, mask = solve(ml.theta, select)
+    return ml, mask, dropped
+
+
+def compensated_solution(
+    data_sub: PixelData,
+    data_full: PixelData,
+    theta: NDArray,
+    zenith: float | None,
+    mat_cl: NDArray,
+    select_sub: Selection,
+    select_full: Selection,
+    cells: NDArray,
+    sub_index: NDArray,
+    sectors: tuple[SectorRuns, SectorRuns],
+    rays: tuple[NDArray, NDArray],
+    problem: Callable[[MLSolution, bool], str],
+    opt: MeasureOptions,
+) -> tuple[MLSolution, NDArray | None, NDArray | None, str]:
+    """The joint ML of one image (module notes).
+
+    Parameters
+    ----------
+    data_sub, data_full : PixelData
+        The subsample (None-strided: ``data_sub is data_full``) and all field-of-view pixels.
+    theta : (k,)
+        Start ``(A_l[, Z_l][, neutral_sep][, delta_perp], eps)``.
+    zenith : float or None
+        Fixed zenith [rad] or None.
+    mat_cl : (3, 3)
+        Level -> camera rotation.
+    select_sub, select_full : Selection
+        The pixel selections (``select_full.valid`` is updated in place with the dropped
+        cloud cells).
+    cells : (n,) int
+        The field-of-view pixels' sky cells; ``sub_index`` the subsample's pixels.
+    sectors : (SectorRuns, SectorRuns)
+        Jackknife runs of the subsample and of the full set.
+    rays : ((3, n_sub), (3, n))
+        Camera-frame unit rays of the subsample and of the full set.
+    problem : callable
+        ``problem(ml, converged)``: why a solution cannot be used ("" if it can).
+
+    Returns
+    -------
+    MLSolution (of the full set, ``theta`` without ``neutral_sep`` when the subsample had
+    it), the full-set mask, the subsample mask (None without a subsample), and the
+    fallback reason ("" if none).
+    """
+    strided = data_sub is not data_full
+
+    Solve = Callable[[NDArray, Selection], tuple[MLSolution, NDArray | None]]
+
+    def solve(data: PixelData, sectors_x: SectorRuns, sky: SkyModel | None, iterations: int,
+              tol_sigma: float = 1e-2, sector_h: NDArray | None = None) -> Solve:  # fmt: skip
+        def run(theta0: NDArray, select: Selection) -> tuple[MLSolution, NDArray | None]:
+            return gauss_newton(data, theta0, zenith, mat_cl, loss=opt.loss,
+                                max_iterations=iterations, tol_sigma=tol_sigma, select=select,
+                                epsilon_bound=opt.epsilon_max, sectors=sectors_x, sky=sky,
+                                sector_h=sector_h)  # fmt: skip
+
+        return run
+
+    def fails(converged: bool) -> Callable[[MLSolution], str]:
+        return lambda ml: problem(ml, converged)
+
+    k_sep = 1 if zenith is not None else 2
+    if not strided:
+        sky = _sky(rays[1], opt)
+        run = solve(data_full, sectors[1], sky, opt.max_iterations, tol_sigma=0.1)
+        ml, mask = run(theta, select_full)
+        if sky is not None and sky.fit_sep and not _separation_identified(ml, k_sep, opt):
+            sky = _sky(rays[1], opt, berry=False)  # Rayleigh (sep 0: no neutral points seen)
+            run = solve(data_full, sectors[1], sky, opt.max_iterations, tol_sigma=0.1)
+            ml, mask = run(np.delete(ml.theta, k_sep), select_full)
+        ml, mask, dropped = _drop_clouds(ml, mask, data_full, select_full, cells, run,
+                                         fails(True), zenith, mat_cl, sky, opt)  # fmt: skip
+        np.logical_and(select_full.valid, ~dropped.take(cells), out=select_full.valid)
+        if sky is not None and sky.fit_sep:
+            ml = _without(ml, k_sep)
+        return ml, mask, None, problem(ml, True)
+
+    sky_sub = _sky(rays[0], opt)
+    run = solve(data_sub, sectors[0], sky_sub, opt.max_iterations, tol_sigma=0.1)
+    ml, mask_sub = run(theta, select_sub)
+    if sky_sub is not None and sky_sub.fit_sep and not _separation_identified(ml, k_sep, opt):
+        sky_sub = _sky(rays[0], opt, berry=False)  # Rayleigh (sep 0: no neutral points seen)
+        run = solve(data_sub, sectors[0], sky_sub, opt.max_iterations, tol_sigma=0.1)
+        ml, mask_sub = run(np.delete(ml.theta, k_sep), select_sub)
+    cells_sub = cells.take(sub_index)
+    ml, mask_sub, dropped = _drop_clouds(ml, mask_sub, data_sub, select_sub, cells_sub, run,
+                                         fails(True), zenith, mat_cl, sky_sub, opt)  # fmt: skip
+    fallback = problem(ml, True)
+    if fallback:
+        return ml, None, mask_sub, fallback
+    np.logical_and(select_full.valid, ~dropped.take(cells), out=select_full.valid)
+    theta, sector_h = ml.theta, ml.sector_h
+    sky_full = _sky(rays[1], opt, berry=False)
+    if sky_sub is not None and sky_sub.berry:  # the full step keeps the fitted separation
+        sep = opt.neutral_sep
+        if sky_sub.fit_sep:
+            sep = float(np.sqrt(ml.theta[k_sep]))
+            without = _without(ml, k_sep)
+            theta, sector_h = without.theta, without.sector_h
+        sky_full = sky_model(rays[1], True, sep, False, opt.fit_delta)
+    step = solve(data_full, sectors[1], sky_full, 1, sector_h=sector_h)
+    full, mask_full = step(theta, select_full)
+    return full, mask_full, mask_sub, problem(full, False)
