@@ -136,8 +136,8 @@ class FuseConfig:
     # ESKF only
     scale_factors: bool | None = _opt(
         None,
-        "gyro/accel scale-factor errors: ESKF states (21 states), covered by "
-        "rotation-proportional gyro noise in the graph; None: on for MEMS-grade IMU models",
+        "gyro/accel scale-factor errors: ESKF states (21 states), graph variables; "
+        "None: on for MEMS-grade IMU models",
     )
     reset_interval_s: float = _opt(
         20.0, "inject and zero the error state this long after the last reset [s]", ESKF

@@ -40,10 +40,15 @@ apart. Implementation notes beyond docs/filter.md §9:
   with the functions of :mod:`polins.fusion.acquisition`); it also re-acquires a given
   ``rot_nb0`` whose yaw the headings contradict.
 * Rotation-proportional gyro noise: each keyframe interval has its own preintegration
-  parameters, gyro density ``ARW^2 + (m^2 + s_g^2) mean|w|^2 tau``
-  (:func:`~polins.fusion.graph.factors.gyro_noise_density`): the misalignment, and the
-  stand-in for the ESKF's gyro scale-factor states when ``FuseConfig.use_scale_factors``.
-  Inside an IMU gap longer than ``max_gap_s`` the densities also carry the gap's variance.
+  parameters, gyro density ``ARW^2 + m^2 mean|w|^2 tau`` (the misalignment,
+  :func:`~polins.fusion.graph.factors.gyro_noise_density`). Inside an IMU gap longer than
+  ``max_gap_s`` the densities also carry the gap's variance.
+* Scale factors (``FuseConfig.use_scale_factors``): ``sg, sa`` per keyframe (keys ``g<k>``,
+  ``a<k>``, ``Vector3``), the IMU model's turn-on sigmas as priors, linked as constants
+  (:func:`~polins.fusion.graph.imu.scale_factor_links`; one key for the run would sit in
+  every clique's separator, and ISAM2 would back-substitute the whole tree at every
+  keyframe). The IMU factor is the ``CombinedImuFactor`` wrapped in a ``CustomFactor`` that
+  corrects its increments by ``J_s s`` (:mod:`polins.fusion.graph.imu`).
 
 Error blocks
 ------------
@@ -58,8 +63,8 @@ lacks it (an IMU error such as a scale factor: a factor on ``X, V, B`` and the b
 corrects the preintegrated increments to first order in the block, as GTSAM does for the
 bias); :class:`~polins.fusion.graph.problem.Estimates` gets its array and its slice of
 the covariance, and :func:`~polins.fusion.graph.output.nav_state` its entry in
-``errors`` and ``sigma``. The scale factors have no variables yet: the rotation-
-proportional gyro noise stands in for them (``scale_factors=None`` or ``True``).
+``errors`` and ``sigma``. The scale factors (``sg, sa``) are ``Estimates.scale`` and
+``scale_cov`` (:mod:`polins.fusion.graph.imu`).
 
 Solvers
 -------
@@ -109,8 +114,9 @@ from polins.fusion.graph.factors import (
     yaw_factor,
     zero_velocity_factor,
 )
+from polins.fusion.graph.imu import ImuSegments, imu_segments
 from polins.fusion.graph.output import interpolate, keyframe_output
-from polins.fusion.graph.problem import ImuSegments, Problem, imu_segments, keyframe_times
+from polins.fusion.graph.problem import Problem, keyframe_times
 from polins.fusion.graph.solvers import (
     gauss_newton_qr,
     marginal_covariance_qr,

@@ -60,7 +60,7 @@ def preintegration_params(
     gravity_mps2: float,
     omega_ie_n: ArrayLike | None = None,
     integration_std: float = 1e-2,
-    gyro_density: float | ArrayLike | None = None,
+    gyro_density: float | None = None,
     accel_density: float | None = None,
     gyro_bias_density: float | None = None,
 ) -> gtsam.PreintegrationCombinedParams:
@@ -83,8 +83,7 @@ def preintegration_params(
         does not change the attitude, velocity or bias estimates; 1 cm/sqrt(s) keeps the
         position chain from dominating the conditioning.
     gyro_density, accel_density, gyro_bias_density : float, optional
-        Replace the model's white-noise variance densities ``ARW^2`` [rad^2/s] (or one per
-        body axis, ``(3,)``), ``VRW^2``
+        Replace the model's white-noise variance densities ``ARW^2`` [rad^2/s], ``VRW^2``
         [m^2/s^3] and gyro bias random-walk density [rad^2/s^3] (one keyframe interval's
         rotation-proportional noise and IMU-gap inflation, :func:`gyro_noise_density`; the
         unmechanized Earth rate).
@@ -94,7 +93,7 @@ def preintegration_params(
     gyro = imu_model.gyro_arw**2 if gyro_density is None else gyro_density
     accel = imu_model.accel_vrw**2 if accel_density is None else accel_density
     bias_rw = imu_model.gyro_bias_rw**2 if gyro_bias_density is None else gyro_bias_density
-    params.setGyroscopeCovariance(np.diag(np.broadcast_to(np.asarray(gyro, dtype=float), (3,))))
+    params.setGyroscopeCovariance(eye * gyro)
     params.setAccelerometerCovariance(eye * accel)
     params.setIntegrationCovariance(eye * integration_std**2)
     # GTSAM needs a regular bias covariance; 1e-30 per second is far below any real IMU.
@@ -105,50 +104,25 @@ def preintegration_params(
     return params
 
 
-# The window over which a gyro scale-factor error is taken as fully correlated [s] (the
-# graph's stand-in for scale-factor states, docs/filter.md §9): a turn keeps its direction
-# for about this long on a ground vehicle; hand-held motion reverses sooner, which the turn
-# over the window then shows.
-SCALE_FACTOR_WINDOW_S = 1.0
+def gyro_noise_density(imu_model: ImuModel, rate_sq: ArrayLike) -> FloatArray:
+    """Gyro white-noise variance density of keyframe intervals [rad^2/s] (docs/filter.md §9).
 
-
-def gyro_noise_density(
-    imu_model: ImuModel, rate_sq: ArrayLike, turn_rate_sq: ArrayLike, *, scale_factors: bool
-) -> FloatArray:
-    """Gyro white-noise variance density of keyframe intervals, per body axis [rad^2/s]
-    (docs/filter.md §9).
-
-    ``ARW^2 + m^2 mean|omega_b|^2 tau + s_g^2 dtheta_W,i^2 / W`` for body axis i. The axis misalignment
-    ``m`` (``ImuModel.gyro_misalignment``, ``tau = gyro_misalignment_corr_time``) turns
-    rotation into attitude error, covered as the ESKF covers it (docs/filter.md,
-    "Rotation-proportional attitude noise"). With ``scale_factors`` the gyro scale-factor
-    sigma ``s_g`` (``ImuModel.gyro_scale_factor``) adds the error of the angle turned about
-    each body axis over a window of ``W`` = :data:`SCALE_FACTOR_WINDOW_S` around the
-    interval, spread over the window: the graph has no scale-factor variables, and this is
-    their stand-in for the ESKF's ``sg`` states. Per axis, as the scale-factor error of an
-    axis's gyro acts on that axis only (a turn about the vertical does not widen the tilt).
+    ``ARW^2 + m^2 mean|omega_b|^2 tau``: the axis misalignment ``m``
+    (``ImuModel.gyro_misalignment``, ``tau = gyro_misalignment_corr_time``) turns rotation
+    into attitude error, covered as the ESKF covers it (docs/filter.md,
+    "Rotation-proportional attitude noise"). The scale factors are variables of the graph
+    (:mod:`polins.fusion.graph.imu`), not noise.
 
     Parameters
     ----------
     imu_model : ImuModel
-        ``gyro_arw`` [rad/sqrt(s)], ``gyro_misalignment`` [rad] and its correlation time
-        [s], ``gyro_scale_factor`` [-].
+        ``gyro_arw`` [rad/sqrt(s)], ``gyro_misalignment`` [rad] and its correlation time [s].
     rate_sq : array_like
         Mean of ``|omega_b|^2`` over each interval [rad^2/s^2].
-    turn_rate_sq : array_like, (..., 3)
-        ``dtheta_W^2 / W`` of each interval per body axis [rad^2/s]: the integrated body
-        rate over the window, squared, per second of window.
-    scale_factors : bool
-        Cover the scale factors (``FuseConfig.use_scale_factors``).
     """
     m = imu_model
-    out = m.gyro_arw**2 + m.gyro_misalignment**2 * m.gyro_misalignment_corr_time * np.asarray(
-        rate_sq, dtype=float
-    )
-    out = np.repeat(np.asarray(out, dtype=float)[..., None], 3, axis=-1)
-    if scale_factors:
-        out = out + m.gyro_scale_factor**2 * np.asarray(turn_rate_sq, dtype=float)
-    return out
+    rate_sq = np.asarray(rate_sq, dtype=float)
+    return m.gyro_arw**2 + m.gyro_misalignment**2 * m.gyro_misalignment_corr_time * rate_sq
 
 
 def sun_factor(

@@ -156,6 +156,10 @@ def increment_jacobians(
     return jac
 
 
+# The columns of the CombinedImuFactor's keys X_i, V_i, X_j, V_j, B_i, B_j in its Jacobian.
+COLUMNS = ((0, 6), (6, 9), (9, 15), (15, 18), (18, 24), (24, 30))
+
+
 def scale_factor_imu_factor(
     imu_factor: gtsam.CombinedImuFactor, jac: FloatArray, sg_key: int, sa_key: int
 ) -> gtsam.CustomFactor:
@@ -175,33 +179,26 @@ def scale_factor_imu_factor(
     model: Any = imu_factor.noiseModel()  # a Gaussian: the preintegration covariance
     sqrt_info: FloatArray = np.array(model.R(), dtype=np.float64)
     jac = np.asarray(jac, dtype=float)
+    h_rot = sqrt_info[:, 0:3] @ jac[0:3]  # the rotation rows: G = I
+    w_pv = sqrt_info[:, 3:9]
+    jac_pv = jac[3:9].reshape(2, 3, 6)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
         mat_i = values.atPose3(keys[0]).rotation().matrix()
         mat_j = values.atPose3(keys[2]).rotation().matrix()
         mat_ji = mat_j.T @ mat_i
-        g_jac = np.zeros((15, 6))
-        g_jac[0:3] = jac[0:3]
-        g_jac[3:6] = mat_ji @ jac[3:6]
-        g_jac[6:9] = mat_ji @ jac[6:9]
-        h_s = sqrt_info @ g_jac
+        h_s = h_rot + w_pv @ (mat_ji @ jac_pv).reshape(6, 6)
         s = np.concatenate([values.atVector(sg_key), values.atVector(sa_key)])
         if jacobians is None:
             return imu_factor.whitenedError(values) + h_s @ s
-        lin = imu_factor.linearize(values)
-        a_mat, b_vec = lin.jacobian()
-        cols = np.cumsum([0, 6, 3, 6, 3, 6, 6])
+        a_mat, b_vec = imu_factor.linearize(values).jacobian()
         # the s-term's rotations: R_i Exp(d_i) gives -R_ji [u]x d_i, R_j Exp(d_j) gives
         # [R_ji u]x d_j, for u = J_p s and J_v s
-        u = (jac[3:9] @ s).reshape(2, 3)
-        rot_rows = np.zeros((2, 15, 3))
-        rot_rows[0, 3:9] = np.vstack([-mat_ji @ skew(u[0]), -mat_ji @ skew(u[1])])
-        rot_rows[1, 3:9] = np.vstack([skew(mat_ji @ u[0]), skew(mat_ji @ u[1])])
-        blocks = [np.array(a_mat[:, cols[i] : cols[i + 1]]) for i in range(6)]
-        blocks[0][:, :3] += sqrt_info @ rot_rows[0]
-        blocks[2][:, :3] += sqrt_info @ rot_rows[1]
-        for i in range(6):
-            jacobians[i] = blocks[i]
+        u = jac_pv @ s
+        a_mat[:, 0:3] -= w_pv @ (mat_ji @ skew(u)).reshape(6, 3)
+        a_mat[:, 9:12] += w_pv @ skew(u @ mat_ji.T).reshape(6, 3)
+        for i, (lo, hi) in enumerate(COLUMNS):
+            jacobians[i] = np.ascontiguousarray(a_mat[:, lo:hi])
         jacobians[6] = np.ascontiguousarray(h_s[:, :3])
         jacobians[7] = np.ascontiguousarray(h_s[:, 3:])
         return -b_vec + h_s @ s

@@ -30,14 +30,23 @@ def nav_state(
     bias: FloatArray,
     cov: FloatArray,
     yaw_known: NDArray[np.bool_],
+    scale: tuple[FloatArray, FloatArray] | None = None,
 ) -> NavState:
     """A batched :class:`~polins.ins.state.NavState` from stacked estimates.
 
     ``mat_nb (N, 3, 3)``, ``vel_n (N, 3)`` [m/s], ``pos_n (N, 3)`` local ENU [m], ``bias
-    (N, 6)`` (``bg`` [rad/s], ``ba`` [m/s^2]), ``cov (N, 15, 15)`` in the ESKF's order.
+    (N, 6)`` (``bg`` [rad/s], ``ba`` [m/s^2]), ``cov (N, 15, 15)`` in the ESKF's order,
+    ``scale`` the scale factors ``sg, sa (N, 6)`` [-] and their covariance ``(N, 6, 6)``.
     """
     lat, lon, alt_m = prob.geodetic(pos_n)
     sigma = np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0.0, None))
+    errors = {"bg": bias[:, 0:3], "ba": bias[:, 3:6]}
+    sigmas = {"att": sigma[:, ATT], "vel": sigma[:, VEL], "pos": sigma[:, POS],
+              "bg": sigma[:, BG], "ba": sigma[:, BA]}  # fmt: skip
+    if scale is not None:  # the ESKF's block order: bg, ba, sg, sa, then the others
+        scale_std = np.sqrt(np.clip(np.diagonal(scale[1], axis1=1, axis2=2), 0.0, None))
+        errors.update(sg=scale[0][:, :3], sa=scale[0][:, 3:])
+        sigmas.update(sg=scale_std[:, :3], sa=scale_std[:, 3:])
     return NavState(
         t=np.asarray(t, dtype=float),
         rot_nb=Rotation.from_matrix(mat_nb),
@@ -45,14 +54,8 @@ def nav_state(
         lat=lat,
         lon=lon,
         alt_m=alt_m,
-        errors={"bg": bias[:, 0:3], "ba": bias[:, 3:6]},
-        sigma={
-            "att": sigma[:, ATT],
-            "vel": sigma[:, VEL],
-            "pos": sigma[:, POS],
-            "bg": sigma[:, BG],
-            "ba": sigma[:, BA],
-        },
+        errors=errors,
+        sigma=sigmas,
         att_cov=cov[:, ATT, ATT],
         yaw_aligned=yaw_known,
     )
@@ -61,8 +64,9 @@ def nav_state(
 def keyframe_output(prob: Problem, est: Estimates) -> NavState:
     """The keyframe estimates themselves (``graph_output="keyframes"``)."""
     return nav_state(
-        prob, prob.t_key, est.mat_nb, est.vel_n, est.pos_n, est.bias, est.cov, est.yaw_known
-    )
+        prob, prob.t_key, est.mat_nb, est.vel_n, est.pos_n, est.bias, est.cov, est.yaw_known,
+        None if prob.scale_jac is None else (est.scale, est.scale_cov),
+    )  # fmt: skip
 
 
 def interpolate(prob: Problem, est: Estimates, t_out: FloatArray) -> NavState:
@@ -108,4 +112,8 @@ def interpolate(prob: Problem, est: Estimates, t_out: FloatArray) -> NavState:
     cov = (1 - a[:, :, None]) * est.cov[key] + a[:, :, None] * est.cov[nxt]
     vel = vel_bp[idx] + a * d_vel[key]
     pos = pos_bp[idx] + a * d_pos[key]
-    return nav_state(prob, t_out, mat, vel, pos, bias, cov, est.yaw_known[key])
+    scale = None
+    if prob.scale_jac is not None:
+        scale = ((1 - a) * est.scale[key] + a * est.scale[nxt],
+                 (1 - a[:, :, None]) * est.scale_cov[key] + a[:, :, None] * est.scale_cov[nxt])  # fmt: skip
+    return nav_state(prob, t_out, mat, vel, pos, bias, cov, est.yaw_known[key], scale)

@@ -24,7 +24,6 @@ from polins.fusion.acquisition import consensus, gap_variance, yaw_offset
 from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.blocks import EARTH_RATE_TURN_S
 from polins.fusion.graph.factors import (
-    SCALE_FACTOR_WINDOW_S,
     bias_from_polins,
     gyro_noise_density,
     levelling_factor,
@@ -35,6 +34,14 @@ from polins.fusion.graph.factors import (
     sun_factor,
     yaw_factor,
     zero_velocity_factor,
+)
+from polins.fusion.graph.imu import (
+    imu_segments,
+    increment_jacobians,
+    scale_factor_imu_factor,
+    scale_factor_links,
+    scale_factor_priors,
+    scale_keys,
 )
 from polins.fusion.items import MeasurementItem, UpdateRecord
 from polins.fusion.measurement import N_ERROR
@@ -57,55 +64,6 @@ FloatArray = NDArray[np.float64]
 ESKF_FROM_GTSAM = np.r_[0:3, 6:9, 3:6, 12:15, 9:12]
 
 HELD = "held for the yaw acquisition"  # the ESKF's wording (polins.fusion.eskf.acquisition)
-
-
-@dataclass(frozen=True, eq=False)
-class ImuSegments:
-    """The IMU signal cut at the keyframes: one row per integration step.
-
-    The samples are instantaneous values that vary linearly between rows (docs/filter.md);
-    a step between consecutive break points (IMU sample times and keyframe times) uses the
-    mean of that linear signal, its value at the step's midpoint, with the specific force
-    rotated to the start of the step (``f + dt/2 w x f``, see :func:`imu_segments`).
-
-    Attributes
-    ----------
-    t : (S + 1,) ndarray
-        Break points [s] (the step ``i`` runs from ``t[i]`` to ``t[i + 1]``).
-    dt : (S,) ndarray
-        Step lengths [s].
-    gyro, accel : (S, 3) ndarray
-        Step means [rad/s], [m/s^2].
-    bounds : (K,) int ndarray
-        Index into ``t`` of every keyframe (``bounds[0] = 0``).
-    """
-
-    t: FloatArray
-    dt: FloatArray
-    gyro: FloatArray
-    accel: FloatArray
-    bounds: NDArray[np.int_]
-
-
-def imu_segments(
-    t_imu: FloatArray, gyro: FloatArray, accel: FloatArray, t_key: FloatArray
-) -> ImuSegments:
-    """Integration steps between keyframe times ``t_key`` (inside the IMU's time span)."""
-    inside = (t_imu > t_key[0]) & (t_imu < t_key[-1])
-    samples = t_imu[inside]
-    pos = np.clip(np.searchsorted(t_key, samples), 1, len(t_key) - 1)
-    near = np.minimum(np.abs(samples - t_key[pos - 1]), np.abs(samples - t_key[pos])) < 1e-6
-    breaks = np.union1d(samples[~near], t_key)
-    mid = 0.5 * (breaks[1:] + breaks[:-1])
-    gyro_mid = np.column_stack([np.interp(mid, t_imu, gyro[:, i]) for i in range(3)])
-    accel_mid = np.column_stack([np.interp(mid, t_imu, accel[:, i]) for i in range(3)])
-    dt = np.diff(breaks)
-    # GTSAM integrates the velocity with the attitude at the start of a step (first
-    # order); expressing the step's mean specific force in that frame, f + dt/2 w x f,
-    # makes the velocity increment second order (the sculling-type error of turns).
-    accel_mid = accel_mid + 0.5 * dt[:, None] * np.cross(gyro_mid, accel_mid)
-    bounds = np.searchsorted(breaks, t_key)
-    return ImuSegments(breaks, dt, gyro_mid, accel_mid, bounds)
 
 
 def keyframe_times(
@@ -214,6 +172,10 @@ class Problem:
         self.segments = imu_segments(t_imu, gyro, accel, self.t_key)
         n_key = len(self.t_key)
         self.interval_params = self._interval_params()
+        # the increments' Jacobians on the scale factors (graph/imu.py), None without them
+        seg = self.segments
+        self.scale_jac = (increment_jacobians(seg.gyro, seg.accel, seg.dt, seg.bounds)
+                          if config.use_scale_factors else None)  # fmt: skip
 
         self.meas: list[MeasFactor] = []
         self.outside: list[MeasurementItem] = []
@@ -268,8 +230,7 @@ class Problem:
 
     def _interval_params(self) -> list[gtsam.PreintegrationCombinedParams]:
         """Preintegration parameters of each keyframe interval: the gyro noise density with
-        the rotation-proportional terms of the interval's mean ``|omega_b|^2`` and of the
-        turn over the window around it
+        the rotation-proportional term of the interval's mean ``|omega_b|^2``
         (:func:`~polins.fusion.graph.factors.gyro_noise_density`, docs/filter.md §9); inside
         an IMU gap the gyro and accelerometer densities raised so that the interval adds
         the gap's variances (``self.gaps``)."""
@@ -278,14 +239,8 @@ class Problem:
             [[0.0], np.cumsum(np.einsum("ij,ij->i", seg.gyro, seg.gyro) * seg.dt)]
         )
         rate_sq = np.diff(energy[seg.bounds]) / np.diff(seg.t[seg.bounds])
-        # the angle turned about each body axis over the window around each interval
-        angle = np.vstack([np.zeros(3), np.cumsum(seg.gyro * seg.dt[:, None], axis=0)])
         mid = 0.5 * (self.t_key[1:] + self.t_key[:-1])
-        half = 0.5 * SCALE_FACTOR_WINDOW_S
-        lo, hi = (np.clip(mid + d, seg.t[0], seg.t[-1]) for d in (-half, half))
-        turn = np.array([np.interp(hi, seg.t, a) - np.interp(lo, seg.t, a) for a in angle.T]).T
-        turn_rate_sq = turn**2 / np.maximum(hi - lo, 1e-9)[:, None]
-        gyro = gyro_noise_density(c.imu, rate_sq, turn_rate_sq, scale_factors=c.use_scale_factors)
+        gyro = gyro_noise_density(c.imu, rate_sq)
         accel = np.full(gyro.shape[0], c.imu.accel_vrw**2)
         for t_a, t_b, (att_var, vel_var) in self.gaps:  # spread over the gap's intervals
             inside = (mid > t_a) & (mid < t_b)
@@ -294,7 +249,7 @@ class Problem:
         if np.all(gyro == c.imu.gyro_arw**2) and np.all(accel == c.imu.accel_vrw**2):
             return [self.params] * len(rate_sq)
         return [
-            self._params(gyro_density=g, accel_density=float(a))
+            self._params(gyro_density=float(g), accel_density=float(a))
             for g, a in zip(gyro, accel, strict=True)
         ]
 
@@ -476,9 +431,35 @@ class Problem:
             pim.integrateMeasurement(a, w, dt)
         return pim
 
-    def imu_factor(self, k: int, pim: gtsam.PreintegratedCombinedMeasurements) -> Any:
-        """``CombinedImuFactor`` between keyframes ``k`` and ``k + 1``."""
-        return gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
+    def imu_factor(
+        self, k: int, pim: gtsam.PreintegratedCombinedMeasurements, scale: bool = True
+    ) -> Any:
+        """``CombinedImuFactor`` between keyframes ``k`` and ``k + 1``; with scale factors
+        (and ``scale``) wrapped to depend on them
+        (:func:`~polins.fusion.graph.imu.scale_factor_imu_factor`)."""
+        factor = gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
+        if self.scale_jac is None or not scale:
+            return factor
+        return scale_factor_imu_factor(factor, self.scale_jac[k], *scale_keys(k))
+
+    def scale_factors_at(self, k: int) -> list[gtsam.NonlinearFactor]:
+        """The scale factors' priors (``k = 0``) or their link from keyframe ``k - 1``
+        (:func:`~polins.fusion.graph.imu.scale_factor_links`); empty without them."""
+        if self.scale_jac is None:
+            return []
+        std = (self.config.imu.gyro_scale_factor, self.config.imu.accel_scale_factor)
+        if k == 0:
+            return scale_factor_priors(*std)
+        return scale_factor_links(k, float(self.t_key[k] - self.t_key[k - 1]), *std)
+
+    def scale_values(self, k: int) -> gtsam.Values:
+        """Initial values of keyframe ``k``'s scale factors ``sg, sa`` (zero: the factors
+        are linear in them; empty without them)."""
+        values = gtsam.Values()
+        if self.scale_jac is not None:
+            for key in scale_keys(k):
+                values.insert(key, np.zeros(3))
+        return values
 
     def factors_at(self, k: int, rejected: set[int]) -> list[gtsam.NonlinearFactor]:
         """Measurement and pseudo-measurement factors of keyframe ``k``."""
@@ -501,6 +482,8 @@ class Estimates:
     bias: FloatArray  # (K, 6): bg, ba
     cov: FloatArray  # (K, 15, 15)
     yaw_known: NDArray[np.bool_]  # (K,) a yaw/sun factor was in the graph when reported
+    scale: FloatArray  # (K, 6) scale factors sg, sa [-] (NaN without them)
+    scale_cov: FloatArray  # (K, 6, 6) their covariance
 
     @classmethod
     def empty(cls, k: int) -> Estimates:
@@ -509,7 +492,8 @@ class Estimates:
         def nan(*shape: int) -> FloatArray:
             return np.full((k, *shape), np.nan)
 
-        return cls(nan(3, 3), nan(3), nan(3), nan(6), nan(N_ERROR, N_ERROR), np.zeros(k, bool))
+        return cls(nan(3, 3), nan(3), nan(3), nan(6), nan(N_ERROR, N_ERROR), np.zeros(k, bool),
+                   nan(6), nan(6, 6))  # fmt: skip
 
     def store(
         self,
@@ -532,6 +516,13 @@ class Estimates:
         cov = block_diag(pose_cov_nav_from_body(mat_nb, cov_pose_b), cov_vel, cov_bias)
         self.cov[k] = cov[np.ix_(ESKF_FROM_GTSAM, ESKF_FROM_GTSAM)]
         self.yaw_known[k] = yaw_known
+
+    def store_scale(self, k: int, value: Any, marginal: Any) -> None:
+        """The scale factors at keyframe ``k`` from a solver's ``value(key)`` and
+        ``marginal(key)`` (``sg`` and ``sa`` independent blocks)."""
+        key_g, key_a = scale_keys(k)
+        self.scale[k] = np.concatenate([value(key_g), value(key_a)])
+        self.scale_cov[k] = block_diag(marginal(key_g), marginal(key_a))
 
     def values(self, k: int) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias]:
         """Keyframe ``k`` as GTSAM values."""

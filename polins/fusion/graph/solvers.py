@@ -130,8 +130,9 @@ def batch_graph(
     values.insert(X(0), state.pose())
     values.insert(V(0), state.velocity())
     values.insert(B(0), bias)
+    values.insert(prob.scale_values(0))
     for k in range(len(prob.t_key)):
-        for f in prob.factors_at(k, rejected):
+        for f in prob.factors_at(k, rejected) + prob.scale_factors_at(k):
             graph.add(f)
         if k == len(prob.t_key) - 1:
             break
@@ -145,6 +146,7 @@ def batch_graph(
             values.insert(X(k + 1), state.pose())
             values.insert(V(k + 1), state.velocity())
             values.insert(B(k + 1), bias)
+            values.insert(prob.scale_values(k + 1))
     return graph, (values if linearization is None else linearization)
 
 
@@ -160,7 +162,8 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
     rejected: dict[int, tuple[float, str]] = {}
     if prob.detected:
         causal: dict[int, tuple[float, str]] = {}
-        solve_incremental(prob, [], {}, solver="isam2", rejected=causal)
+        # (without scale-factor variables: this pass only gates)
+        solve_incremental(prob, [], {}, solver="isam2", rejected=causal, scale=False)
         rejected = {i: (nis, f"causal {why}") for i, (nis, why) in causal.items()
                     if i in prob.detected}  # fmt: skip
     result: gtsam.Values | None = None
@@ -177,6 +180,9 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
             graph.orderingCOLAMD(), gtsam.EliminateQR
         )
         est = Estimates.empty(len(prob.t_key))
+        # the scale factors are constants: one marginal (the last keyframe's) for all
+        last = prob.scale_values(len(prob.t_key) - 1).keys()
+        scale_cov = [marginal_covariance_qr(bayes_tree, key) for key in last]
         for k in range(len(prob.t_key)):
             est.store(
                 k,
@@ -188,6 +194,9 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
                 marginal_covariance_qr(bayes_tree, B(k)),
                 prob.yaw_given or prob.n_headings > 0,
             )
+            if prob.scale_jac is not None:
+                cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
+                est.store_scale(k, result.atVector, cov_of.__getitem__)
         new = post_fit_gate(prob, est, rejected, records, final=gate_round == c.max_gate_rounds)
         if not new:
             break
@@ -249,14 +258,17 @@ def solve_incremental(
     *,
     solver: str | None = None,
     rejected: dict[int, tuple[float, str]] | None = None,
+    scale: bool = True,
 ) -> Estimates:
     """ISAM2 (causal estimates) or the incremental fixed-lag smoother (lagged estimates).
 
     ``solver`` overrides ``prob.config.solver``; ``rejected`` (if given) receives the
-    gated factors: index into ``prob.meas`` -> (NIS, reason).
+    gated factors: index into ``prob.meas`` -> (NIS, reason); ``scale=False`` leaves the
+    scale-factor variables out.
     """
     c = prob.config
     solver = solver or c.solver
+    scale = scale and prob.scale_jac is not None
     isam_params = gtsam.ISAM2Params()
     isam_params.setFactorization("QR")
     # Relinearize on attitude and velocity changes only: the IMU factors are linear in
@@ -270,6 +282,9 @@ def solve_incremental(
     thresholds.insert(("x", np.array([1e-2, 1e-2, 1e-2, 1e6, 1e6, 1e6])))
     thresholds.insert(("v", np.full(3, 1.0)))
     thresholds.insert(("b", np.full(6, 1e6)))
+    # the IMU factors and the links are linear in the scale factors
+    thresholds.insert(("g", np.full(3, 1e6)))
+    thresholds.insert(("a", np.full(3, 1e6)))
     isam_params.setRelinearizeThreshold(thresholds)
     isam_params.relinearizeSkip = 10
     if solver == "fixed_lag":
@@ -299,6 +314,8 @@ def solve_incremental(
             engine.marginalCovariance(B(k)),
             seen_aiding or prob.yaw_given,
         )
+        if scale:
+            est.store_scale(k, engine.calculateEstimateVector, engine.marginalCovariance)
 
     def gated(k: int, state: gtsam.NavState, cov_prev: FloatArray) -> list[gtsam.NonlinearFactor]:
         """Measurement factors at keyframe k that pass the chi-square gate."""
@@ -335,7 +352,10 @@ def solve_incremental(
         t_k = float(prob.t_key[k])
         while pending and prob.t_key[pending[0]] < t_k - c.lag_s:
             record(pending.pop(0))  # last chance before it is marginalized
-        engine.update(graph, values, {X(k): t_k, V(k): t_k, B(k): t_k})
+        stamps = {X(k): t_k, V(k): t_k, B(k): t_k}
+        if scale:
+            stamps.update(dict.fromkeys(prob.scale_values(k).keys(), t_k))
+        engine.update(graph, values, stamps)
         pending.append(k)
 
     graph = gtsam.NonlinearFactorGraph()
@@ -345,6 +365,10 @@ def solve_incremental(
     values.insert(X(0), prob.state0.pose())
     values.insert(V(0), prob.state0.velocity())
     values.insert(B(0), prob.bias0)
+    if scale:
+        values.insert(prob.scale_values(0))
+        for f in prob.scale_factors_at(0):
+            graph.add(f)
     update(0, graph, values)
     for k in range(n_key - 1):
         if solver == "isam2":
@@ -359,13 +383,17 @@ def solve_incremental(
         pim = prob.preintegrate(k, bias, prob.imu_correction(state))
         pred = pim.predict(state, bias)
         graph = gtsam.NonlinearFactorGraph()
-        graph.add(prob.imu_factor(k, pim))
+        graph.add(prob.imu_factor(k, pim, scale))
         for f in list(prob.aux[k + 1]) + gated(k + 1, pred, cov_prev):
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(k + 1), pred.pose())
         values.insert(V(k + 1), pred.velocity())
         values.insert(B(k + 1), bias)
+        if scale:
+            values.insert(prob.scale_values(k + 1))
+            for f in prob.scale_factors_at(k + 1):
+                graph.add(f)
         update(k + 1, graph, values)
     for k in pending:
         record(k)
