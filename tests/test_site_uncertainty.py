@@ -60,7 +60,7 @@ def drive(seed):
     return model, traj, imu, tm, sun_b
 
 
-def run(seed, d_site_deg, site_std_deg, kind="sun", self_align=False):
+def run(seed, d_site_deg, site_std_deg, kind="sun", self_align=False, backend="eskf"):
     """Heading errors / sigma after 5 s, with the sun vectors computed at a site off by
     ``d_site_deg`` (lat, lon); the filter is told ``site_std_deg``."""
     model, traj, imu, tm, sun_b = drive(seed)
@@ -93,7 +93,7 @@ def run(seed, d_site_deg, site_std_deg, kind="sun", self_align=False):
         None, imu_model=model, site=SITE, output_rate_hz=2.0, zupt_std=0.01,
         stationary=tuple(t_rest), **options,
     )  # fmt: skip
-    result = run_fusion(imu, meas, rot_nb0=None if self_align else rot0, config=config)
+    result = run_fusion(imu, meas, backend, rot_nb0=None if self_align else rot0, config=config)
     sol = result.solution
     sol = sol[sol["t"] >= 5.0]
     k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
@@ -101,13 +101,13 @@ def run(seed, d_site_deg, site_std_deg, kind="sun", self_align=False):
     return err / sol["yaw_std"].to_numpy(), sol
 
 
-def pooled(site_deg, site_std_deg, seeds, kind="sun", self_align=False):
+def pooled(site_deg, site_std_deg, seeds, kind="sun", self_align=False, backend="eskf"):
     """RMS(err/sigma) and the share within 3 sigma over seeds, the site wrong by
     N(0, site_deg) in latitude and longitude."""
     z = []
     for seed in seeds:
         d = np.random.default_rng(50 + seed).normal(0.0, site_deg, 2)
-        z.append(run(seed, tuple(d), site_std_deg, kind, self_align)[0])
+        z.append(run(seed, tuple(d), site_std_deg, kind, self_align, backend)[0])
     z = np.concatenate(z)
     return float(np.sqrt(np.mean(z**2))), float(np.mean(np.abs(z) < 3.0))
 
@@ -157,8 +157,8 @@ def test_approximate_site_with_self_alignment():
     assert within >= 0.98, within
 
 
-def test_site_std_is_an_eskf_option():
-    with pytest.raises(UserInputError, match="site_std applies to the eskf backend only"):
-        FuseConfig.from_options(None, site=SITE, site_std=0.01).check_backend("graph")
+def test_site_std_option():
+    for backend in ("eskf", "graph"):  # both (the graph's: tests/test_graph_states.py)
+        FuseConfig.from_options(None, site=SITE, site_std=0.01).check_backend(backend)
     with pytest.raises(UserInputError, match="site_std must be > 0"):
         FuseConfig.from_options(None, site=SITE, site_std=-0.01)

@@ -79,14 +79,8 @@ def run_fusion(
     backend (``polins.fusion.graph.fuse_graph``) is imported only when asked for.
     """
     cfg = config or FuseConfig()
-    if odometry is not None:
-        if backend == "graph":
-            raise UserInputError(
-                "the graph backend takes no odometer yet (no odometer-scale variable); "
-                "use the ESKF (docs/filter.md, 'Ground-vehicle aiding')"
-            )
-        if cfg.odometer_std is None:
-            cfg = dataclasses.replace(cfg, odometer_std=ODOMETER_STD)
+    if odometry is not None and cfg.odometer_std is None:
+        cfg = dataclasses.replace(cfg, odometer_std=ODOMETER_STD)
     cfg.check_backend(backend)
     meas = validate_measurements(measurements)
     check_gyro_against_headings(imu, meas)
@@ -95,11 +89,11 @@ def run_fusion(
         cfg = dataclasses.replace(cfg, tilt_coupling=priors)
     cfg = config_with_site(cfg, stacklevel=4)
     if no_clock_table(meas):
-        cfg = announce_no_clock(cfg, backend)
+        cfg = announce_no_clock(cfg)
     if backend == "graph":
         from polins.fusion.graph import fuse_graph  # gtsam: only when asked for
 
-        return fuse_graph(imu, meas, rot_nb0, cfg)
+        return fuse_graph(imu, meas, rot_nb0, cfg, odometry)
     arrays = validate_imu(imu, max_gap_s=cfg.max_gap_s, model=cfg.imu)
     t, W, A = arrays.t, arrays.gyro_b, arrays.accel_b
     filt = ESKF(cfg, float(t[0]), arrays.dt, rot_nb0)
@@ -137,14 +131,9 @@ def run_fusion(
     )  # fmt: skip
 
 
-def announce_no_clock(config: FuseConfig, backend: str) -> FuseConfig:
+def announce_no_clock(config: FuseConfig) -> FuseConfig:
     """The config of a measurements table in the no-clock mode (sun_azimuth_b without yaw
-    or sun_n), with the one warning that says so; the graph refuses it."""
-    if backend == "graph":
-        raise UserInputError(
-            "no-clock measurements (sun_azimuth_b without yaw or sun_n) need the ESKF: the "
-            "graph has no sun-azimuth state (docs/filter.md, 'No clock')"
-        )
+    or sun_n), with the one warning that says so (both backends)."""
     if config.no_clock is False:
         raise UserInputError(
             "no_clock=False but the measurements carry only sun_azimuth_b (no yaw, no sun_n)"
@@ -219,7 +208,7 @@ def fuse(
     odometry : DataFrame, optional
         Wheel-odometer speeds: columns ``t`` [s] and ``speed`` [m/s] (forward, vehicle
         frame), fused with ``odometer_std`` (default 0.05 m/s) and an odometer scale-factor
-        state (ESKF only; docs/filter.md, "Ground-vehicle aiding").
+        state (a variable in the graph; docs/filter.md, "Ground-vehicle aiding").
     **options
         :class:`FuseConfig` field names replacing the values of ``config``;
         ``lat_deg, lon_deg, alt_m`` are a shorthand for ``site``. An unknown name is a

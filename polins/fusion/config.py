@@ -115,9 +115,8 @@ class FuseConfig:
     )
     odometer_std: float | None = _opt(
         None,
-        f"wheel-odometer speed 1-sigma [m/s], with an odometer scale-factor state (ESKF); "
-        f"None: no odometer (polins.fuse(odometry=...) then uses {ODOMETER_STD}); the "
-        "graph refuses odometer data",
+        f"wheel-odometer speed 1-sigma [m/s], with an odometer scale-factor state; "
+        f"None: no odometer (polins.fuse(odometry=...) then uses {ODOMETER_STD})",
     )
     odometer_scale_std: float = _opt(0.02, "initial 1-sigma of the odometer scale factor [-]")
     zupt_std: float | None = _opt(None, "zero-velocity 1-sigma at the stationary times [m/s]")
@@ -153,19 +152,16 @@ class FuseConfig:
         None,
         "1-sigma of the site's latitude and of its longitude [rad] (approximate site): the "
         "site error becomes two states seen by the yaw and sun updates; None: site exact",
-        ESKF,
     )
     no_clock: bool | None = _opt(
         None,
         "no-clock mode: the sun's ENU azimuth and its rate are states, the heading is "
         "relative; None: when the measurements carry sun_azimuth_b without yaw or sun_n",
-        ESKF,
     )
     sun_azimuth_rate_std: float = _opt(
         math.radians(24.0) / 3600.0,
         "no clock: 1-sigma of the sun's azimuth rate [rad/s] (24 deg/h: Harbin's largest; "
         "up to hundreds of deg/h near the subsolar point)",
-        ESKF,
     )
     heading_bias_std: float | None = _opt(
         None,
@@ -173,11 +169,8 @@ class FuseConfig:
         "correlated from image to image; the rows lose yaw_std_correlated); None: from "
         "the images, the part of each heading row's yaw_std_model beyond twice its "
         "yaw_std_noise (docs/filter.md 5.7); inf: no bias state",
-        ESKF,
     )
-    heading_bias_tau_s: float = _opt(
-        300.0, "correlation time of the heading-measurement bias [s]", ESKF
-    )
+    heading_bias_tau_s: float = _opt(300.0, "correlation time of the heading-measurement bias [s]")
     # graph only
     solver: str = _opt("batch", f"graph solver, one of {SOLVERS}", GRAPH)
     lag_s: float = _opt(10.0, "window of the fixed-lag smoother [s]", GRAPH)

@@ -182,11 +182,6 @@ def run_log(
         solution = stream.drain_solution()
     else:
         config = dataclasses.replace(stream.config, smooth=base.smooth)
-        if backend == "graph" and odometry is not None:  # docs/filter.md: not in the graph yet
-            note = "the graph backend takes no odometer yet: the final solution ignores it"
-            events = pd.concat([events, pd.DataFrame([(0.0, "odometer-ignored", note)],
-                                                     columns=pd.Index(EVENT_COLUMNS))])  # fmt: skip
-            odometry = None
         solution = fuse_measurements(
             imu_used, measurements, config, rot_nb0=rot_nb0, backend=backend, odometry=odometry
         ).solution

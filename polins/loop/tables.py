@@ -19,8 +19,6 @@ and a detail text, so a user can count and filter them. The data faults of the l
   (``image-error``): skipped. Any other exception of the measurement is a bug and propagates.
 * Image index entry outside the log folder (``polins.io.read_log`` without
   ``allow_outside_paths``): skipped (``path-outside-log``).
-* Wheel odometer in the log with ``--backend graph`` (the graph has no odometer-scale
-  variable yet): the final solution ignores it (``odometer-ignored``, docs/filter.md 5.6).
 * Image refused by the measurement (too few pixels, sun near the zenith, ...): kept in the
   measurement table with ``ok=False`` and its reason; no update.
 * Update refused by the filter's chi-square gate: kept with ``accepted=False`` and the reason.

@@ -26,7 +26,13 @@ apart. Implementation notes beyond docs/filter.md §9:
   transport rate ``C_bn omega_en_n`` at the current estimate is removed from the gyro.
 * Sun vector: C++ ``AttitudeFactorPose3(key, nRef=sun_n, model, bMeasured=sun_b)``, error
   ``B(sun_n)^T R_nb sun_b`` in the tangent basis ``B`` of the ephemeris direction
-  (``tests/test_graph.py`` pins these semantics).
+  (``tests/test_graph.py`` pins these semantics); isotropic ``sun_std``. With the fit's 2x2
+  covariance, or a sensor-error variable, a ``CustomFactor`` on the shared sun model in the
+  tangent basis of the measured direction (:mod:`~polins.fusion.graph.states`).
+* Sensor-error variables (:mod:`~polins.fusion.graph.states`): the odometer scale ``so``,
+  the site rotation ``site_rot_n``, the no-clock sun azimuth and rate, the heading bias;
+  their factors are whitened by the item's own ``R`` (``GraphStates.model``, the gates'
+  linearization too). No clock: no yaw acquisition, the levelled yaw is the reference.
 * Yaw and non-holonomic: ``gtsam.CustomFactor`` on the shared models
   (:func:`polins.fusion.items.item_model`), error ``h(x) - z = -residual``, Jacobian
   ``H_theta R_nb`` (GTSAM perturbs ``R exp(w_b)``, the ESKF ``exp(dtheta_n) R``).
@@ -63,8 +69,11 @@ lacks it (an IMU error such as a scale factor: a factor on ``X, V, B`` and the b
 corrects the preintegrated increments to first order in the block, as GTSAM does for the
 bias); :class:`~polins.fusion.graph.problem.Estimates` gets its array and its slice of
 the covariance, and :func:`~polins.fusion.graph.output.nav_state` its entry in
-``errors`` and ``sigma``. The scale factors (``sg, sa``) are ``Estimates.scale`` and
-``scale_cov`` (:mod:`polins.fusion.graph.imu`).
+``errors`` and ``sigma``. The measurement-side blocks (``so``, ``site_rot_n``,
+``sun_azimuth_n`` / ``sun_azimuth_rate``, ``heading_bias``) are
+:class:`~polins.fusion.graph.states.GraphStates`: ``Estimates.extra`` and the rows of
+``cov`` after the 15, read and seeded by the solvers through it. The scale factors
+(``sg, sa``) are ``Estimates.scale`` and ``scale_cov`` (:mod:`polins.fusion.graph.imu`).
 
 Solvers
 -------
@@ -101,7 +110,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
 from polins.fusion.acquisition import skip_in_gaps
-from polins.fusion.config import FuseConfig, config_with_site
+from polins.fusion.config import ODOMETER_STD, FuseConfig, config_with_site
 from polins.fusion.graph.factors import (
     bias_from_polins,
     gyro_noise_density,
@@ -126,6 +135,7 @@ from polins.fusion.graph.solvers import (
 from polins.fusion.inputs import PRIOR_COLUMNS, output_mask, validate_imu, validate_measurements
 from polins.fusion.items import UpdateRecord, items_from_table, records_table
 from polins.fusion.result import FusionEvent, FusionResult, events_table
+from polins.fusion.vehicle import odometer_items
 from polins.ins.state import solution_table
 
 
@@ -134,6 +144,7 @@ def fuse_graph(
     measurements: pd.DataFrame | None,
     rot_nb0: Rotation | None,
     config: FuseConfig,
+    odometry: pd.DataFrame | None = None,
 ) -> FusionResult:
     """Fuse an IMU log with yaw / sun-vector measurements in a GTSAM factor graph.
 
@@ -154,6 +165,10 @@ def fuse_graph(
         The options; ESKF-only options set away from their defaults are refused
         (``FuseConfig.check_backend``). Without ``config.site`` the run assumes
         ``polins.site.PAPER_SITE`` and warns.
+    odometry : DataFrame, optional
+        Wheel-odometer speeds (``t`` [s], ``speed`` [m/s]) with ``config.odometer_std``
+        (:func:`polins.fusion.vehicle.odometer_items`; an odometer-scale variable, module
+        :mod:`~polins.fusion.graph.states`).
 
     Returns
     -------
@@ -177,9 +192,10 @@ def fuse_graph(
     tilt = config.tilt_coupling
     if tilt is None:
         tilt = all(c in meas.columns for c in PRIOR_COLUMNS)
-    items, events = skip_in_gaps(
-        arrays.t, arrays.gaps, items_from_table(meas, use_sun=config.use_sun)
-    )
+    items = items_from_table(meas, use_sun=config.use_sun, heading_bias=config.heading_bias)
+    if odometry is not None:
+        items += odometer_items(odometry, config.odometer_std or ODOMETER_STD)
+    items, events = skip_in_gaps(arrays.t, arrays.gaps, items)
     for i in arrays.gaps.tolist():
         t_a, t_b = float(arrays.t[i]), float(arrays.t[i + 1])
         detail = (

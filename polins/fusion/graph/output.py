@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.fusion.graph.problem import Estimates, Problem
-from polins.fusion.measurement import ATT, BA, BG, POS, VEL
+from polins.fusion.measurement import ATT, BA, BG, N_ERROR, POS, VEL
 from polins.ins.state import NavState
 
 FloatArray = NDArray[np.float64]
@@ -30,12 +30,14 @@ def nav_state(
     bias: FloatArray,
     cov: FloatArray,
     yaw_known: NDArray[np.bool_],
+    extra: FloatArray | None = None,
     scale: tuple[FloatArray, FloatArray] | None = None,
 ) -> NavState:
     """A batched :class:`~polins.ins.state.NavState` from stacked estimates.
 
     ``mat_nb (N, 3, 3)``, ``vel_n (N, 3)`` [m/s], ``pos_n (N, 3)`` local ENU [m], ``bias
-    (N, 6)`` (``bg`` [rad/s], ``ba`` [m/s^2]), ``cov (N, 15, 15)`` in the ESKF's order,
+    (N, 6)`` (``bg`` [rad/s], ``ba`` [m/s^2]), ``cov (N, 15 + n, 15 + n)`` in the ESKF's
+    order, ``extra (N, n)`` the variables of ``prob.states`` (their ESKF block names),
     ``scale`` the scale factors ``sg, sa (N, 6)`` [-] and their covariance ``(N, 6, 6)``.
     """
     lat, lon, alt_m = prob.geodetic(pos_n)
@@ -47,6 +49,10 @@ def nav_state(
         scale_std = np.sqrt(np.clip(np.diagonal(scale[1], axis1=1, axis2=2), 0.0, None))
         errors.update(sg=scale[0][:, :3], sa=scale[0][:, 3:])
         sigmas.update(sg=scale_std[:, :3], sa=scale_std[:, 3:])
+    for name, sl in prob.states.index.items():
+        assert extra is not None
+        errors[name] = extra[:, sl]
+        sigmas[name] = sigma[:, N_ERROR + sl.start : N_ERROR + sl.stop]
     return NavState(
         t=np.asarray(t, dtype=float),
         rot_nb=Rotation.from_matrix(mat_nb),
@@ -65,7 +71,7 @@ def keyframe_output(prob: Problem, est: Estimates) -> NavState:
     """The keyframe estimates themselves (``graph_output="keyframes"``)."""
     return nav_state(
         prob, prob.t_key, est.mat_nb, est.vel_n, est.pos_n, est.bias, est.cov, est.yaw_known,
-        None if prob.scale_jac is None else (est.scale, est.scale_cov),
+        est.extra, None if prob.scale_jac is None else (est.scale, est.scale_cov),
     )  # fmt: skip
 
 
@@ -109,6 +115,7 @@ def interpolate(prob: Problem, est: Estimates, t_out: FloatArray) -> NavState:
     nxt = np.minimum(key + 1, n_key - 1)
     mat = mat_bp[idx] @ Rotation.from_rotvec(a * d_rot[key]).as_matrix()
     bias = (1 - a) * est.bias[key] + a * est.bias[nxt]
+    extra = (1 - a) * est.extra[key] + a * est.extra[nxt]
     cov = (1 - a[:, :, None]) * est.cov[key] + a[:, :, None] * est.cov[nxt]
     vel = vel_bp[idx] + a * d_vel[key]
     pos = pos_bp[idx] + a * d_pos[key]
@@ -116,4 +123,4 @@ def interpolate(prob: Problem, est: Estimates, t_out: FloatArray) -> NavState:
     if prob.scale_jac is not None:
         scale = ((1 - a) * est.scale[key] + a * est.scale[nxt],
                  (1 - a[:, :, None]) * est.scale_cov[key] + a[:, :, None] * est.scale_cov[nxt])  # fmt: skip
-    return nav_state(prob, t_out, mat, vel, pos, bias, cov, est.yaw_known[key], scale)
+    return nav_state(prob, t_out, mat, vel, pos, bias, cov, est.yaw_known[key], extra, scale)

@@ -41,9 +41,10 @@ from polins.fusion.graph.imu import (
     scale_factor_imu_factor,
     scale_factor_links,
     scale_factor_priors,
-    scale_keys,
+    scale_key,
 )
-from polins.fusion.items import MeasurementItem, UpdateRecord
+from polins.fusion.graph.states import GraphStates
+from polins.fusion.items import HEADING_KINDS, MeasurementItem, UpdateRecord
 from polins.fusion.measurement import N_ERROR
 from polins.fusion.result import FusionEvent
 from polins.fusion.vehicle import vehicle_items
@@ -146,8 +147,9 @@ class Problem:
         t0, t1 = float(t_imu[0]), float(t_imu[-1])
         stationary = np.asarray(config.stationary, dtype=float)
         stationary = stationary[(stationary >= t0) & (stationary <= t1)]
-        aiding = [it for it in items if it.valid and it.kind in ("yaw", "sun")]
+        aiding = [it for it in items if it.valid and it.kind in HEADING_KINDS]
         zupts = [it for it in items if it.valid and it.kind == "zupt"]
+        odos = [it for it in items if it.valid and it.kind == "odo"]  # (graph/states.py)
         if config.zupt_std is not None:
             zupts += [MeasurementItem(float(t), "zupt", config.zupt_std) for t in stationary]
         # The vehicle's NHC and standstill pseudo-measurements, at the ESKF's epochs.
@@ -167,7 +169,8 @@ class Problem:
             )[[0, 3]]) for i in gaps.tolist()
         ]  # fmt: skip
         t_gaps = [t for a, b, _ in self.gaps for t in (a, b)]
-        events = np.concatenate([t_aid, t_zupt, nhc_t, t_gaps])
+        t_odo = snap_times([it.t for it in odos], t_imu, config.time_tol_s).tolist()
+        events = np.concatenate([t_aid, t_zupt, nhc_t, t_gaps, t_odo])
         self.t_key = keyframe_times(t0, t1, events, config.max_keyframe_dt_s)
         self.segments = imu_segments(t_imu, gyro, accel, self.t_key)
         n_key = len(self.t_key)
@@ -176,6 +179,8 @@ class Problem:
         seg = self.segments
         self.scale_jac = (increment_jacobians(seg.gyro, seg.accel, seg.dt, seg.bounds)
                           if config.use_scale_factors else None)  # fmt: skip
+        self.states = GraphStates(config, self.t_key, aiding)  # odometer scale, sky variables
+        aiding = [self.states.prepare(it) for it in aiding]
 
         self.meas: list[MeasFactor] = []
         self.outside: list[MeasurementItem] = []
@@ -192,10 +197,15 @@ class Problem:
                 self.aux[k].append(
                     non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b)
                 )
-        self.yaw_given = rot_nb0 is not None  # else unknown until the first yaw / sun
+        # else unknown until the first yaw / sun; no clock: relative to the first yaw
+        self.yaw_given = rot_nb0 is not None or bool(config.no_clock)
         self.held: list[UpdateRecord] = []  # headings rejected by the yaw acquisition
         self.events: list[FusionEvent] = []
         self.state0, self.bias0, self.priors = self._first_state(t_imu, accel, rot_nb0)
+        self.states.start(self.meas, self.state0.attitude().matrix())
+        self.priors += self.states.priors()
+        for k in range(1, n_key):
+            self.aux[k] += self.states.between(k)
         self.n_headings = len(self.meas)  # the yaw / sun factors kept by the acquisition
         # Zero velocity: gated like the headings (the standstill detector also fires at
         # a constant speed; the ESKF's gate rejects those updates too).
@@ -206,6 +216,8 @@ class Problem:
                 if j >= n_given:
                     self.detected.add(len(self.meas))
                 self.meas.append(MeasFactor(k, it, zero_velocity_factor(V(k), it.std)))
+        keys = [self.key_of(t) for t in t_odo]
+        self.meas += [MeasFactor(*m) for m in self.states.odometer(odos, keys, t_imu, gyro)]
         self.meas_at: list[list[int]] = [[] for _ in range(n_key)]
         for i, mf in enumerate(self.meas):
             self.meas_at[mf.k].append(i)
@@ -261,16 +273,20 @@ class Problem:
         return k if abs(self.t_key[k] - t) < 1e-6 else None
 
     def _aiding_factor(self, key: int, it: MeasurementItem) -> gtsam.NonlinearFactor:
-        if it.kind == "sun":
-            return sun_factor(key, it.sun_n, it.sun_b, it.std)  # type: ignore[arg-type]
-        if not self.tilt_coupling:
-            return yaw_factor(key, it.yaw, it.std)
-        if it.sun_n is None or it.mat_nb_prior is None:
+        prior = it.sun_n is not None and it.mat_nb_prior is not None
+        if it.kind == "yaw" and self.tilt_coupling and not prior:
             raise ValueError(
                 f"tilt_coupling: the yaw row at t={it.t} needs sun_nx/ny/nz and the "
                 "prior_roll/prior_pitch/prior_yaw of the image (the graph "
                 "re-linearizes away from the prior polins.measure used)"
             )
+        if self.states.sees(it) or it.cov_b is not None:  # graph/states.py: shared model
+            k = int(gtsam.Symbol(key).index())
+            return self.states.factor(it, k, key, None, self.tilt_coupling)
+        if it.kind == "sun":
+            return sun_factor(key, it.sun_n, it.sun_b, it.std)  # type: ignore[arg-type]
+        if not self.tilt_coupling:
+            return yaw_factor(key, it.yaw, it.std)
         return yaw_factor(key, it.yaw, it.std, sun_n=it.sun_n, rot_nb_prior=it.mat_nb_prior)
 
     def _first_state(
@@ -313,6 +329,8 @@ class Problem:
             # Tilt from the levelling factor only (1e4 rad is no information); yaw 1 rad
             # until the first yaw / sun measurement (the ESKF's P[2, 2] = 1).
             att_var = np.array([1e8, 1e8, 1.0])
+            if c.no_clock:  # the heading is relative to the levelled yaw (docs/filter.md §5.7)
+                att_var[2] = 1e-12
         mat_nb = rot.as_matrix()
         cov_n = np.diag(np.concatenate([att_var, np.full(3, c.pos_std0**2)]))
         state0 = gtsam.NavState(gtsam.Rot3(mat_nb), np.zeros(3), vel_n0)
@@ -349,6 +367,8 @@ class Problem:
           consensus (its prior released, a ``yaw-reacquired`` event); else nothing changes.
         """
         c = self.config
+        if c.no_clock:  # a relative heading: nothing to acquire (docs/filter.md §5.7)
+            return 0.0
         order = sorted(range(len(self.meas)), key=lambda i: self.meas[i].k)
         state = gtsam.NavState(gtsam.Rot3(rot0.as_matrix()), np.zeros(3), vel_n0)
         bias, k_state = gtsam.imuBias.ConstantBias(), 0
@@ -440,7 +460,7 @@ class Problem:
         factor = gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
         if self.scale_jac is None or not scale:
             return factor
-        return scale_factor_imu_factor(factor, self.scale_jac[k], *scale_keys(k))
+        return scale_factor_imu_factor(factor, self.scale_jac[k], scale_key(k))
 
     def scale_factors_at(self, k: int) -> list[gtsam.NonlinearFactor]:
         """The scale factors' priors (``k = 0``) or their link from keyframe ``k - 1``
@@ -449,16 +469,15 @@ class Problem:
             return []
         std = (self.config.imu.gyro_scale_factor, self.config.imu.accel_scale_factor)
         if k == 0:
-            return scale_factor_priors(*std)
-        return scale_factor_links(k, float(self.t_key[k] - self.t_key[k - 1]), *std)
+            return [scale_factor_priors(*std)]
+        return [scale_factor_links(k, float(self.t_key[k] - self.t_key[k - 1]), *std)]
 
     def scale_values(self, k: int) -> gtsam.Values:
         """Initial values of keyframe ``k``'s scale factors ``sg, sa`` (zero: the factors
         are linear in them; empty without them)."""
         values = gtsam.Values()
         if self.scale_jac is not None:
-            for key in scale_keys(k):
-                values.insert(key, np.zeros(3))
+            values.insert(scale_key(k), np.zeros(6))
         return values
 
     def factors_at(self, k: int, rejected: set[int]) -> list[gtsam.NonlinearFactor]:
@@ -473,7 +492,9 @@ class Estimates:
     """Keyframe estimates in polins conventions, filled by the solvers.
 
     ``cov`` is in the ESKF's error-state order (navigation-frame attitude error); a new
-    error block gets its own array here and its slice of ``cov`` (package docstring).
+    error block gets its own array here and its slice of ``cov`` (package docstring). The
+    sensor-error variables of :class:`~polins.fusion.graph.states.GraphStates` are ``extra``
+    and the rows and columns of ``cov`` after the first 15.
     """
 
     mat_nb: FloatArray  # (K, 3, 3)
@@ -482,17 +503,19 @@ class Estimates:
     bias: FloatArray  # (K, 6): bg, ba
     cov: FloatArray  # (K, 15, 15)
     yaw_known: NDArray[np.bool_]  # (K,) a yaw/sun factor was in the graph when reported
+    extra: FloatArray  # (K, n) GraphStates' variables
     scale: FloatArray  # (K, 6) scale factors sg, sa [-] (NaN without them)
     scale_cov: FloatArray  # (K, 6, 6) their covariance
 
     @classmethod
-    def empty(cls, k: int) -> Estimates:
-        """Estimates of ``k`` keyframes, all unknown (NaN)."""
+    def empty(cls, k: int, n_extra: int = 0) -> Estimates:
+        """Estimates of ``k`` keyframes (and ``n_extra`` GraphStates values), all NaN."""
 
         def nan(*shape: int) -> FloatArray:
             return np.full((k, *shape), np.nan)
 
-        return cls(nan(3, 3), nan(3), nan(3), nan(6), nan(N_ERROR, N_ERROR), np.zeros(k, bool),
+        n = N_ERROR + n_extra
+        return cls(nan(3, 3), nan(3), nan(3), nan(6), nan(n, n), np.zeros(k, bool), nan(n_extra),
                    nan(6), nan(6, 6))  # fmt: skip
 
     def store(
@@ -505,24 +528,29 @@ class Estimates:
         cov_vel: FloatArray,
         cov_bias: FloatArray,
         yaw_known: bool,
+        extra: tuple[FloatArray, FloatArray] | None = None,
     ) -> None:
         """Keyframe ``k`` from GTSAM values and marginal covariances (block diagonal in
-        pose / velocity / bias; GTSAM's bias tangent is accelerometer, then gyro)."""
+        pose / velocity / bias; GTSAM's bias tangent is accelerometer, then gyro); ``extra``
+        the GraphStates' values and covariance (:meth:`GraphStates.read`)."""
         mat_nb = pose.rotation().matrix()
         self.mat_nb[k] = mat_nb
         self.pos_n[k] = pose.translation()
         self.vel_n[k] = vel
         self.bias[k] = np.concatenate([bias.gyroscope(), bias.accelerometer()])
         cov = block_diag(pose_cov_nav_from_body(mat_nb, cov_pose_b), cov_vel, cov_bias)
-        self.cov[k] = cov[np.ix_(ESKF_FROM_GTSAM, ESKF_FROM_GTSAM)]
+        self.cov[k] = 0.0
+        self.cov[k, :N_ERROR, :N_ERROR] = cov[np.ix_(ESKF_FROM_GTSAM, ESKF_FROM_GTSAM)]
         self.yaw_known[k] = yaw_known
+        if extra is not None:
+            self.extra[k] = extra[0]
+            self.cov[k, N_ERROR:, N_ERROR:] = extra[1]
 
     def store_scale(self, k: int, value: Any, marginal: Any) -> None:
-        """The scale factors at keyframe ``k`` from a solver's ``value(key)`` and
-        ``marginal(key)`` (``sg`` and ``sa`` independent blocks)."""
-        key_g, key_a = scale_keys(k)
-        self.scale[k] = np.concatenate([value(key_g), value(key_a)])
-        self.scale_cov[k] = block_diag(marginal(key_g), marginal(key_a))
+        """The scale factors ``[sg, sa]`` at keyframe ``k`` from a solver's ``value(key)``
+        and ``marginal(key)``."""
+        self.scale[k] = value(scale_key(k))
+        self.scale_cov[k] = marginal(scale_key(k))
 
     def values(self, k: int) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias]:
         """Keyframe ``k`` as GTSAM values."""

@@ -8,6 +8,7 @@ diagnostics to ``info``, and returns the keyframe
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
 import gtsam
@@ -17,7 +18,7 @@ from numpy.typing import NDArray
 
 from polins.fusion.graph.factors import pose_cov_nav_from_body
 from polins.fusion.graph.problem import Estimates, Problem
-from polins.fusion.items import UpdateRecord, gate_limit, item_model
+from polins.fusion.items import HEADING_KINDS, UpdateRecord, gate_limit
 from polins.fusion.measurement import ATT, N_ERROR, VEL
 
 FloatArray = NDArray[np.float64]
@@ -131,6 +132,7 @@ def batch_graph(
     values.insert(V(0), state.velocity())
     values.insert(B(0), bias)
     values.insert(prob.scale_values(0))
+    values.insert(prob.states.initial(0, prob.states.guess))
     for k in range(len(prob.t_key)):
         for f in prob.factors_at(k, rejected) + prob.scale_factors_at(k):
             graph.add(f)
@@ -146,6 +148,7 @@ def batch_graph(
             values.insert(X(k + 1), state.pose())
             values.insert(V(k + 1), state.velocity())
             values.insert(B(k + 1), bias)
+            values.insert(prob.states.initial(k + 1, prob.states.guess))
             values.insert(prob.scale_values(k + 1))
     return graph, (values if linearization is None else linearization)
 
@@ -179,7 +182,7 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
         bayes_tree = graph.linearize(result).eliminateMultifrontal(
             graph.orderingCOLAMD(), gtsam.EliminateQR
         )
-        est = Estimates.empty(len(prob.t_key))
+        est = Estimates.empty(len(prob.t_key), prob.states.n)
         # the scale factors are constants: one marginal (the last keyframe's) for all
         last = prob.scale_values(len(prob.t_key) - 1).keys()
         scale_cov = [marginal_covariance_qr(bayes_tree, key) for key in last]
@@ -193,6 +196,7 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
                 marginal_covariance_qr(bayes_tree, V(k)),
                 marginal_covariance_qr(bayes_tree, B(k)),
                 prob.yaw_given or prob.n_headings > 0,
+                prob.states.read(k, result.atVector, partial(marginal_covariance_qr, bayes_tree)),
             )
             if prob.scale_jac is not None:
                 cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
@@ -231,7 +235,8 @@ def post_fit_gate(
     rows: list[UpdateRecord] = []
     exceed: dict[int, tuple[float, str]] = {}
     for i, mf in enumerate(prob.meas):
-        lin = item_model(mf.item, est.mat_nb[mf.k], est.vel_n[mf.k], prob.tilt_coupling)
+        lin = prob.states.model(mf.item, est.mat_nb[mf.k], est.vel_n[mf.k], prob.tilt_coupling,
+                                est.extra[mf.k])  # fmt: skip
         if i in rejected:
             nis, reason = rejected[i]
             rows.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
@@ -283,8 +288,9 @@ def solve_incremental(
     thresholds.insert(("v", np.full(3, 1.0)))
     thresholds.insert(("b", np.full(6, 1e6)))
     # the IMU factors and the links are linear in the scale factors
-    thresholds.insert(("g", np.full(3, 1e6)))
-    thresholds.insert(("a", np.full(3, 1e6)))
+    thresholds.insert(("s", np.full(6, 1e6)))
+    for letter, threshold in prob.states.thresholds():
+        thresholds.insert((letter, threshold))
     isam_params.setRelinearizeThreshold(thresholds)
     isam_params.relinearizeSkip = 10
     if solver == "fixed_lag":
@@ -299,7 +305,7 @@ def solve_incremental(
         else gtsam.IncrementalFixedLagSmoother(c.lag_s, isam_params)
     )
     n_key = len(prob.t_key)
-    est = Estimates.empty(n_key)
+    est = Estimates.empty(n_key, prob.states.n)
     seen_aiding = False
     pending: list[int] = []  # fixed lag: keyframes not reported yet
 
@@ -313,19 +319,22 @@ def solve_incremental(
             engine.marginalCovariance(V(k)),
             engine.marginalCovariance(B(k)),
             seen_aiding or prob.yaw_given,
+            prob.states.read(k, engine.calculateEstimateVector, engine.marginalCovariance),
         )
         if scale:
             est.store_scale(k, engine.calculateEstimateVector, engine.marginalCovariance)
 
-    def gated(k: int, state: gtsam.NavState, cov_prev: FloatArray) -> list[gtsam.NonlinearFactor]:
+    def gated(
+        k: int, state: gtsam.NavState, cov_prev: FloatArray, extra: FloatArray
+    ) -> list[gtsam.NonlinearFactor]:
         """Measurement factors at keyframe k that pass the chi-square gate."""
         nonlocal seen_aiding
         out = []
         mat = state.attitude().matrix()
         for i in prob.meas_at[k]:
             mf = prob.meas[i]
-            heading = mf.item.kind in ("yaw", "sun")
-            lin = item_model(mf.item, mat, state.velocity(), prob.tilt_coupling)
+            heading = mf.item.kind in HEADING_KINDS
+            lin = prob.states.model(mf.item, mat, state.velocity(), prob.tilt_coupling, extra)
             if not np.isfinite(cov_prev).all():
                 nis = np.nan  # first keyframe
             else:
@@ -352,14 +361,17 @@ def solve_incremental(
         t_k = float(prob.t_key[k])
         while pending and prob.t_key[pending[0]] < t_k - c.lag_s:
             record(pending.pop(0))  # last chance before it is marginalized
-        stamps = {X(k): t_k, V(k): t_k, B(k): t_k}
+        stamps = {X(k): t_k, V(k): t_k, B(k): t_k, **prob.states.timestamps(k, t_k)}
         if scale:
             stamps.update(dict.fromkeys(prob.scale_values(k).keys(), t_k))
         engine.update(graph, values, stamps)
         pending.append(k)
 
     graph = gtsam.NonlinearFactorGraph()
-    for f in prob.priors + list(prob.aux[0]) + gated(0, prob.state0, np.full((15, 15), np.nan)):
+    n_cov = N_ERROR + prob.states.n
+    guess = prob.states.guess
+    first = gated(0, prob.state0, np.full((n_cov, n_cov), np.nan), guess)
+    for f in prob.priors + list(prob.aux[0]) + first:
         graph.add(f)
     values = gtsam.Values()
     values.insert(X(0), prob.state0.pose())
@@ -369,27 +381,31 @@ def solve_incremental(
         values.insert(prob.scale_values(0))
         for f in prob.scale_factors_at(0):
             graph.add(f)
+    values.insert(prob.states.initial(0, guess))
     update(0, graph, values)
     for k in range(n_key - 1):
         if solver == "isam2":
             state, bias = est.values(k)
-            cov_prev = est.cov[k]
+            cov_prev, extra = est.cov[k], est.extra[k]
         else:
             state = gtsam.NavState(
                 engine.calculateEstimatePose3(X(k)), engine.calculateEstimateVector(V(k))
             )
             bias = engine.calculateEstimateConstantBias(B(k))
-            cov_prev = fixed_lag_cov(engine, k, state)
+            cov_prev = fixed_lag_cov(engine, k, state, prob)
+            extra = prob.states.read(k, engine.calculateEstimateVector)[0]
+        extra = prob.states.predict(extra, k)
         pim = prob.preintegrate(k, bias, prob.imu_correction(state))
         pred = pim.predict(state, bias)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(prob.imu_factor(k, pim, scale))
-        for f in list(prob.aux[k + 1]) + gated(k + 1, pred, cov_prev):
+        for f in list(prob.aux[k + 1]) + gated(k + 1, pred, cov_prev, extra):
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(k + 1), pred.pose())
         values.insert(V(k + 1), pred.velocity())
         values.insert(B(k + 1), bias)
+        values.insert(prob.states.initial(k + 1, extra))
         if scale:
             values.insert(prob.scale_values(k + 1))
             for f in prob.scale_factors_at(k + 1):
@@ -401,10 +417,15 @@ def solve_incremental(
     return est
 
 
-def fixed_lag_cov(engine: Any, k: int, state: gtsam.NavState) -> FloatArray:
+def fixed_lag_cov(engine: Any, k: int, state: gtsam.NavState, prob: Problem) -> FloatArray:
     """Attitude and velocity blocks of the current marginal of keyframe ``k`` (for the
-    gate), ESKF order."""
-    cov = np.zeros((N_ERROR, N_ERROR))
+    gate), ESKF order, and those of ``prob.states``' variables."""
+    n = prob.states.n
+    cov = np.zeros((N_ERROR + n, N_ERROR + n))
+    if n:
+        cov[N_ERROR:, N_ERROR:] = prob.states.read(
+            k, engine.calculateEstimateVector, engine.marginalCovariance
+        )[1]
     pose = pose_cov_nav_from_body(state.attitude().matrix(), engine.marginalCovariance(X(k)))
     cov[ATT, ATT] = pose[:3, :3]
     cov[VEL, VEL] = engine.marginalCovariance(V(k))
