@@ -120,8 +120,8 @@ def test_sigma_is_honest_on_realistic_skies():
     _check_honest(err, std)
     _check_honest(err_b, std_b)
     assert np.sqrt(np.mean((err / std_noise) ** 2)) > 2.0  # 3.0
-    # compensated RMSE [deg]: 0.108 with the Berry sky and the rotated-cloud cells (0.114
-    # before; 48 images: 0.188 and 0.203 at two seeds, 0.208 and 0.257 before)
+    # compensated RMSE [deg]: 0.111 with the Berry sky and the rotated-cloud cells (0.114
+    # before; 48 images: 0.180 and 0.197 at two seeds, 0.208 and 0.257 before)
     assert np.sqrt(np.mean(np.degrees(err) ** 2)) < 0.13
 
 

@@ -9,7 +9,9 @@ Modules in the order of the data flow::
     lens         per-pixel lens constants of the estimators
     eigen        the eigen sun vector and its covariance
     prediction   the AoP a trial sun predicts; selection: which pixels enter the estimate
-    jointml      joint maximum likelihood of the sun and epsilon
+    skymodel     the joint ML's sky: the Berry neutral points, the camera-fixed polarization
+    jointml      joint maximum likelihood of the sun and epsilon; losses: its robust losses
+    solve        one image's joint ML: subsample, rotated-cloud cells, full-set step
     heading      level frame, yaw, its variance, the 180 deg choice
     branch       the 180 deg branch without an ephemeris: elevation, brightness, prior
     measurement  Measurement and MeasureOptions; chain: one image through all of it

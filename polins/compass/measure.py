@@ -6,7 +6,8 @@ Three methods return the same :class:`~polins.compass.measurement.Measurement`:
     Joint maximum likelihood of the sun azimuth (and zenith, unless fixed from the
     ephemeris) and the direct-sunlight coefficient epsilon over the whole image
     (docs/model.md §9.2), with the compensation angle taken from the estimated sun, not the
-    INS prior. Gauss-Newton runs on a pixel subsample and finishes with one Gauss-Newton
+    INS prior, and the Berry four-neutral-point sky with its separation fitted
+    (docs/model.md §6.3; ``sky_model="rayleigh"`` for the Rayleigh sky). Gauss-Newton runs on a pixel subsample and finishes with one Gauss-Newton
     step on all valid pixels.
 ``"traditional"``
     Gain-corrected least-squares Stokes, E-vectors built in the camera frame and rotated
