@@ -14,8 +14,8 @@ Graph
 Keyframe ``k`` holds ``X(k)`` (``gtsam.Pose3``: attitude ``rot_nb`` and position in local
 ENU metres), ``V(k)`` (ENU velocity [m/s]) and ``B(k)`` (``imuBias.ConstantBias``:
 accelerometer, then gyro bias). Keyframes sit at the first and last IMU sample, the
-measurement, ``stationary`` and non-holonomic epochs, and at most ``max_keyframe_dt_s``
-apart. Implementation notes beyond docs/filter.md §9:
+measurement, ``stationary``, non-holonomic and odometer epochs, and at most
+``max_keyframe_dt_s`` apart. Implementation notes beyond docs/filter.md §9:
 
 * ``CombinedImuFactor`` (Forster et al., IEEE TRO 2017), gravity ``MakeSharedU`` (WGS-84
   normal gravity at the start). Each integration step uses the mean of the linearly
