@@ -41,7 +41,7 @@ from polins.fusion.graph.imu import (
     scale_factor_imu_factor,
     scale_factor_links,
     scale_factor_priors,
-    scale_key,
+    scale_keys,
 )
 from polins.fusion.graph.states import GraphStates
 from polins.fusion.items import HEADING_KINDS, MeasurementItem, UpdateRecord
@@ -460,7 +460,7 @@ class Problem:
         factor = gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
         if self.scale_jac is None or not scale:
             return factor
-        return scale_factor_imu_factor(factor, self.scale_jac[k], scale_key(k))
+        return scale_factor_imu_factor(factor, self.scale_jac[k], *scale_keys(k))
 
     def scale_factors_at(self, k: int) -> list[gtsam.NonlinearFactor]:
         """The scale factors' priors (``k = 0``) or their link from keyframe ``k - 1``
@@ -469,15 +469,16 @@ class Problem:
             return []
         std = (self.config.imu.gyro_scale_factor, self.config.imu.accel_scale_factor)
         if k == 0:
-            return [scale_factor_priors(*std)]
-        return [scale_factor_links(k, float(self.t_key[k] - self.t_key[k - 1]), *std)]
+            return scale_factor_priors(*std)
+        return scale_factor_links(k, float(self.t_key[k] - self.t_key[k - 1]), *std)
 
     def scale_values(self, k: int) -> gtsam.Values:
         """Initial values of keyframe ``k``'s scale factors ``sg, sa`` (zero: the factors
         are linear in them; empty without them)."""
         values = gtsam.Values()
         if self.scale_jac is not None:
-            values.insert(scale_key(k), np.zeros(6))
+            for key in scale_keys(k):
+                values.insert(key, np.zeros(3))
         return values
 
     def factors_at(self, k: int, rejected: set[int]) -> list[gtsam.NonlinearFactor]:
@@ -547,10 +548,11 @@ class Estimates:
             self.cov[k, N_ERROR:, N_ERROR:] = extra[1]
 
     def store_scale(self, k: int, value: Any, marginal: Any) -> None:
-        """The scale factors ``[sg, sa]`` at keyframe ``k`` from a solver's ``value(key)``
-        and ``marginal(key)``."""
-        self.scale[k] = value(scale_key(k))
-        self.scale_cov[k] = marginal(scale_key(k))
+        """The scale factors at keyframe ``k`` from a solver's ``value(key)`` and
+        ``marginal(key)`` (``sg`` and ``sa`` independent blocks)."""
+        key_g, key_a = scale_keys(k)
+        self.scale[k] = np.concatenate([value(key_g), value(key_a)])
+        self.scale_cov[k] = block_diag(marginal(key_g), marginal(key_a))
 
     def values(self, k: int) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias]:
         """Keyframe ``k`` as GTSAM values."""

@@ -288,7 +288,8 @@ def solve_incremental(
     thresholds.insert(("v", np.full(3, 1.0)))
     thresholds.insert(("b", np.full(6, 1e6)))
     # the IMU factors and the links are linear in the scale factors
-    thresholds.insert(("s", np.full(6, 1e6)))
+    thresholds.insert(("g", np.full(3, 1e6)))
+    thresholds.insert(("a", np.full(3, 1e6)))
     for letter, threshold in prob.states.thresholds():
         thresholds.insert((letter, threshold))
     isam_params.setRelinearizeThreshold(thresholds)
