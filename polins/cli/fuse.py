@@ -164,7 +164,8 @@ def add_fuse(sub: Any) -> None:
                    help="filter option (see --list-options); overrides the manifest's [filter]; "
                    "repeatable")  # fmt: skip
     p.add_argument("--scale-factors", action="store_true",
-                   help="estimate gyro/accel scale factors (ESKF; = --set scale_factors=true)")  # fmt: skip
+                   help="estimate gyro/accel scale factors (on by default for MEMS models; = --set "
+                   "scale_factors=true)")  # fmt: skip
     p.add_argument("--smooth", action="store_true", help="RTS smoother (ESKF backend)")
     p.add_argument("--workers", type=int, default=None,
                    help="image processes, >= 1 (None: all cores)")  # fmt: skip
