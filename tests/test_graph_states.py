@@ -239,33 +239,15 @@ def test_graph_no_clock_relative_heading_ten_minutes():
 
 
 # ----------------------------------------------------------------------------- heading bias
-def graph_heading_z(seeds, **options):
-    """The graph's heading errors / sigma after 10 s (self-alignment) on the ESKF's drives
-    with a Gauss-Markov heading error (tests/test_sun_azimuth_state.py), pooled."""
-    z = []
-    for seed in seeds:
-        model, traj, imu, meas, t_rest = sky.biased_drive(seed)
-        config = FuseConfig.from_options(
-            None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01,
-            stationary=t_rest, **options,
-        )  # fmt: skip
-        sol = run_fusion(imu, meas, "graph", config=config).solution
-        sol = sol[sol["t"] >= 10.0]
-        k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
-        err = wrap_angle(sol["yaw"].to_numpy() - traj.rot_nb[k].as_euler("ZYX")[:, 0])
-        z.append(err / sol["yaw_std"].to_numpy())
-    return np.concatenate(z)
-
-
 def test_graph_heading_bias_pairs_with_the_correlated_sigma_fast():
     # measured (batch) with the bias variable (0.5 deg, 60 s): RMS(err/sigma) 0.51 / 0.46 /
     # 1.11 / 1.37 on seeds 0-3 (0.95 pooled), 100 % within 3 sigma; without it (inf) 6.1,
     # 50 % (seeds 0, 1). Seeds 2 and 3 here: 1.25
-    z_with = graph_heading_z([2, 3], heading_bias_std=sky.CORR_STD,
-                             heading_bias_tau_s=sky.CORR_TAU_S)  # fmt: skip
+    z_with = sky.heading_z([2, 3], "graph", heading_bias_std=sky.CORR_STD,
+                           heading_bias_tau_s=sky.CORR_TAU_S)  # fmt: skip
     assert 0.6 < rms(z_with) < 1.4, rms(z_with)
     assert np.mean(np.abs(z_with) < 3.0) >= 0.98
-    z_without = graph_heading_z([2], heading_bias_std=math.inf)
+    z_without = sky.heading_z([2], "graph", heading_bias_std=math.inf)
     assert rms(z_without) > 2.0, rms(z_without)
 
 
@@ -274,6 +256,6 @@ def test_graph_heading_bias_defaults_follow_the_model_part():
     # the default (heading_bias_std=None): the variable's sigma from the rows' yaw_std_model
     # (measured: 0.77, 100 % within 3 sigma; the fixed sigma 0.95); 4 seeds, as the ESKF's
     for options in ({}, {"heading_bias_std": sky.CORR_STD, "heading_bias_tau_s": sky.CORR_TAU_S}):
-        z = graph_heading_z(range(4), **options)
+        z = sky.heading_z(range(4), "graph", **options)
         assert 0.6 < rms(z) < 1.4, rms(z)
         assert np.mean(np.abs(z) < 3.0) >= 0.98

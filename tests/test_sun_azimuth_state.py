@@ -175,7 +175,7 @@ def biased_drive(seed):
     return model, traj, imu, meas, tuple(t_rest)
 
 
-def heading_z(seeds, **options):
+def heading_z(seeds, backend="eskf", **options):
     """Heading errors / sigma after 10 s (self-alignment), pooled over seeds."""
     z = []
     for seed in seeds:
@@ -184,7 +184,7 @@ def heading_z(seeds, **options):
             None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01,
             stationary=t_rest, **options,
         )  # fmt: skip
-        sol = run_fusion(imu, meas, config=config).solution
+        sol = run_fusion(imu, meas, backend, config=config).solution
         sol = sol[sol["t"] >= 10.0]
         k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
         err = wrap_angle(sol["yaw"].to_numpy() - traj.rot_nb[k].as_euler("ZYX")[:, 0])

@@ -169,22 +169,7 @@ def fitted_sensitivity(
     Same arguments as :func:`instrumental_sensitivity`."""
     _, jac, _, _ = ml_evaluate(data, theta, zenith, mat_cl, True, None, sky)
     assert jac is not None
-    j = jac.astype(np.float64)
-    sun_l = _sun_level(theta, zenith)
-    xy = image_plane_evector(data, (mat_cl @ sun_l)[:, None])
-    n = data.s0.size
-    n1, n2, e2 = doubled_prediction(xy[0, :n], xy[0, n:])
-    scale = data.s0.astype(np.float64) / e2
-    if data.mask is not None:
-        scale = scale * data.mask
-    if isinstance(data.inv_sigma, np.ndarray):
-        scale = scale * data.inv_sigma
-    dr = np.stack([-n2 * scale, n1 * scale])
-    try:
-        dtheta = -np.linalg.solve(j @ j.T, j @ dr.T)
-    except np.linalg.LinAlgError:
-        return float("nan")
-    return float(np.hypot(dtheta[0, 0], dtheta[0, 1]))
+    return _yaw_per_delta(data, jac.astype(np.float64), theta, zenith, mat_cl)
 
 
 def model_weights(
@@ -239,6 +224,15 @@ def instrumental_sensitivity(
     _, jac, _, _ = ml_evaluate(data, theta, zenith, mat_cl, True)
     assert jac is not None
     j = (jac if with_epsilon else jac[:-1]).astype(np.float64)
+    return _yaw_per_delta(data, j, theta, zenith, mat_cl)
+
+
+def _yaw_per_delta(
+    data: PixelData, j: NDArray, theta: NDArray, zenith: float | None, mat_cl: NDArray
+) -> float:
+    """``sqrt(g_1^2 + g_2^2)`` [rad] of the linear response ``d theta = -(J J^T)^-1 J dr``
+    of the estimate (Jacobian rows ``j``, float64) to a camera-fixed polarization ``delta``
+    (docs/measurement.md §12); NaN when ``J J^T`` is singular."""
     sun_l = _sun_level(theta, zenith)
     xy = image_plane_evector(data, (mat_cl @ sun_l)[:, None])
     n = data.s0.size
@@ -250,9 +244,8 @@ def instrumental_sensitivity(
         scale = scale * data.inv_sigma
     # dr for delta = (1, 0) and (0, 1): n . (S0, 0) = -sin 2zeta S0, n . (0, S0) = cos 2zeta S0.
     dr = np.stack([-n2 * scale, n1 * scale])
-    info = j @ j.T
     try:
-        dtheta = -np.linalg.solve(info, j @ dr.T)  # (k, 2)
+        dtheta = -np.linalg.solve(j @ j.T, j @ dr.T)  # (k, 2)
     except np.linalg.LinAlgError:
         return float("nan")
     return float(np.hypot(dtheta[0, 0], dtheta[0, 1]))
