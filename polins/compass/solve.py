@@ -162,14 +162,23 @@ def compensated_solution(
         return lambda ml: problem(ml, converged)
 
     k_sep = 1 if zenith is not None else 2
-    if not strided:
-        sky = _sky(rays[1], opt)
-        run = solve(data_full, sectors[1], sky, opt.max_iterations, tol_sigma=0.1)
-        ml, mask = run(theta, select_full)
+
+    def fit(
+        data: PixelData, sectors_x: SectorRuns, rays_x: NDArray, select: Selection
+    ) -> tuple[MLSolution, NDArray | None, SkyModel | None, Solve]:
+        """The iterated solve in the sky model, in the Rayleigh sky when the fitted
+        neutral-point separation is not identified (sep 0: no neutral points seen)."""
+        sky = _sky(rays_x, opt)
+        run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
+        ml, mask = run(theta, select)
         if sky is not None and sky.fit_sep and not _separation_identified(ml, k_sep, opt):
-            sky = _sky(rays[1], opt, berry=False)  # Rayleigh (sep 0: no neutral points seen)
-            run = solve(data_full, sectors[1], sky, opt.max_iterations, tol_sigma=0.1)
-            ml, mask = run(np.delete(ml.theta, k_sep), select_full)
+            sky = _sky(rays_x, opt, berry=False)
+            run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
+            ml, mask = run(np.delete(ml.theta, k_sep), select)
+        return ml, mask, sky, run
+
+    if not strided:
+        ml, mask, sky, run = fit(data_full, sectors[1], rays[1], select_full)
         ml, mask, dropped = _drop_clouds(ml, mask, data_full, select_full, cells, run,
                                          fails(True), zenith, mat_cl, sky, opt)  # fmt: skip
         np.logical_and(select_full.valid, ~dropped.take(cells), out=select_full.valid)
@@ -177,13 +186,7 @@ def compensated_solution(
             ml = _without(ml, k_sep)
         return ml, mask, None, problem(ml, True)
 
-    sky_sub = _sky(rays[0], opt)
-    run = solve(data_sub, sectors[0], sky_sub, opt.max_iterations, tol_sigma=0.1)
-    ml, mask_sub = run(theta, select_sub)
-    if sky_sub is not None and sky_sub.fit_sep and not _separation_identified(ml, k_sep, opt):
-        sky_sub = _sky(rays[0], opt, berry=False)  # Rayleigh (sep 0: no neutral points seen)
-        run = solve(data_sub, sectors[0], sky_sub, opt.max_iterations, tol_sigma=0.1)
-        ml, mask_sub = run(np.delete(ml.theta, k_sep), select_sub)
+    ml, mask_sub, sky_sub, run = fit(data_sub, sectors[0], rays[0], select_sub)
     cells_sub = cells.take(sub_index)
     ml, mask_sub, dropped = _drop_clouds(ml, mask_sub, data_sub, select_sub, cells_sub, run,
                                          fails(True), zenith, mat_cl, sky_sub, opt)  # fmt: skip
