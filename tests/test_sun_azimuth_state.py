@@ -230,6 +230,10 @@ def test_bias_part_taken_out_of_the_heading_items():
     assert part.var == pytest.approx(0.002**2)
     assert P[0, 0] == pytest.approx((0.001**2 + 0.003**2) / 2)  # the largest median seen
     assert densities[-1] == pytest.approx(2.0 * 0.002**2 / 300.0)
+    window = ModelPart(300.0, window=2)  # the median of the last two rows only
+    for m in (0.004, 0.001, 0.003):
+        window.take(replace(yaw, model_std=m), np.zeros((1, 1)), 0)
+    assert window.var == pytest.approx((0.001**2 + 0.003**2) / 2)
 
 
 # ----------------------------------------------------------------------------- 2x2 sun covariance

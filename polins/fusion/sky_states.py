@@ -29,6 +29,7 @@ bias"):
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from collections import deque
@@ -178,14 +179,24 @@ class ModelPart:
 
     def __init__(self, tau_s: float, window: int = 256) -> None:
         self.tau_s = float(tau_s)
-        self.parts: deque[float] = deque(maxlen=window)
+        self.parts: deque[float] = deque(maxlen=window)  # in arrival order
+        self.ordered: list[float] = []  # the same, sorted (a running median per update)
         self.var = 0.0
 
     def take(self, item: MeasurementItem, P: FloatArray, i: int) -> tuple[MeasurementItem, float]:
         """The item without its carried part, and the bias state's noise density
         [rad^2/s]; ``P[i, i]`` (the bias state's variance) is raised in place."""
-        self.parts.append(item.model_std**2)
-        var = float(np.median(self.parts))
+        part = item.model_std**2
+        if len(self.parts) == self.parts.maxlen:
+            del self.ordered[bisect.bisect_left(self.ordered, self.parts[0])]
+        self.parts.append(part)
+        bisect.insort(self.ordered, part)
+        n = len(self.ordered)
+        var = (
+            self.ordered[n // 2]
+            if n % 2
+            else 0.5 * (self.ordered[n // 2 - 1] + self.ordered[n // 2])
+        )
         if var > self.var:
             P[i, i] += var - self.var
         self.var = var

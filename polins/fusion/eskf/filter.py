@@ -430,8 +430,9 @@ class ESKF:
         if self.model_part is not None and item.kind in HEADING_KINDS:
             i = self.layout.index["heading_bias"].start
             item, density = self.model_part.take(item, self.P, i)
-            self.qc = self.qc.copy()  # shared with copies of the filter
-            self.qc[i] = density
+            if density != self.qc[i]:
+                self.qc = self.qc.copy()  # shared with copies of the filter
+                self.qc[i] = density
         if not self.yaw_aligned and item.kind in ("yaw", "sun"):
             return hold_heading(self, item, None)
         if item.kind == "odo":  # the lever arm at the current rate, the scale estimate
