@@ -187,7 +187,7 @@ def main() -> None:
     d_many = float((a.rot_nb * b.rot_nb.inv()).magnitude())
     r_many = float(np.max(np.abs(b.sigma["att"] / a.sigma["att"] - 1.0)))
 
-    n_states = 21 if polins.fusion.FuseConfig.from_options(**kw).use_scale_factors else 15
+    n_states = build_filter(0.0, 1.0 / model.sample_rate_hz, **kw).n  # the default blocks
     print(f"IMU {model.name}, {n} samples at {model.sample_rate_hz:g} Hz, "
           f"{len(meas)} yaw updates (10 Hz), best of {args.repeat}")  # fmt: skip
     name_w = 62
