@@ -29,7 +29,7 @@ def _heading_z(log, **options):
 def test_fused_heading_is_honest_on_realistic_skies(tmp_path, seed):
     # 120 s of the README's MEMS UGV flow under a realistic sky: the images' sigmas cover
     # their errors, which are shared by consecutive images; without the bias state the filter
-    # averages them down (RMS(err/sigma) 3.8-4.8 over 300 s), with the defaults it does not
+    # averages them down (RMS(err/sigma) 3.8-5.9 over 300 s), with the defaults it does not
     sim = simulate_log(tmp_path, scenario="ugv", imu="mems-typical", duration_s=120.0,
                        seed=seed, sky="realistic", progress=False)  # fmt: skip
     log = read_log(sim.manifest)
