@@ -10,35 +10,13 @@ import pytest
 import test_site_uncertainty as site
 import test_sun_azimuth_state as sky
 from gtsam.symbol_shorthand import V, X
-from test_sun_azimuth_state import SITE, narrow_drive
+from test_sun_azimuth_state import SITE
 from test_vehicle import MOUNT, UGV_LEVER_ARM_B, UGV_ODOMETER, Drive, horizontal_error_m
 
-from polins.frames import wrap_angle
-from polins.fusion import run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.graph.states import GraphStates, gauss_markov_factor, sun_azimuth_factor
 from polins.fusion.items import MeasurementItem
 from polins.fusion.measurement import sun_direction_cov_b
-
-
-def attitude_z(seeds, drop, **options):
-    """Roll, pitch, yaw errors / sigma of the graph after 5 s on the narrow-field drives of
-    tests/test_sun_azimuth_state.py, pooled; ``drop``: columns not given."""
-    z = []
-    for seed in seeds:
-        model, traj, imu, meas, t_rest = narrow_drive(seed)
-        config = FuseConfig.from_options(
-            None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01,
-            stationary=t_rest, **options,
-        )  # fmt: skip
-        sol = run_fusion(imu, meas.drop(columns=list(drop)), "graph", config=config).solution
-        sol = sol[sol["t"] >= 5.0]
-        k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
-        ypr = traj.rot_nb[k].as_euler("ZYX")
-        for j, name in enumerate(("yaw", "pitch", "roll")):
-            err = wrap_angle(sol[name].to_numpy() - ypr[:, j])
-            z.append(err / sol[f"{name}_std"].to_numpy())
-    return np.concatenate(z)
 
 
 def rms(z):
@@ -120,10 +98,10 @@ def test_graph_sun_factor_carries_the_fits_2x2_covariance_fast():
     # one narrow-field drive (seed 2): consistent with the 2x2 covariance, overconfident
     # with R = sun_std^2 I (measured: RMS(err/sigma) 0.74, 100 % within 3 sigma; isotropic
     # 1.30, up to 2.5 sigma off)
-    z_cov = attitude_z([2], ())
+    z_cov = sky.attitude_z([2], (), "graph")
     assert 0.4 < rms(z_cov) < 1.3, rms(z_cov)
     assert np.mean(np.abs(z_cov) < 3.0) >= 0.98
-    z_iso = attitude_z([2], ("sun_elevation_b_std",))
+    z_iso = sky.attitude_z([2], ("sun_elevation_b_std",), "graph")
     assert rms(z_iso) > 1.5 * rms(z_cov), (rms(z_iso), rms(z_cov))
 
 
@@ -131,10 +109,10 @@ def test_graph_sun_factor_carries_the_fits_2x2_covariance_fast():
 def test_graph_sun_factor_carries_the_fits_2x2_covariance():
     # the ESKF's three drives (tests/test_sun_azimuth_state.py); measured on the graph
     # (batch): RMS(err/sigma) 1.00, 100 % within 3 sigma; isotropic 4.2, 91 %
-    z_cov = attitude_z(range(3), ())
+    z_cov = sky.attitude_z(range(3), (), "graph")
     assert 0.4 < rms(z_cov) < 1.3, rms(z_cov)
     assert np.mean(np.abs(z_cov) < 3.0) >= 0.98
-    assert rms(attitude_z(range(3), ("sun_elevation_b_std",))) > 1.8
+    assert rms(sky.attitude_z(range(3), ("sun_elevation_b_std",), "graph")) > 1.8
 
 
 # ----------------------------------------------------------------------------- odometer

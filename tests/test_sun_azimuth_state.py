@@ -35,15 +35,38 @@ def sun_n_at(t_s):
     return polins.sun_vector_n(pos.azimuth, pos.zenith).reshape(-1, 3)
 
 
+def mems_drive(rng, duration_s, period_s, **drive_options):
+    """A ``mems-typical`` IMU on a 100 Hz UGV drive, the image times every ``period_s``
+    from ``period_s`` on and their IMU sample indices."""
+    model = polins.load_imu("mems-typical")
+    traj = ugv_drive(duration_s=duration_s, rate_hz=100.0, rng=rng, **drive_options)
+    imu, _ = imu_errors(ideal_imu(traj), model, rng)
+    tm = np.arange(period_s, duration_s, period_s)
+    return model, traj, imu, tm, np.searchsorted(traj.t, tm - 1e-9)
+
+
+def rest_times(traj):
+    """The drive's standstill times on a 0.1 s grid (zero-velocity updates)."""
+    speed = np.linalg.norm(traj.vel_n, axis=1)
+    return tuple(traj.t[(speed < 1e-6) & (np.round(traj.t * 10.0, 6) % 1.0 == 0.0)])
+
+
+def fused(drive_out, backend="eskf", drop=(), **options):
+    """The truth and the fused solution (1 Hz rows, zero-velocity updates at the stops) of
+    a drive ``(model, traj, imu, meas, t_rest)``; ``drop``: measurement columns not given."""
+    model, traj, imu, meas, t_rest = drive_out
+    config = FuseConfig.from_options(
+        None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01,
+        stationary=t_rest, **options,
+    )  # fmt: skip
+    return traj, run_fusion(imu, meas.drop(columns=list(drop)), backend, config=config).solution
+
+
 @functools.cache
 def drive(seed, duration_s):
     """A MEMS UGV drive at 100 Hz and the sun's body azimuth and elevation at 2 Hz."""
-    model = polins.load_imu("mems-typical")
     rng = np.random.default_rng(seed)
-    traj = ugv_drive(duration_s=duration_s, rate_hz=100.0, rng=rng, yaw0=rng.uniform(-3, 3))
-    imu, _ = imu_errors(ideal_imu(traj), model, rng)
-    tm = np.arange(0.5, duration_s, 0.5)
-    k = np.searchsorted(traj.t, tm - 1e-9)
+    model, traj, imu, tm, k = mems_drive(rng, duration_s, 0.5, yaw0=rng.uniform(-3, 3))
     sun_b = np.einsum("nji,nj->ni", traj.rot_nb[k].as_matrix(), sun_n_at(tm))
     meas = pd.DataFrame({"t": tm})
     meas["sun_azimuth_b"] = wrap_angle(
@@ -52,20 +75,13 @@ def drive(seed, duration_s):
     meas["sun_azimuth_b_std"] = AZ_STD
     meas["sun_elevation_b"] = np.arcsin(sun_b[:, 2]) + rng.normal(0.0, EL_STD, tm.size)
     meas["sun_elevation_b_std"] = EL_STD
-    speed = np.linalg.norm(traj.vel_n, axis=1)
-    t_rest = traj.t[(speed < 1e-6) & (np.round(traj.t * 10.0, 6) % 1.0 == 0.0)]
-    return model, traj, imu, meas, tuple(t_rest)
+    return model, traj, imu, meas, rest_times(traj)
 
 
 def relative_z(seed, duration_s, backend="eskf", **options):
     """Relative-heading errors / sigma of the solution rows after 5 s, and the solution."""
-    model, traj, imu, meas, t_rest = drive(seed, duration_s)
-    config = FuseConfig.from_options(
-        None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01,
-        stationary=t_rest, **options,
-    )  # fmt: skip
     with pytest.warns(UserWarning, match="no-clock mode"):
-        sol = run_fusion(imu, meas, backend, config=config).solution
+        traj, sol = fused(drive(seed, duration_s), backend, **options)
     k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
     yaw_true = traj.rot_nb[k].as_euler("ZYX")[:, 0]
     yaw_true0 = traj.rot_nb[0].as_euler("ZYX")[0]
@@ -154,12 +170,8 @@ def biased_drive(seed):
     Gauss-Markov part (0.5 deg, 60 s): each row reports both parts, as polins.measure
     does (``yaw_std`` the total, ``yaw_std_model`` and ``yaw_std_correlated`` the
     correlated part)."""
-    model = polins.load_imu("mems-typical")
     rng = np.random.default_rng(100 + seed)
-    traj = ugv_drive(duration_s=120.0, rate_hz=100.0, rng=rng)
-    imu, _ = imu_errors(ideal_imu(traj), model, rng)
-    tm = np.arange(0.2, 120.0, 0.2)
-    k = np.searchsorted(traj.t, tm - 1e-9)
+    model, traj, imu, tm, k = mems_drive(rng, 120.0, 0.2)
     phi = math.exp(-0.2 / CORR_TAU_S)
     bias = np.empty(tm.size)
     bias[0] = rng.normal(0.0, CORR_STD)
@@ -170,21 +182,14 @@ def biased_drive(seed):
     meas["yaw_std"] = math.hypot(WHITE_STD, CORR_STD)
     meas["yaw_std_correlated"] = CORR_STD
     meas["yaw_std_model"] = CORR_STD
-    speed = np.linalg.norm(traj.vel_n, axis=1)
-    t_rest = traj.t[(speed < 1e-6) & (np.round(traj.t * 10.0, 6) % 1.0 == 0.0)]
-    return model, traj, imu, meas, tuple(t_rest)
+    return model, traj, imu, meas, rest_times(traj)
 
 
 def heading_z(seeds, backend="eskf", **options):
     """Heading errors / sigma after 10 s (self-alignment), pooled over seeds."""
     z = []
     for seed in seeds:
-        model, traj, imu, meas, t_rest = biased_drive(seed)
-        config = FuseConfig.from_options(
-            None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01,
-            stationary=t_rest, **options,
-        )  # fmt: skip
-        sol = run_fusion(imu, meas, backend, config=config).solution
+        traj, sol = fused(biased_drive(seed), backend, **options)
         sol = sol[sol["t"] >= 10.0]
         k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
         err = wrap_angle(sol["yaw"].to_numpy() - traj.rot_nb[k].as_euler("ZYX")[:, 0])
@@ -250,12 +255,8 @@ def test_sun_direction_covariance_axes():
 def narrow_drive(seed):
     """A 60 s MEMS UGV drive; sun vectors at 5 Hz from a narrow-field fit: 0.2 deg along the
     azimuth, 3 deg along the elevation (``sun_elevation_b_std``)."""
-    model = polins.load_imu("mems-typical")
     rng = np.random.default_rng(200 + seed)
-    traj = ugv_drive(duration_s=60.0, rate_hz=100.0, rng=rng)
-    imu, _ = imu_errors(ideal_imu(traj), model, rng)
-    tm = np.arange(0.2, 60.0, 0.2)
-    k = np.searchsorted(traj.t, tm - 1e-9)
+    model, traj, imu, tm, k = mems_drive(rng, 60.0, 0.2)
     sun_n = sun_n_at(tm)
     sun_b = np.einsum("nji,nj->ni", traj.rot_nb[k].as_matrix(), sun_n)
     az = np.arctan2(sun_b[:, 1], sun_b[:, 0]) + rng.normal(0.0, math.radians(0.2), tm.size)
@@ -267,21 +268,14 @@ def narrow_drive(seed):
     meas[["sun_nx", "sun_ny", "sun_nz"]] = sun_n
     meas["sun_std"] = math.radians(0.2) * np.cos(el)  # along the azimuth (tangent)
     meas["sun_elevation_b_std"] = math.radians(3.0)
-    speed = np.linalg.norm(traj.vel_n, axis=1)
-    t_rest = traj.t[(speed < 1e-6) & (np.round(traj.t * 10.0, 6) % 1.0 == 0.0)]
-    return model, traj, imu, meas, tuple(t_rest)
+    return model, traj, imu, meas, rest_times(traj)
 
 
-def attitude_z(seeds, drop):
+def attitude_z(seeds, drop, backend="eskf"):
     """Roll, pitch, yaw errors / sigma after 5 s, pooled; ``drop``: columns not given."""
     z = []
     for seed in seeds:
-        model, traj, imu, meas, t_rest = narrow_drive(seed)
-        config = FuseConfig.from_options(
-            None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01,
-            stationary=t_rest,
-        )  # fmt: skip
-        sol = run_fusion(imu, meas.drop(columns=list(drop)), config=config).solution
+        traj, sol = fused(narrow_drive(seed), backend, drop)
         sol = sol[sol["t"] >= 5.0]
         k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
         ypr = traj.rot_nb[k].as_euler("ZYX")
