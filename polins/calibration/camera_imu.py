@@ -224,8 +224,8 @@ def calibrate_camera_imu(
 
 
 def fit_ephemeris_sun(
-    t_img: FloatArray,
-    s_c: FloatArray,
+    t_images: FloatArray,
+    sun_c: FloatArray,
     slerp: Slerp,
     t_att: FloatArray,
     s_n: FloatArray,
@@ -237,9 +237,9 @@ def fit_ephemeris_sun(
 
     Parameters
     ----------
-    t_img : (m,)
+    t_images : (m,)
         Image times on the camera clock [s], inside the attitude record by ``max_offset_s``.
-    s_c : (m, 3)
+    sun_c : (m, 3)
         Measured unit sun vectors in the camera frame.
     slerp : scipy.spatial.transform.Slerp
         Body-to-ENU attitude as a function of IMU time [s].
@@ -257,13 +257,13 @@ def fit_ephemeris_sun(
     """
 
     def predicted_b(dt: float) -> FloatArray:
-        t = t_img + dt
+        t = t_images + dt
         sun = np.stack([np.interp(t, t_att, s_n[:, i]) for i in range(3)], -1)
         sun /= np.linalg.norm(sun, axis=1, keepdims=True)
         return slerp(t).inv().apply(sun)
 
     def misfit(dt: float) -> float:
-        _, rssd = Rotation.align_vectors(predicted_b(dt), s_c)
+        _, rssd = Rotation.align_vectors(predicted_b(dt), sun_c)
         return float(rssd**2)
 
     # A coarse grid first (the misfit may have side minima over a wide search), then a
@@ -278,8 +278,8 @@ def fit_ephemeris_sun(
         options={"xatol": 1e-6},
     )
     dt = float(sol.x)
-    rot_bc, _ = Rotation.align_vectors(predicted_b(dt), s_c)
-    residuals = np.arccos(np.clip(np.sum(rot_bc.apply(s_c) * predicted_b(dt), axis=1), -1, 1))
+    rot_bc, _ = Rotation.align_vectors(predicted_b(dt), sun_c)
+    residuals = np.arccos(np.clip(np.sum(rot_bc.apply(sun_c) * predicted_b(dt), axis=1), -1, 1))
     m = residuals.size
     # Standard error of dt from the misfit's curvature, scaled by the residual variance.
     h = 1e-4
