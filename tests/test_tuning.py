@@ -203,6 +203,16 @@ def test_shipped_models_are_plausible_and_round_trip():
         )
 
 
+def test_accelerometer_misalignment_round_trips_and_widens_the_bias_turn_on(tmp_path):
+    model = dataclasses.replace(polins.load_imu("mems-typical"), accel_misalignment=4e-3)
+    path = tmp_path / "imu.toml"
+    path.write_text(imu_model_toml(model))
+    back = polins.load_imu(path)
+    assert back.accel_misalignment == pytest.approx(4e-3)
+    # 2 mg turn-on and 4 mrad of 1 g in quadrature: 4.47 mg
+    assert back.accel_bias_turn_on == pytest.approx(np.hypot(2.0, 4.0) * 9.80665e-3)
+
+
 # ----------------------------------------------------------------------------- BROAD sensor
 def broad_rest_segments(margin_s: float = 2.0) -> list[pd.DataFrame]:
     """The rests (moving == 0) before and after the motion of both trials, minus a margin."""

@@ -51,6 +51,7 @@ _SENSOR_SCHEMA = {
         "bias_rw_mg_per_sqrt_h": nonneg,
         "scale_factor_ppm": nonneg,
         "range_g": Optional(positive),
+        "misalignment_mrad": Optional(nonneg),
     },
 }
 # Full scale per grade when the model file has no range keys: (gyro [deg/s], accel [g]),
@@ -149,6 +150,17 @@ class ImuModel:
     # (docs/filter.md, "Rotation-proportional attitude noise")
     gyro_misalignment: float = 0.0
     gyro_misalignment_corr_time: float = 0.1
+    # axis misalignment and cross-axis sensitivity of the accelerometer, 1-sigma [rad]: its
+    # error on gravity is a bias (``accel_bias_turn_on``; docs/imu-model.md)
+    accel_misalignment: float = 0.0
+
+    @property
+    def accel_bias_turn_on(self) -> float:
+        """Turn-on 1-sigma of the accelerometer bias states [m/s^2]: ``accel_bias`` and the
+        misalignment's error on gravity ``accel_misalignment * g``, in quadrature (a near-level
+        vehicle sees the error ``M g_b`` of a constant matrix ``M`` as a constant bias;
+        docs/imu-model.md, "Cross-axis coupling and misalignment")."""
+        return float(np.hypot(self.accel_bias, self.accel_misalignment * _G0))
 
     def full_scale(self) -> tuple[float, float]:
         """``(gyro [rad/s], accel [m/s^2])`` full scale: the model's ranges, else the
@@ -182,6 +194,8 @@ class ImuModel:
         if self.gyro_misalignment:
             values["gyro"]["misalignment_mrad"] = self.gyro_misalignment * 1e3
             values["gyro"]["misalignment_corr_s"] = self.gyro_misalignment_corr_time
+        if self.accel_misalignment:
+            values["accel"]["misalignment_mrad"] = self.accel_misalignment * 1e3
         if self.gyro_range is not None:
             values["gyro"]["range_deg_per_s"] = float(np.degrees(self.gyro_range))
         if self.accel_range is not None:
@@ -240,4 +254,5 @@ def load_imu(name_or_path: str | Path) -> ImuModel:
         accel_range=a["range_g"] * _G0 if "range_g" in a else None,
         gyro_misalignment=g.get("misalignment_mrad", 0.0) * 1e-3,
         gyro_misalignment_corr_time=g.get("misalignment_corr_s", 0.1),
+        accel_misalignment=a.get("misalignment_mrad", 0.0) * 1e-3,
     )

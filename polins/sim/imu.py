@@ -19,7 +19,10 @@ The error model (``polins.models.ImuModel``), per axis and independently::
 
 where ``N`` is the white-noise density (ARW [rad/sqrt(s)] or VRW [m/s/sqrt(s)]), so that
 the Allan deviation is ``N / sqrt(tau)`` at short and ``K sqrt(tau / 3)`` at long ``tau``
-(IEEE Std 952-1997, Annex C).
+(IEEE Std 952-1997, Annex C). A model with an axis misalignment ``m`` (``gyro_misalignment``,
+``accel_misalignment``) couples the axes: ``ideal`` becomes ``(I + M) ideal`` with a constant
+``M`` whose off-diagonal entries are ``N(0, m^2)`` and whose diagonal is zero (the scale
+factors), drawn after all other errors so that the other draws do not change.
 """
 
 from __future__ import annotations
@@ -143,7 +146,15 @@ def imu_errors(
     white_std = np.repeat([model.gyro_arw, model.accel_vrw], 3) * np.sqrt(rate_hz)
     white = rng.standard_normal((n, 6)) * white_std
 
-    true = ideal[IMU_COLUMNS[1:]].to_numpy(dtype=float)
+    true = ideal[IMU_COLUMNS[1:]].to_numpy(dtype=float, copy=True)
+    for cols, m in (
+        (slice(0, 3), model.gyro_misalignment),
+        (slice(3, 6), model.accel_misalignment),
+    ):
+        if m:
+            mis = rng.standard_normal((3, 3)) * m
+            np.fill_diagonal(mis, 0.0)
+            true[:, cols] += true[:, cols] @ mis.T
     measured = (1.0 + scale) * true + bias + white
     measured_df = pd.DataFrame(np.column_stack([t, measured]), columns=pd.Index(IMU_COLUMNS))
     errors_df = pd.DataFrame(

@@ -129,7 +129,7 @@ POS = Block("pos", 3, _pos, lambda m, c: c.pos_std0, jacobian=slice(6, 9),
             navigation=True)  # fmt: skip
 GYRO_BIAS = Block("bg", 3, _bg, lambda m, c: m.gyro_bias, lambda m: m.gyro_bias_rw**2,
                   BG, correct=lambda w, f, e: (w - e, f))  # fmt: skip
-ACCEL_BIAS = Block("ba", 3, _ba, lambda m, c: m.accel_bias, lambda m: m.accel_bias_rw**2,
+ACCEL_BIAS = Block("ba", 3, _ba, lambda m, c: m.accel_bias_turn_on, lambda m: m.accel_bias_rw**2,
                    BA, correct=lambda w, f, e: (w, f - e))  # fmt: skip
 GYRO_SCALE = Block("sg", 3, _sg, lambda m, c: m.gyro_scale_factor,
                    correct=lambda w, f, e: (w / (1.0 + e), f))  # fmt: skip

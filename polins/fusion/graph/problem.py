@@ -296,7 +296,7 @@ class Problem:
         c, m = self.config, self.config.imu
         bias0 = gtsam.imuBias.ConstantBias()
         gyro_bias = np.hypot(m.gyro_bias, OMEGA_IE) if c.uncovered_earth_rate else m.gyro_bias
-        bias_sigmas = np.concatenate([np.full(3, m.accel_bias), np.full(3, gyro_bias)])
+        bias_sigmas = np.concatenate([np.full(3, m.accel_bias_turn_on), np.full(3, gyro_bias)])
         priors: list[gtsam.NonlinearFactor] = [
             gtsam.PriorFactorConstantBias(
                 B(0), bias0, gtsam.noiseModel.Diagonal.Sigmas(np.maximum(bias_sigmas, 1e-12))
@@ -322,7 +322,7 @@ class Problem:
                     "measurement; give rot_nb0 or measurements"
                 )
             std = max(m.accel_vrw / np.sqrt(duration), 1e-9)
-            tilt_var = np.full(2, (std**2 + m.accel_bias**2) / self.gravity**2)
+            tilt_var = np.full(2, (std**2 + m.accel_bias_turn_on**2) / self.gravity**2)
             rot = Rotation.from_rotvec([0.0, 0.0, self._acquire(level, vel_n0, None, tilt_var)])
             rot = rot * level
             priors.append(levelling_factor(X(0), B(0), f_mean, self.gravity, std))
