@@ -113,6 +113,12 @@ class FuseConfig:
         "from the IMU to the vehicle's non-holonomic reference point (e.g. the rear axle's "
         "centre), body axes [m]",
     )
+    mount_std: float | None = _opt(
+        None,
+        "1-sigma of the errors of mount_rpy's pitch and yaw [rad]: two states (random "
+        "constants) the non-holonomic constraint and the odometer observe while the vehicle "
+        "moves; None or 0: the mounting is exact (docs/filter.md, 'Ground-vehicle aiding')",
+    )
     odometer_std: float | None = _opt(
         None,
         f"wheel-odometer speed 1-sigma [m/s], with an odometer scale-factor state; "
@@ -234,6 +240,12 @@ class FuseConfig:
         """The non-holonomic 1-sigma in use [m/s] (``nhc_std``, else the vehicle kind's), or
         None: off."""
         return _sigma_in_use(self.nhc_std, NHC_STD_GROUND if self.vehicle == "ground" else None)
+
+    @property
+    def mount_sigma(self) -> float | None:
+        """The prior 1-sigma [rad] of the mounting pitch and yaw error states, or None: no
+        such states (``mount_std`` None or 0)."""
+        return float(self.mount_std) if self.mount_std else None
 
     @property
     def standstill_sigma(self) -> float | None:
@@ -359,6 +371,8 @@ def _check(c: FuseConfig) -> None:
         value = getattr(c, name)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise UserInputError(f"{name} must be > 0 or None, got {value!r}")
+    if c.mount_std is not None and not (math.isfinite(c.mount_std) and c.mount_std >= 0):
+        raise UserInputError(f"mount_std must be >= 0 [rad] or None, got {c.mount_std!r}")
     if not all(a > 0 for a in c.att_std0):
         raise UserInputError(f"att_std0 must be 3 positive sigmas [rad], got {c.att_std0}")
     if c.gate_prob is not None and not 0.0 < c.gate_prob < 1.0:

@@ -23,6 +23,7 @@ from scipy.stats import chi2
 from polins.frames import euler_from_rot_nb, rot_nb_from_euler
 from polins.fusion.measurement import (
     Linearized,
+    mount_rotation,
     non_holonomic_kernel,
     odometer_kernel,
     sun_azimuth_kernel,
@@ -41,6 +42,8 @@ HEADING_KINDS = ("yaw", "sun", "sun_azimuth")  # the measurements of the heading
 NOISE_ALLOWANCE = 2.0
 # the name of the no-clock state of the sun's ENU azimuth (docs/filter.md, "No clock")
 SUN_AZIMUTH_STATE = "sun_azimuth_n"
+# the names of the mounting pitch and yaw error states (docs/filter.md §5.6)
+MOUNT_STATES = ("mount_pitch", "mount_yaw")
 
 
 @functools.lru_cache(maxsize=64)
@@ -98,8 +101,10 @@ def item_model(
     nominal attitude ``mat_nb`` and ENU velocity ``vel_n`` [m/s] (only zero-velocity and
     non-holonomic items use it); ``tilt_coupling`` as ``FuseConfig.tilt_coupling``;
     ``states`` the estimates of the sensor-error blocks by name (a ``"sun_azimuth"`` item
-    needs :data:`SUN_AZIMUTH_STATE`). The ESKF and the GTSAM graph both linearize their
-    items here.
+    needs :data:`SUN_AZIMUTH_STATE`; with :data:`MOUNT_STATES` the non-holonomic and
+    odometer items use the mounting turned by their estimate,
+    :func:`~polins.fusion.measurement.mount_rotation`). The ESKF and the GTSAM graph both
+    linearize their items here.
     """
     var = item.std * item.std
     if item.kind == "yaw":
@@ -121,9 +126,13 @@ def item_model(
         raise ValueError(f"a {item.kind} item needs the nominal velocity")
     if item.kind == "zupt":
         return zero_velocity_kernel(vel_n, np.full(3, var))
+    mat_vb = item.mat_vb
+    if states is not None and MOUNT_STATES[0] in states:
+        turn = mount_rotation(np.concatenate([states[name] for name in MOUNT_STATES]))
+        mat_vb = turn if mat_vb is None else turn @ mat_vb
     if item.kind == "odo":
-        return odometer_kernel(mat_nb, vel_n, item.speed, var, item.mat_vb, item.lever_vel_b)
-    return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var), item.mat_vb, item.lever_vel_b)
+        return odometer_kernel(mat_nb, vel_n, item.speed, var, mat_vb, item.lever_vel_b)
+    return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var), mat_vb, item.lever_vel_b)
 
 
 def sun_elevation_n(mat_nb: FloatArray, azimuth_b: float, elevation_b: float) -> float:

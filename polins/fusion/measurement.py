@@ -55,13 +55,17 @@ class Linearized:
     R : (m, m) ndarray
         Measurement noise covariance [measurement units squared].
     name : str
-        Model name: ``"yaw"``, ``"sun"``, ``"sun_azimuth"``, ``"zupt"`` or ``"nhc"``.
+        Model name: ``"yaw"``, ``"sun"``, ``"sun_azimuth"``, ``"zupt"``, ``"nhc"`` or ``"odo"``.
+    vel_v : (3,) ndarray or None
+        ``"nhc"``, ``"odo"``: the predicted velocity of the vehicle's reference point in
+        the vehicle frame [m/s], for the mounting-error columns (:func:`mount_jacobian`).
     """
 
     residual: FloatArray
     H: FloatArray
     R: FloatArray
     name: str
+    vel_v: FloatArray | None = None
 
     @property
     def dim(self) -> int:
@@ -245,7 +249,7 @@ def non_holonomic_kernel(
     H = np.zeros((2, N_ERROR))
     H[:, ATT] = (mat_vn @ skew(vel_n))[1:3]
     H[:, VEL] = mat_vn[1:3]
-    return Linearized(-vel_v[1:3], H, np.diag(var), "nhc")
+    return Linearized(-vel_v[1:3], H, np.diag(var), "nhc", vel_v)
 
 
 def odometer_kernel(
@@ -263,7 +267,40 @@ def odometer_kernel(
     H = np.zeros((1, N_ERROR))
     H[0, ATT] = (mat_vn @ skew(vel_n))[0]
     H[0, VEL] = mat_vn[0]
-    return Linearized(np.array([speed - vel_v[0]]), H, np.array([[var]]), "odo")
+    return Linearized(np.array([speed - vel_v[0]]), H, np.array([[var]]), "odo", vel_v)
+
+
+def mount_rotation(mount_error: FloatArray) -> FloatArray:
+    """The mounting error's rotation of the vehicle frame, ``exp([(0, pitch, yaw) x])``
+    (3, 3), of the mounting pitch and yaw errors ``mount_error`` (2,) [rad]: the true
+    ``mat_vb`` is this times the configured one (docs/filter.md, "Ground-vehicle aiding")."""
+    pitch, yaw = (float(v) for v in mount_error)
+    angle = math.hypot(pitch, yaw)
+    if angle == 0.0:
+        return np.eye(3)
+    k = skew(np.array([0.0, pitch, yaw]) / angle)  # Rodrigues (scipy costs ~20 us a call)
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+def mount_jacobian(lin: Linearized) -> FloatArray:
+    """``d h / d (pitch, yaw)`` (dim, 2) of the mounting error for a non-holonomic or
+    odometer model [m/s / rad], zero for the others (docs/filter.md, "Ground-vehicle
+    aiding"). With ``mat_vb = exp([e x]) mat_vb_configured``, ``e = (0, pitch, yaw)``, the
+    reference point's velocity ``v_v`` (``lin.vel_v``) turns to ``v_v + e x v_v``, so
+    ``d v_v / d e = -[v_v x]``; its columns y, z and the model's rows: the NHC's lateral
+    and vertical rows ``(0, v_x)``, ``(-v_x, 0)``, the odometer's forward row ``(v_z, -v_y)``.
+    Exact at a zero estimate, first order elsewhere: the state is additive,
+    ``exp([(e + d) x]) = exp([J_l(e) d x]) exp([e x])`` with ``J_l = I + O(|e|)``.
+    """
+    out = np.zeros((lin.H.shape[0], 2))
+    if lin.vel_v is None:
+        return out
+    cols = -skew(lin.vel_v)[:, 1:3]
+    if lin.name == "nhc":
+        out[:] = cols[1:3]
+    elif lin.name == "odo":
+        out[:] = cols[0:1]
+    return out
 
 
 def _vehicle_velocity(

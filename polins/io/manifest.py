@@ -28,6 +28,7 @@
     [vehicle]                # optional; the vehicle (docs/filter.md, "Ground-vehicle aiding")
     kind = "ground"          # "ground" | "static" | "free" (FuseConfig.vehicle)
     mount_rpy_deg = [0.5, -1.0, 2.0]  # roll, pitch, yaw of the IMU in the vehicle frame
+    mount_std_deg = 2.0               # optional: estimate the mounting's pitch and yaw errors
     lever_arm_b = [-0.6, 0.1, -0.3]   # IMU -> vehicle reference point, IMU axes [m]
     odometer = "odometer.csv"         # optional wheel-odometer stream: t [s], speed [m/s]
     odometer_std = 0.05               # its 1-sigma [m/s] (default 0.05)
@@ -150,6 +151,7 @@ _MANIFEST_SCHEMA: dict[str, dict[str, tuple[bool, Callable[[Any], Any]]]] = {
     "vehicle": {
         "kind": (False, _kind),
         "mount_rpy_deg": (False, _triple),
+        "mount_std_deg": (False, number_in(0.0, 90.0)),
         "lever_arm_b": (False, _triple),
         "odometer": (False, _str),
         "odometer_std": (False, _sigma),
@@ -252,13 +254,15 @@ def _filter_table(path: Path, table: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def vehicle_config(vehicle: Mapping[str, Any], base: FuseConfig) -> FuseConfig:
-    """``base`` with the options of a manifest's ``[vehicle]`` table (kind, mounting in
-    degrees, lever arm [m], the odometer's sigma)."""
+    """``base`` with the options of a manifest's ``[vehicle]`` table (kind, mounting and
+    its prior sigma in degrees, lever arm [m], the odometer's sigma)."""
     opts: dict[str, Any] = {}
     if "kind" in vehicle:
         opts["vehicle"] = vehicle["kind"]
     if "mount_rpy_deg" in vehicle:
         opts["mount_rpy"] = tuple(math.radians(v) for v in vehicle["mount_rpy_deg"])
+    if "mount_std_deg" in vehicle:
+        opts["mount_std"] = math.radians(vehicle["mount_std_deg"])
     if "lever_arm_b" in vehicle:
         opts["lever_arm_b"] = tuple(vehicle["lever_arm_b"])
     if "odometer" in vehicle:

@@ -41,6 +41,14 @@ _SOLUTION: dict[str, tuple[str, str]] = {
     **{f"sa{a}_std": ("-", f"1-sigma of sa{a}") for a in "xyz"},
     "so": ("-", "wheel-odometer scale-factor error (only with an odometer)"),
     "so_std": ("-", "1-sigma of so"),
+    "mount_pitch": (
+        _ANG,
+        "error of the configured mounting pitch: true mat_vb = exp([(0, mount_pitch, "
+        "mount_yaw) x]) configured mat_vb (only with mount_std)",
+    ),
+    "mount_yaw": (_ANG, "error of the configured mounting yaw (only with mount_std)"),
+    "mount_pitch_std": (_ANG, "1-sigma of mount_pitch"),
+    "mount_yaw_std": (_ANG, "1-sigma of mount_yaw"),
     **{
         f"site_rot_n{a}": (_ANG, f"ENU frame rotation of the site error, {a} (only with site_std)")
         for a in "xyz"

@@ -1,7 +1,8 @@
 """The error state built from named blocks: each declares its size, dynamics, noise, initial sigma and measurement columns.
 
 A :class:`Block` is one named part of the error state (``att``, ``vel``, ``pos``, ``bg``,
-``ba``, and with scale factors ``sg``, ``sa``). It declares
+``ba``, with scale factors ``sg``, ``sa``; the optional odometer scale ``so``, mounting
+errors ``mount_pitch``, ``mount_yaw`` and the sky's states). It declares
 
 * ``size``: its number of states;
 * ``columns(step)``: its columns of the continuous dynamics ``F``, as a mapping from the
@@ -43,8 +44,8 @@ from scipy.spatial.transform import Rotation
 
 from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.dynamics import StepNominal
-from polins.fusion.items import MeasurementItem, item_model
-from polins.fusion.measurement import BA, BG, Linearized, wrap_residual
+from polins.fusion.items import MOUNT_STATES, MeasurementItem, item_model
+from polins.fusion.measurement import BA, BG, Linearized, mount_jacobian, wrap_residual
 from polins.fusion.sky_states import (
     heading_bias_jacobian,
     site_rotation_std,
@@ -149,6 +150,12 @@ def _odometer_scale_jacobian(item: MeasurementItem, lin: Linearized) -> FloatArr
 # the wheel odometer's scale factor k (a constant), with odometer_std
 ODOMETER_SCALE = Block("so", 1, lambda step: {}, lambda m, c: c.odometer_scale_std,
                        jacobian=_odometer_scale_jacobian)  # fmt: skip
+# the mounting's pitch and yaw errors (random constants), with mount_std; the NHC and the
+# odometer use the mounting turned by their estimate (polins.fusion.items.item_model)
+MOUNT_PITCH = Block(MOUNT_STATES[0], 1, lambda step: {}, lambda m, c: c.mount_sigma or 0.0,
+                    jacobian=lambda item, lin: mount_jacobian(lin)[:, 0:1])  # fmt: skip
+MOUNT_YAW = Block(MOUNT_STATES[1], 1, lambda step: {}, lambda m, c: c.mount_sigma or 0.0,
+                  jacobian=lambda item, lin: mount_jacobian(lin)[:, 1:2])  # fmt: skip
 
 
 # Without a site the Earth rate (OMEGA_IE) is not mechanized: the gyro bias block covers
@@ -207,6 +214,8 @@ def error_blocks(config: FuseConfig) -> tuple[Block, ...]:
         blocks += (GYRO_SCALE, ACCEL_SCALE)
     if config.odometer_std is not None:
         blocks += (ODOMETER_SCALE,)
+    if config.mount_sigma is not None:
+        blocks += (MOUNT_PITCH, MOUNT_YAW)
     return blocks + sky_blocks(config)
 
 

@@ -193,7 +193,9 @@ class Problem:
         self.aux: list[list[gtsam.NonlinearFactor]] = [[] for _ in range(n_key)]
         for it in nhcs:
             k = self.key_of(it.t)
-            if k is not None:
+            if k is not None and self.states.sees(it):  # the mounting variable
+                self.aux[k].append(self.states.factor(it, k, X(k), V(k), False))
+            elif k is not None:
                 self.aux[k].append(
                     non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b)
                 )
