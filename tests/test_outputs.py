@@ -19,6 +19,7 @@ import pytest
 
 import polins.loop
 from polins.cli import main
+from polins.compass.measure import NoiseModelWarning
 from polins.io import read_log
 from polins.io.checks import run_verdict, time_base_hint
 from polins.io.outputs import clean_stale, output_set, read_stamp
@@ -368,8 +369,9 @@ def test_12_bit_image_stored_shifted_is_named(log_dir, tmp_path, capsys):
 
     raw = load_raw(log_dir / "images" / "000010.png")
     write_image(tmp_path / "shifted.png", (raw.astype(np.uint16) << 4).astype(np.uint16))
-    main(["heading", str(tmp_path / "shifted.png"), "--camera", str(log_dir / "camera.toml"),
-          *HEADING_SITE])  # fmt: skip
+    with pytest.warns(NoiseModelWarning, match="measured noise is 1[5-9]"):  # 16x in DN
+        main(["heading", str(tmp_path / "shifted.png"), "--camera",
+              str(log_dir / "camera.toml"), *HEADING_SITE])  # fmt: skip
     err = capsys.readouterr().err
     assert "exceed the camera's 12-bit range" in err and "shifted left by 4 bits (x16)" in err
 
