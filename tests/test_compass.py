@@ -67,6 +67,23 @@ def test_noise_free_heading_is_exact_for_any_attitude(model):
         assert abs(_err_deg(m, rot)) < 1e-9 and m.epsilon == 0.0
 
 
+def test_rayleigh_sky_skips_the_berry_solve():
+    # On the estimator's Rayleigh sky the score test at zero neutral-point separation finds
+    # nothing to fit: the default (Berry sky, separation fitted) is the Rayleigh solution, to
+    # the last bit, with and without the sun (docs/measurement.md §5).
+    rng = np.random.default_rng(12)
+    for _ in range(2):
+        sun_n = polins.sun_vector_n(rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(30, 70)))
+        rot = random_attitude(rng, 5.0)
+        raw = render(CAM4, sun_n, rot, epsilon=0.01, noise_std=1.5, rng=rng, dtype=np.uint16)
+        for sun in (sun_n, None):
+            m = measure(raw, CAM4, sun_n=sun, rot_nb_prior=rot)
+            r = measure(raw, CAM4, sun_n=sun, rot_nb_prior=rot, sky_model="rayleigh")
+            assert m.ok and m.method == "compensated", m.reason
+            assert m.sun_azimuth_b == r.sun_azimuth_b and m.epsilon == r.epsilon
+            assert m.sun_azimuth_b_std == r.sun_azimuth_b_std
+
+
 def test_integer_mosaic_runs_in_float32_without_bias():
     # uint16 input is processed in float32; at a high radiance the quantisation is small.
     rot = random_attitude(np.random.default_rng(11), 10.0)

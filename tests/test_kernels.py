@@ -1,10 +1,13 @@
 """The compiled passes of the per-image chain give the numbers of the numpy expressions they
 replace: bit for bit where they decide the pixel selection, to float64 rounding for the
-float64 sums (docs/measurement.md §10); the Stokes pass is tested in
-tests/test_polarimetry.py."""
+float64 sums, to float32 rounding for the joint ML's normal equations (docs/measurement.md
+§5, §10); the Stokes pass is tested in tests/test_polarimetry.py."""
+
+import dataclasses
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from polins.compass.kernels import compiled, dot_rows, moment
 from polins.compass.prediction import doubled_prediction, image_plane_evector, pixel_data
@@ -75,3 +78,78 @@ def test_compiled_float64_sums_match_numpy():
     compiled("eigen_run_sums")(e, wr, omega, starts, got)
     rows = np.vstack([e * wr, omega])
     np.testing.assert_allclose(got.T, np.add.reduceat(rows, starts, axis=1), rtol=1e-9, atol=1e-9)
+
+
+def _sky_pixels(rng, n, dtype, weighted):
+    """Pixel data of a tilted hemisphere of rays (projection lens model) with random
+    polarization, and the rays."""
+    rays = rng.normal(size=(3, n))
+    rays[2] = np.abs(rays[2]) + 0.3
+    rays = (rays / np.linalg.norm(rays, axis=0)).astype(dtype)
+    s0 = rng.uniform(50.0, 500.0, n)
+    dop, aop = rng.uniform(0.0, 0.4, n), rng.uniform(0.0, np.pi, n)
+    s1, s2 = (s0 * dop * np.cos(2 * aop)).astype(dtype), (s0 * dop * np.sin(2 * aop)).astype(dtype)
+    inv_sigma = rng.uniform(0.5, 2.0, n).astype(dtype) if weighted else 1.0
+    return pixel_data(s0.astype(dtype), s1, s2, None, inv_sigma, rays=rays), rays
+
+
+@pytest.mark.parametrize(
+    ("zenith", "sky", "weighted", "p_min"),
+    [
+        (0.7, None, False, "per pixel"),  # the full-set step of the default chain
+        (None, None, True, "common"),  # zenith free, per-pixel sigma
+        (0.7, "berry", True, "none"),  # E-vector rows from the Berry pass, separation fitted
+        (None, "berry", False, "mask"),  # four parameters, the mask given
+    ],
+)
+def test_compiled_normal_equations_match_numpy(zenith, sky, weighted, p_min):
+    # The one-pass residual, Jacobian and per-run sums (polins.compass.kernels.ml_pass) give
+    # the normal equations of ml_evaluate's rows (float32 rows, float64 sums: to float32
+    # rounding) and the same pixel selection, bit for bit.
+    from polins.compass.jointml import ml_evaluate, ml_pass_sums
+    from polins.compass.normal import (
+        normal_equations,
+        sector_normal_equations,
+        sums_normal_equations,
+        sums_sector_normal_equations,
+    )
+    from polins.compass.sectors import SectorRuns
+    from polins.compass.skymodel import sky_model
+
+    rng = np.random.default_rng(7)
+    n = 30_000
+    data, rays = _sky_pixels(rng, n, np.float32, weighted)
+    mat_cl = Rotation.from_euler("XYZ", [0.05, -0.03, 1.2]).as_matrix()
+    model = None if sky is None else sky_model(rays, True, 0.5, True, False)
+    theta = np.array([0.4, *([] if zenith is not None else [0.8])]
+                     + ([0.3] if model is not None else []) + [0.012])  # fmt: skip
+    threshold = {"per pixel": rng.uniform(0.0, 20.0, n).astype(np.float32), "common": 7.5}
+    select = Selection(rng.random(n) < 0.95, rays, float(np.cos(np.radians(10.0))), 0.03,
+                       threshold.get(p_min, 0.0))  # fmt: skip
+    if p_min == "mask":
+        data, select = dataclasses.replace(data, mask=rng.random(n) < 0.8), None
+    starts = np.r_[0, np.cumsum(rng.integers(1, 120, 800))]
+    starts = starts[starts < n]
+    runs = SectorRuns(starts, rng.integers(0, 64, starts.size), 64,
+                      np.linspace(-np.pi, np.pi, 64, endpoint=False) + np.pi / 64,
+                      np.arange(64) // 32)  # fmt: skip
+    r, jac, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, model)
+    run_sums, mask_pass = ml_pass_sums(data, theta, zenith, mat_cl, select, model, starts)
+    np.testing.assert_array_equal(mask_pass, mask)
+    assert 0.3 < mask.mean() < 0.95
+    k = theta.size
+    want, got = normal_equations(r, jac, None), sums_normal_equations(run_sums, k)
+    scale = np.sqrt(np.diag(want[0]))
+    np.testing.assert_allclose(got[0] / np.outer(scale, scale), want[0] / np.outer(scale, scale),
+                               rtol=0, atol=2e-6)  # fmt: skip
+    np.testing.assert_allclose(
+        got[1] / scale, want[1] / scale, rtol=0, atol=2e-6 * np.sqrt(want[2])
+    )
+    assert got[2] == pytest.approx(want[2], rel=2e-6)
+    sun_c = mat_cl @ np.array([np.sin(0.8) * np.cos(0.4), np.sin(0.8) * np.sin(0.4), np.cos(0.8)])
+    h_want, b_want = sector_normal_equations(r, jac, None, runs, sun_c, None)
+    h_got, b_got = sums_sector_normal_equations(run_sums, k, runs, sun_c, None)
+    np.testing.assert_allclose(h_got, h_want, rtol=1e-4, atol=1e-5 * np.max(want[0]))
+    np.testing.assert_allclose(b_got, b_want, rtol=1e-4, atol=1e-5 * np.max(np.abs(want[1])))
+    _, b_only = sums_sector_normal_equations(run_sums, k, runs, sun_c, h_want)
+    np.testing.assert_array_equal(b_only, b_got)

@@ -28,13 +28,21 @@ from polins.compass.losses import (
     loss_weights,
     robust_variance_factor,
 )
+from polins.compass.normal import (
+    normal_equations,
+    pass_ready,
+    pass_sums,
+    sector_normal_equations,
+    sums_normal_equations,
+    sums_sector_normal_equations,
+)
 from polins.compass.prediction import (
     PixelData,
     doubled_prediction,
     image_plane_evector,
     pixel_data,
 )
-from polins.compass.sectors import SectorRuns, ml_jackknife, sector_sums
+from polins.compass.sectors import SectorRuns, ml_jackknife
 from polins.compass.selection import Selection, select_pixels
 from polins.compass.skymodel import SkyModel, sky_evector
 from polins.compass.sunlight import sunlight_direction, sunlight_unpolarized
@@ -48,6 +56,7 @@ __all__ = [
     "epsilon_correlation",
     "gauss_newton",
     "ml_evaluate",
+    "ml_pass_sums",
     "ml_residuals",
     "sun_covariance",
     "sun_joint_ml",
@@ -101,15 +110,10 @@ def ml_evaluate(
     n = data.s0.size
     dt = data.s0.dtype
     eps = float(theta[-1])
-    sun_l, dsun_l = _sun_derivatives(theta, zenith)
-    cols = mat_cl @ np.column_stack([sun_l, *dsun_l])  # camera frame, (3, 1 + k_sun)
+    cols, xy, delta = _predicted(data, theta, zenith, mat_cl, jacobian, sky)
+    assert xy is not None
     sun_c = cols[:, 0]
     w = sunlight_direction(sun_c)
-    delta = 0.0
-    if sky is None:
-        xy = image_plane_evector(data, cols if jacobian else cols[:, :1])
-    else:  # the Berry sky and/or the camera-fixed polarization (polins.compass.skymodel)
-        cols, xy, delta = sky_evector(data, sky, theta, zenith, mat_cl, jacobian)
     x, y = xy[0, :n], xy[0, n:]
     n1, n2, e2 = doubled_prediction(x, y)
     mask = data.mask
@@ -177,20 +181,48 @@ def ml_evaluate(
     return r, jac, u, mask
 
 
-def _normal_equations(
-    r: NDArray, jac: NDArray, weights: NDArray | None
-) -> tuple[FloatArray, FloatArray, float]:
-    """``J^T W J``, ``J^T W r`` and ``r^T W r`` in float64 (row dot products: BLAS gemm is
-    slow for these thin shapes)."""
-    k = jac.shape[0]
-    jw = jac if weights is None else jac * weights
-    jtj = np.empty((k, k))
-    for a in range(k):
-        for b in range(a, k):
-            jtj[a, b] = jtj[b, a] = dot(jw[a], jac[b])
-    jtr = np.array([dot(jw[a], r) for a in range(k)])
-    rss = dot(r, r) if weights is None else dot(r * weights, r)
-    return jtj, jtr, rss
+def _predicted(
+    data: PixelData,
+    theta: NDArray,
+    zenith: float | None,
+    mat_cl: NDArray,
+    jacobian: bool,
+    sky: SkyModel | None,
+    rows: bool = True,
+) -> tuple[NDArray, NDArray | None, float]:
+    """Camera-frame columns ``(3, 1 + k)`` (the sun, its derivatives by the sun and sky
+    parameters), their image-plane E-vector rows (None without ``rows`` for the Rayleigh
+    sky: the compiled pass makes them from the rays) and ``delta_perp``, at ``theta``."""
+    if sky is not None:  # the Berry sky and/or the camera-fixed polarization
+        return sky_evector(data, sky, theta, zenith, mat_cl, jacobian)
+    sun_l, dsun_l = _sun_derivatives(theta, zenith)
+    cols = mat_cl @ np.column_stack([sun_l, *dsun_l])  # camera frame, (3, 1 + k_sun)
+    if not rows:
+        return cols, None, 0.0
+    return cols, image_plane_evector(data, cols if jacobian else cols[:, :1]), 0.0
+
+
+def ml_pass_sums(
+    data: PixelData,
+    theta: NDArray,
+    zenith: float | None,
+    mat_cl: NDArray,
+    select: Selection | None,
+    sky: SkyModel | None,
+    starts: NDArray,
+) -> tuple[FloatArray, NDArray]:
+    """:func:`ml_evaluate` with the linear loss as per-run sums ``(m, ML_SUMS)`` of the
+    normal equations over the runs beginning at ``starts (m,)``, and the mask in force
+    (:func:`polins.compass.normal.pass_sums`; their ``J^T J``, ``J^T r``, ``r^T r``:
+    :func:`polins.compass.normal.sums_normal_equations`)."""
+    cols, xy, _ = _predicted(data, theta, zenith, mat_cl, True, sky, rows=data.rays is None)
+    sun_c = cols[:, 0]
+    rho2 = sun_c[0] ** 2 + sun_c[1] ** 2
+    alphas = [
+        (sun_c[0] * cols[1, j] - sun_c[1] * cols[0, j]) / rho2 for j in range(1, cols.shape[1])
+    ]
+    return pass_sums(data, cols, xy, float(theta[-1]), sunlight_direction(sun_c), alphas,
+                     select, starts)  # fmt: skip
 
 
 def _bounded_step(step: NDArray, k_sun: int) -> NDArray:
@@ -313,39 +345,54 @@ def gauss_newton(
         post_scale = 1.0
     mask = data.mask
     theta_prev, step, loss_prev, halvings = theta, np.zeros_like(theta), np.inf, 0
-    accepted: tuple[NDArray, NDArray, NDArray | None, NDArray] | None = None
+    # The linear loss in one compiled pass (per-run sums; no residual rows are stored).
+    fused = loss == "linear" and not (sky is not None and sky.fit_delta)
+    fused = fused and pass_ready(data, select, theta.size)
+    starts = sectors.starts if sectors is not None else np.zeros(1, dtype=np.intp)
+    accepted: tuple[NDArray, NDArray | None, NDArray | None, NDArray] | None = None
     for it in range(1, max_iterations + 1):  # noqa: B007
-        r, jac, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, sky)
+        if fused:
+            run_sums, mask = ml_pass_sums(data, theta, zenith, mat_cl, select, sky, starts)
+            jtj, jtr, rss = sums_normal_equations(run_sums, theta.size)
+            objective = rss
+        else:
+            r, jac_opt, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, sky)
+            assert jac_opt is not None
+            jac = jac_opt
+            if r_scale != 1.0:
+                r = r * r.dtype.type(r_scale)  # a common 1/sigma_L, for the robust weights
+                jac = jac * jac.dtype.type(r_scale)
+            objective = loss_objective(r, loss, scale) if np.isfinite(loss_prev) else np.inf
         if select is not None:
             data = dataclasses.replace(data, mask=mask)
             select = None
             n = data.n
-        assert jac is not None
-        if r_scale != 1.0:
-            r = r * r.dtype.type(r_scale)  # a common 1/sigma_L, for the robust weights
-            jac = jac * jac.dtype.type(r_scale)
         if (
             np.isfinite(loss_prev)
             and halvings < _HALVINGS_MAX
-            and loss_objective(r, loss, scale) * post_scale**2 > loss_prev * (1.0 + 1e-6)
+            and objective * post_scale**2 > loss_prev * (1.0 + 1e-6)
         ):
             step *= 0.5  # line search: back towards the previous point
             theta = theta_prev + step
             theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
             halvings += 1
             continue
-        weights, scale = loss_weights(r, loss, n)
-        jtj, jtr, rss = _normal_equations(r, jac, weights)
+        if fused:
+            accepted = (run_sums, None, None, theta)  # the linearization of jtj, jtr
+            loss_prev = rss * post_scale**2
+        else:
+            weights, scale = loss_weights(r, loss, n)
+            jtj, jtr, rss = normal_equations(r, jac, weights)
+            accepted = (r, jac, weights, theta)
+            loss_prev = loss_objective(r, loss, scale) * post_scale**2
         jtj *= post_scale**2
         jtr *= post_scale**2
         rss *= post_scale**2
-        accepted = (r, jac, weights, theta)  # the linearization of jtj, jtr
         try:
             step = _bounded_step(-np.linalg.solve(jtj, jtr), k_sun)
             jtj_inv = np.linalg.inv(jtj)
         except np.linalg.LinAlgError:
             break
-        loss_prev = loss_objective(r, loss, scale) * post_scale**2
         theta_prev, halvings = theta, 0
         theta = theta + step
         if not -epsilon_bound <= theta[-1] <= epsilon_bound:
@@ -380,9 +427,12 @@ def gauss_newton(
     jackknife = share = None
     sector_parts = None
     if sectors is not None and accepted is not None:
-        r_a, jac_a, weights_a, theta_a = accepted
+        r_a, jac_a, weights_a, theta_a = accepted  # r_a: the pass's run sums when fused
         sun_c = mat_cl @ _sun_derivatives(theta_a, zenith)[0]
-        sector_parts = _sector_normal_equations(r_a, jac_a, weights_a, sectors, sun_c, sector_h)
+        if jac_a is None:
+            sector_parts = sums_sector_normal_equations(r_a, dof, sectors, sun_c, sector_h)
+        else:
+            sector_parts = sector_normal_equations(r_a, jac_a, weights_a, sectors, sun_c, sector_h)
     if sector_parts is not None:
         group_h, sector_b = sector_parts
         share = group_h[:, 0, 0] / max(float(np.sum(group_h[:, 0, 0])), 1e-300)
@@ -408,33 +458,6 @@ def gauss_newton(
         k_sun,
     )
     return solution, mask
-
-
-def _sector_normal_equations(
-    r: NDArray,
-    jac: NDArray,
-    weights: NDArray | None,
-    sectors: SectorRuns,
-    sun_c: NDArray,
-    sector_h: FloatArray | None,
-) -> tuple[FloatArray, FloatArray]:
-    """Per-group ``H_g (G, k, k)`` (``sector_h`` when given) and ``b_g (G, k)`` (masked
-    pixels have a zero Jacobian)."""
-    k = jac.shape[0]
-    jw = jac if weights is None else jac * weights
-    pairs = [] if sector_h is not None else [(a, b) for a in range(k) for b in range(a, k)]
-    rows = np.empty((len(pairs) + k, r.size), dtype=r.dtype)
-    for j, (a, b) in enumerate(pairs):
-        np.multiply(jw[a], jac[b], out=rows[j])
-    for a in range(k):
-        np.multiply(jw[a], r, out=rows[len(pairs) + a])
-    sums = sector_sums(rows, sectors, sun_c)
-    if sector_h is not None:
-        return sector_h, sums
-    h = np.empty((sums.shape[0], k, k))
-    for j, (a, b) in enumerate(pairs):
-        h[:, a, b] = h[:, b, a] = sums[:, j]
-    return h, sums[:, len(pairs) :]
 
 
 def sun_covariance(solution: MLSolution) -> FloatArray:

@@ -12,8 +12,9 @@ fused into single loops compiled with numba (:func:`compiled`, machine code cach
 next to this module). The passes that make Stokes rows and pixel masks repeat the numpy
 expressions they replace operation for operation, in the same dtype and order, so that
 their results are bit-identical to them; the float64 sums (:func:`moment_pass`,
-:func:`eigen_run_sums`) add in another order, to float64 rounding (tests/test_polarimetry.py,
-tests/test_kernels.py).
+:func:`eigen_run_sums`) add in another order, to float64 rounding, and the joint ML's
+normal equations (:func:`ml_pass`) sum float32 terms reassociated, to float32 rounding
+(tests/test_polarimetry.py, tests/test_kernels.py).
 """
 
 from __future__ import annotations
@@ -164,6 +165,24 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
             ok_run[q] &= gx * gx + gy * gy < g2 * (s[q] * s[q])
 
 
+def kept(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    n1, n2, e2, s0, s1, s2, p, use_p, valid, px, py, pz, sx, sy, sz, dop_min, cos_exclusion
+):
+    """The selection rule of one pixel (the tail shared by the selection passes): its
+    polarized intensity along the predicted direction ``along = n1 S1 + n2 S2`` clears
+    ``dop_min E^2 S0`` and (with ``use_p``) ``E^2 p``, it is valid, and its ray ``p`` is
+    outside the sun circle of the camera-frame sun ``s``; in the rows' dtype, in numpy's
+    order (compiled without fast-math, also inside the fast-math :func:`ml_pass`)."""
+    zero = sx - sx
+    along = n1 * s1
+    along += n2 * s2
+    ok = along >= (dop_min * e2) * s0
+    if use_p:
+        ok &= along >= e2 * p
+    cos_sun = ((zero + sx * px) + sy * py) + sz * pz  # einsum's order
+    return ok & valid & (cos_sun <= cos_exclusion)
+
+
 def select_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
     s0: NDArray,
     s1: NDArray,
@@ -179,26 +198,19 @@ def select_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
     mask: NDArray,
 ) -> None:
     """The pixel selection of :func:`polins.compass.selection.select_pixels` in one pass:
-    ``mask`` (n,) of the pixels whose polarized intensity along the predicted direction
-    ``along = n1 S1 + n2 S2`` clears ``dop_min E^2 S0`` and ``E^2 p_min`` (``p_min`` (n,),
-    or (1,) for one value, or (0,) for none), that are valid and outside the sun circle;
-    ``limits`` = (dop_min, cos_exclusion), ``sun_c`` (3,) in the rows' dtype."""
+    ``mask`` (n,) of the pixels :func:`kept`, with ``p_min`` (n,), or (1,) for one value,
+    or (0,) for none; ``limits`` = (dop_min, cos_exclusion), ``sun_c`` (3,) in the rows'
+    dtype."""
     dop_min, cos_exclusion = limits[0], limits[1]
     sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
-    zero = sx - sx
     px, py, pz = rays[0], rays[1], rays[2]
-    per_pixel, common = p_min.size > 1, p_min.size == 1
-    p_common = p_min[0] if common else zero
+    per_pixel, use_p = p_min.size > 1, p_min.size > 0
+    p = p_min[0] if use_p else sx - sx
     for i in range(s0.size):
-        along = n1[i] * s1[i]
-        along += n2[i] * s2[i]
-        ok = along >= (dop_min * e2[i]) * s0[i]
         if per_pixel:
-            ok &= along >= e2[i] * p_min[i]
-        elif common:
-            ok &= along >= e2[i] * p_common
-        cos_sun = ((zero + sx * px[i]) + sy * py[i]) + sz * pz[i]  # einsum's order
-        mask[i] = ok & valid[i] & (cos_sun <= cos_exclusion)
+            p = p_min[i]
+        mask[i] = kept(n1[i], n2[i], e2[i], s0[i], s1[i], s2[i], p, use_p, valid[i],
+                       px[i], py[i], pz[i], sx, sy, sz, dop_min, cos_exclusion)  # fmt: skip
 
 
 def predicted_select_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
@@ -222,25 +234,162 @@ def predicted_select_pass(  # pragma: no cover - compiled by numba, which covera
     cos_exclusion, 1e-30)."""
     dop_min, cos_exclusion, tiny = limits[0], limits[1], limits[2]
     sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
-    zero = sx - sx
     px, py, pz = rays[0], rays[1], rays[2]
     qx, qy, qz = lens_rays[0], lens_rays[1], lens_rays[2]
-    per_pixel, common = p_min.size > 1, p_min.size == 1
-    p_common = p_min[0] if common else zero
+    per_pixel, use_p = p_min.size > 1, p_min.size > 0
+    p = p_min[0] if use_p else sx - sx
     for i in range(s0.size):
         x = qz[i] * sy - sz * qy[i]
         y = qx[i] * sz - sx * qz[i]
         xx, yy, xy = x * x, y * y, x * y
-        e2 = (xx + yy) + tiny
-        along = (xx - yy) * s1[i]
-        along += (xy + xy) * s2[i]
-        ok = along >= (dop_min * e2) * s0[i]
         if per_pixel:
-            ok &= along >= e2 * p_min[i]
-        elif common:
-            ok &= along >= e2 * p_common
-        cos_sun = ((zero + sx * px[i]) + sy * py[i]) + sz * pz[i]  # einsum's order
-        mask[i] = ok & valid[i] & (cos_sun <= cos_exclusion)
+            p = p_min[i]
+        mask[i] = kept(xx - yy, xy + xy, (xx + yy) + tiny, s0[i], s1[i], s2[i], p, use_p,
+                       valid[i], px[i], py[i], pz[i], sx, sy, sz, dop_min,
+                       cos_exclusion)  # fmt: skip
+
+
+ML_SUMS = 15
+"""Sums per run of :func:`ml_pass`: ``J^T J`` (10, upper triangle row by row), ``J^T r``
+(4) and ``r^T r`` of the four columns (three sun/sky parameters, epsilon)."""
+
+
+def ml_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    s0: NDArray,
+    s1: NDArray,
+    s2: NDArray,
+    c: NDArray,
+    weight: NDArray,
+    xy: NDArray,
+    lens_rays: NDArray,
+    cols: NDArray,
+    valid: NDArray,
+    rays: NDArray,
+    sun_c: NDArray,
+    p_min: NDArray,
+    limits: NDArray,
+    starts: NDArray,
+    mask: NDArray,
+    sums: NDArray,
+) -> None:
+    """The joint ML's residual, Jacobian and normal-equation sums in one pass
+    (:func:`polins.compass.jointml.ml_evaluate` with the linear loss, then ``J^T J``,
+    ``J^T r``, ``r^T r`` per run of pixels, docs/measurement.md §3).
+
+    Per-pixel arithmetic in the rows' dtype, sums in float64 (compiled with reassociation:
+    summed in vector lanes). The variants are told by the arrays' dimensions (numba
+    compiles one loop per variant: a test of a flag inside the loop would keep it out of
+    vector lanes). ``xy (k, 2n)`` are the image-plane E-vector rows of the sun and its
+    derivative columns, or ``(0,)`` with ``lens_rays (3, n)`` (projection lens model,
+    Rayleigh sky): they are then ``lens_rays x cols``, ``cols (3, 4)`` the camera-frame
+    sun and up to three derivative columns, zero-padded. ``weight (n,)``: per-pixel
+    ``1/sigma_L``, or ``(0, 0)`` for none. ``valid (n,)``: the selection of :func:`kept`
+    is made here (``rays``, ``sun_c`` as in :func:`select_pass`, ``p_min (n,)`` or one
+    value ``(1, 1)``, -inf for none) and written to ``mask``; ``(0, 0)``: ``mask`` says
+    which pixels count. ``limits`` = (dop_min, cos_exclusion, 1e-30,
+    eps, w_0, w_1, 1, 2 alpha'_1, 2 alpha'_2, 2 alpha'_3) (``alpha'_j`` the derivative of
+    the sun's image-plane azimuth, zero for absent columns). ``sums (m, ML_SUMS)``: per
+    run beginning at ``starts (m,)`` (the last run ends at ``n``).
+    """
+    n, m = s0.size, starts.size
+    dop_min, cos_exclusion, tiny = limits[0], limits[1], limits[2]
+    eps, w0, w1, one = limits[3], limits[4], limits[5], limits[6]
+    a1, a2, a3 = limits[7], limits[8], limits[9]
+    k_cols = cols.shape[1] if xy.ndim == 1 else xy.shape[0]
+    # E-vector rows of the derivative columns (a missing one reads row 0, times 0)
+    r1, r2, r3 = min(1, k_cols - 1), min(2, k_cols - 1), min(3, k_cols - 1)
+    f1, f2, f3 = one * (k_cols > 1), one * (k_cols > 2), one * (k_cols > 3)
+    sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
+    b_eps, d_eps = one - eps, one - (eps + eps)
+    # 1-D rows (indexed by an unsigned pixel number: the loops then run in vector lanes)
+    s0_, s1_, s2_, c_, mask_ = s0, s1, s2, c, mask
+    if xy.ndim == 1:
+        px, py, pz = lens_rays[0], lens_rays[1], lens_rays[2]
+    else:
+        x0_, y0_ = xy[0, :n], xy[0, n:]
+        x1_, y1_ = xy[r1, :n], xy[r1, n:]
+        x2_, y2_ = xy[r2, :n], xy[r2, n:]
+        x3_, y3_ = xy[r3, :n], xy[r3, n:]
+    if valid.ndim == 1:
+        valid_, rx, ry, rz = valid, rays[0], rays[1], rays[2]
+    if p_min.ndim == 1:
+        p_ = p_min
+    else:
+        p = p_min[0, 0]
+    if weight.ndim == 1:
+        weight_ = weight
+    for run in range(m):
+        lo = np.uintp(starts[run])
+        hi = np.uintp(starts[run + 1] if run + 1 < m else n)
+        h00 = h01 = h02 = h03 = h11 = h12 = h13 = h22 = h23 = h33 = 0.0
+        g0 = g1 = g2 = g3 = rss = 0.0
+        for i in range(lo, hi):
+            if xy.ndim == 1:
+                qx, qy, qz = px[i], py[i], pz[i]
+                x = qz * cols[1, 0] - cols[2, 0] * qy
+                y = qx * cols[2, 0] - cols[0, 0] * qz
+            else:
+                x, y = x0_[i], y0_[i]
+            xx, yy, xy0 = x * x, y * y, x * y
+            e2 = (xx + yy) + tiny
+            n1, n2 = xx - yy, xy0 + xy0
+            si0, si1, si2 = s0_[i], s1_[i], s2_[i]
+            if valid.ndim == 2:
+                ok = mask_[i]
+            else:
+                if p_min.ndim == 1:
+                    p = p_[i]
+                ok = kept(n1, n2, e2, si0, si1, si2, p, True, valid_[i], rx[i], ry[i], rz[i],
+                          sx, sy, sz, dop_min, cos_exclusion)  # fmt: skip
+                mask_[i] = ok
+            inv_e = (one / e2) * ok  # zeroes r and the Jacobian of the pixels not used
+            # u: the exact unpolarized intensity (polins.compass.sunlight.sunlight_unpolarized)
+            b = si0 * b_eps - eps * (si1 * w0 + si2 * w1)
+            u = c_[i] / (np.sqrt(abs(b * b - d_eps * c_[i])) + b)
+            c2, sn = n1 * inv_e, n2 * inv_e
+            u_nw = u * (c2 * w1 - sn * w0)
+            r = (c2 * si2 - sn * si1) - eps * u_nw
+            t_w = (c2 * w0 + sn * w1) * u * eps
+            proj = (c2 * si1 + sn * si2 - t_w) * inv_e * -(one + one)
+            if xy.ndim == 1:
+                x1 = qz * cols[1, 1] - cols[2, 1] * qy
+                y1 = qx * cols[2, 1] - cols[0, 1] * qz
+                x2 = qz * cols[1, 2] - cols[2, 2] * qy
+                y2 = qx * cols[2, 2] - cols[0, 2] * qz
+                x3 = qz * cols[1, 3] - cols[2, 3] * qy
+                y3 = qx * cols[2, 3] - cols[0, 3] * qz
+            else:
+                x1, y1 = x1_[i] * f1, y1_[i] * f1
+                x2, y2 = x2_[i] * f2, y2_[i] * f2
+                x3, y3 = x3_[i] * f3, y3_[i] * f3
+            j1 = (x * y1 - y * x1) * proj - a1 * t_w
+            j2 = (x * y2 - y * x2) * proj - a2 * t_w
+            j3 = (x * y3 - y * x3) * proj - a3 * t_w
+            je = -u_nw
+            if weight.ndim == 1:
+                wt = weight_[i]
+                r, j1, j2, j3, je = r * wt, j1 * wt, j2 * wt, j3 * wt, je * wt
+            d0, d1, d2, d3 = np.float64(j1), np.float64(j2), np.float64(j3), np.float64(je)
+            dr = np.float64(r)
+            h00 += d0 * d0
+            h01 += d0 * d1
+            h02 += d0 * d2
+            h03 += d0 * d3
+            h11 += d1 * d1
+            h12 += d1 * d2
+            h13 += d1 * d3
+            h22 += d2 * d2
+            h23 += d2 * d3
+            h33 += d3 * d3
+            g0 += d0 * dr
+            g1 += d1 * dr
+            g2 += d2 * dr
+            g3 += d3 * dr
+            rss += dr * dr
+        out = sums[run]
+        out[0], out[1], out[2], out[3], out[4] = h00, h01, h02, h03, h11
+        out[5], out[6], out[7], out[8], out[9] = h12, h13, h22, h23, h33
+        out[10], out[11], out[12], out[13], out[14] = g0, g1, g2, g3, rss
 
 
 def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> None:  # pragma: no cover
@@ -284,10 +433,15 @@ def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cann
         out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
 
 
-_REDUCTIONS = ("moment_pass",)
-"""Kernels that only sum in float64 over long loops: compiled with reassociation (vector
-lanes), which moves their results by float64 rounding only; the others keep numpy's order
-exactly."""
+_REDUCTIONS = ("moment_pass", "ml_pass")
+"""Kernels that sum in float64 over long loops: compiled with reassociation (vector
+lanes), which moves their results by float64 rounding only (:func:`ml_pass`: its per-pixel
+terms by the rows' rounding), and with numpy's error model (no checks of the divisions,
+which keep them out of vector lanes); the others keep numpy's order exactly."""
+
+_HELPERS = ("kept",)
+"""Functions the kernels call: compiled first, without fast-math, in place of the Python
+function."""
 
 
 @functools.cache
@@ -296,5 +450,17 @@ def compiled(name: str) -> Any:
     not with polins; the machine code is cached on disk next to this module)."""
     import numba
 
-    fastmath = {"reassoc"} if name in _REDUCTIONS else False
-    return numba.njit(cache=True, nogil=True, fastmath=fastmath)(globals()[name])
+    _compiled_helpers()
+    if name in _REDUCTIONS:
+        return numba.njit(cache=True, nogil=True, fastmath={"reassoc"}, error_model="numpy")(
+            globals()[name]
+        )
+    return numba.njit(cache=True, nogil=True)(globals()[name])
+
+
+@functools.cache
+def _compiled_helpers() -> None:
+    import numba
+
+    for name in _HELPERS:
+        globals()[name] = numba.njit(cache=True, nogil=True)(globals()[name])

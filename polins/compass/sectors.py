@@ -121,9 +121,11 @@ def group_sums(run_sums: NDArray, runs: SectorRuns, sun_c: NDArray) -> FloatArra
     :meth:`SectorRuns.mirror_groups` for the camera-frame sun ``sun_c``)."""
     group_of_run = runs.mirror_groups(sun_c)[runs.labels]
     n_groups = SECTOR_AZIMUTHS * SECTOR_RINGS
-    return np.stack(
-        [np.bincount(group_of_run, weights=row, minlength=n_groups) for row in run_sums], -1
-    )
+    m = run_sums.shape[0]
+    # one bincount over (row, group) bins: each bin sums its runs in order, as per row
+    bins = group_of_run + n_groups * np.arange(m)[:, None]
+    sums = np.bincount(bins.ravel(), weights=np.ravel(run_sums), minlength=m * n_groups)
+    return np.asarray(sums.reshape(m, n_groups).T, dtype=np.float64)
 
 
 def jackknife_variance(deltas: NDArray, share: NDArray, min_share: float = 1e-3) -> float:

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from polins.compass.kernels import compiled, dot_rows
 from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
 
-__all__ = ["Selection", "select_pixels", "selection_mask"]
+__all__ = ["Selection", "compiled_arguments", "select_pixels", "selection_mask"]
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ def select_pixels(
 ) -> NDArray:
     """Mask ``(n,)`` of the selected pixels for the camera-frame sun ``sun_c`` whose
     :func:`polins.compass.prediction.doubled_prediction` is ``(n1, n2, e2)``."""
-    compiled_args = _compiled_arguments(data, select, sun_c, (n1, n2, e2))
+    compiled_args = compiled_arguments(data, select, sun_c, (n1, n2, e2))
     if compiled_args is not None:
         # One compiled pass, the same numbers as the numpy expressions below.
         mask = np.empty(data.s0.shape, dtype=bool)
@@ -69,7 +69,7 @@ def select_pixels(
     return mask
 
 
-def _compiled_arguments(
+def compiled_arguments(
     data: PixelData, select: Selection, sun_c: NDArray, more: tuple[NDArray, ...]
 ) -> tuple[NDArray, ...] | None:
     """``(valid, rays, sun_c, p_min, limits)`` for the compiled passes, in the rows' dtype,
@@ -88,7 +88,7 @@ def selection_mask(data: PixelData, select: Selection, sun_c: NDArray) -> NDArra
     """:func:`select_pixels` for a given camera-frame sun ``(3,)`` (no residuals)."""
     n = data.s0.size
     if data.rays is not None:  # the projection lens model: one compiled pass
-        compiled_args = _compiled_arguments(data, select, sun_c, (data.rays,))
+        compiled_args = compiled_arguments(data, select, sun_c, (data.rays,))
         if compiled_args is not None:
             mask = np.empty(n, dtype=bool)
             compiled("predicted_select_pass")(data.s0, data.s1, data.s2, data.rays,

@@ -128,20 +128,28 @@ def berry_evector(
     n = data.s0.size
     points = np.stack([sun_cols, babinet_cols, brewster_cols]).astype(dt)
     out = np.empty((sun_cols.shape[1], 2 * n), dtype=dt)
-    projection = data.rays is not None
-    forward = data.forward if data.forward is not None else np.empty((3, 2 * n), dtype=dt)
-    _compiled()(sky.rays, sky.inv_1pz, points, projection, forward, out)
+    forward = data.forward if data.rays is None else np.empty(0, dtype=dt)
+    _compiled()(sky.rays, sky.inv_1pz, points, forward, out)
     return out
 
 
-def _image_pair(
-    px, py, pz, sx, sy, sz, projection, forward, i, n
-):  # pragma: no cover - compiled by numba
+def _tangent(px, py, inv, sx, sy, sz):  # pragma: no cover - compiled by numba
+    """Tangent components of a point ``s`` at the ray ``p``
+    (:func:`polins.sky.neutral_points.tangent_components`), ``inv = 1 / (1 + p_z)``."""
+    kap = (px * sx + py * sy) * inv + sz
+    return sx - px * kap, sy - py * kap
+
+
+def _pair_projection(px, py, pz, sx, sy, sz):  # pragma: no cover - compiled by numba
     """Image-plane directions ``(x, y)`` of ``s x p`` and ``(x_perp, y_perp)`` of
-    ``p x (s x p)`` at pixel ``i``."""
-    if projection:
-        ps = px * sx + py * sy + pz * sz
-        return sy * pz - sz * py, sz * px - sx * pz, sx - ps * px, sy - ps * py
+    ``p x (s x p)`` for the projection lens model."""
+    ps = px * sx + py * sy + pz * sz
+    return sy * pz - sz * py, sz * px - sx * pz, sx - ps * px, sy - ps * py
+
+
+def _pair_forward(forward, i, n, px, py, pz, sx, sy, sz):  # pragma: no cover - compiled by numba
+    """:func:`_pair_projection` for any lens model: packed forward rows ``(3, 2n)``, pixel
+    ``i``."""
     ex, ey, ez = sy * pz - sz * py, sz * px - sx * pz, sx * py - sy * px
     x = forward[0, i] * sx + forward[1, i] * sy + forward[2, i] * sz
     y = forward[0, n + i] * sx + forward[1, n + i] * sy + forward[2, n + i] * sz
@@ -150,62 +158,78 @@ def _image_pair(
     return x, y, xp, yp
 
 
-def _berry_rows(
-    rays, inv_1pz, points, projection, forward, out
-):  # pragma: no cover - compiled by numba
-    """The loop of :func:`berry_evector`: ``points`` (3, 3, k) = sun, Babinet, Brewster
-    columns (in the dtype of ``rays``); ``out`` (k, 2n)."""
-    n = rays.shape[1]
-    k = points.shape[2]
+def _base(px, py, pz, inv, points, pair):  # pragma: no cover - compiled by numba
+    """The Berry E-vector's rotation at one pixel: ``(c, s)`` parallel to ``(cos dchi, sin
+    dchi)``, the twist's factors and ``d e_B / d dchi``, from the sun's image-plane
+    ``pair``; ``points`` (3, 3, 4) as in :func:`_berry_rows`."""
     tiny = points.dtype.type(1e-30)
     half = points.dtype.type(0.5)
-    for i in range(n):
-        px, py, pz, inv = rays[0, i], rays[1, i], rays[2, i], inv_1pz[i]
-        # tangent components of the sun (s), Babinet (a), Brewster (b)
-        kap = (px * points[0, 0, 0] + py * points[0, 1, 0]) * inv + points[0, 2, 0]
-        sr, si = points[0, 0, 0] - px * kap, points[0, 1, 0] - py * kap
-        kap = (px * points[1, 0, 0] + py * points[1, 1, 0]) * inv + points[1, 2, 0]
-        ar, ai = points[1, 0, 0] - px * kap, points[1, 1, 0] - py * kap
-        kap = (px * points[2, 0, 0] + py * points[2, 1, 0]) * inv + points[2, 2, 0]
-        br, bi = points[2, 0, 0] - px * kap, points[2, 1, 0] - py * kap
-        pr, pim = ar * br - ai * bi, ar * bi + ai * br
-        qr, qi = sr * sr - si * si, -(sr * si + sr * si)
-        wr, wi = pr * qr - pim * qi, pr * qi + pim * qr
-        c = np.sqrt(wr * wr + wi * wi) + wr
-        s = wi
-        x0, y0, xp0, yp0 = _image_pair(px, py, pz, points[0, 0, 0], points[0, 1, 0],
-                                       points[0, 2, 0], projection, forward, i, n)  # fmt: skip
-        out[0, i] = c * x0 + s * xp0
-        out[0, n + i] = c * y0 + s * yp0
-        if k == 1:
-            continue
-        ns, na, nb = sr * sr + si * si, ar * ar + ai * ai, br * br + bi * bi
-        ws, wa, wb = na * nb, half * ns * nb, half * ns * na  # the twist over one denominator
-        inv_all = 1 / max(ns * na * nb, tiny)
-        tx, ty = c * xp0 - s * x0, c * yp0 - s * y0  # d e_B / d dchi
-        for j in range(1, k):
-            sx, sy, sz = points[0, 0, j], points[0, 1, j], points[0, 2, j]
-            x, y, xp, yp = _image_pair(px, py, pz, sx, sy, sz, projection, forward, i, n)
-            kap = (px * sx + py * sy) * inv + sz
-            dsr, dsi = sx - px * kap, sy - py * kap
-            qx, qy, qz = points[1, 0, j], points[1, 1, j], points[1, 2, j]
-            kap = (px * qx + py * qy) * inv + qz
-            dar, dai = qx - px * kap, qy - py * kap
-            qx, qy, qz = points[2, 0, j], points[2, 1, j], points[2, 2, j]
-            kap = (px * qx + py * qy) * inv + qz
-            dbr, dbi = qx - px * kap, qy - py * kap
-            twist = ((ar * dai - ai * dar) * wa + (br * dbi - bi * dbr) * wb
-                     - (sr * dsi - si * dsr) * ws) * inv_all  # fmt: skip
-            out[j, i] = c * x + s * xp + twist * tx
-            out[j, n + i] = c * y + s * yp + twist * ty
+    # tangent components of the sun (s), Babinet (a), Brewster (b)
+    sr, si = _tangent(px, py, inv, points[0, 0, 0], points[0, 1, 0], points[0, 2, 0])
+    ar, ai = _tangent(px, py, inv, points[1, 0, 0], points[1, 1, 0], points[1, 2, 0])
+    br, bi = _tangent(px, py, inv, points[2, 0, 0], points[2, 1, 0], points[2, 2, 0])
+    pr, pim = ar * br - ai * bi, ar * bi + ai * br
+    qr, qi = sr * sr - si * si, -(sr * si + sr * si)
+    wr, wi = pr * qr - pim * qi, pr * qi + pim * qr
+    c = np.sqrt(wr * wr + wi * wi) + wr
+    s = wi
+    ns, na, nb = sr * sr + si * si, ar * ar + ai * ai, br * br + bi * bi
+    ws, wa, wb = na * nb, half * ns * nb, half * ns * na  # the twist over one denominator
+    inv_all = 1 / max(ns * na * nb, tiny)
+    x0, y0, xp0, yp0 = pair
+    tx, ty = c * xp0 - s * x0, c * yp0 - s * y0  # d e_B / d dchi
+    return sr, si, ar, ai, br, bi, ws, wa, wb, inv_all, c, s, tx, ty
+
+
+def _column(px, py, inv, points, j, pair, base):  # pragma: no cover - compiled by numba
+    """``(x, y)`` of column ``j`` of :func:`_berry_rows` at one pixel, from the column's
+    image-plane ``pair`` and the pixel's :func:`_base`: ``c (x, y) + s (x_perp, y_perp)``
+    and for a derivative column the twist."""
+    sr, si, ar, ai, br, bi, ws, wa, wb, inv_all, c, s, tx, ty = base
+    x, y, xp, yp = pair
+    if j == 0:
+        return c * x + s * xp, c * y + s * yp
+    dsr, dsi = _tangent(px, py, inv, points[0, 0, j], points[0, 1, j], points[0, 2, j])
+    dar, dai = _tangent(px, py, inv, points[1, 0, j], points[1, 1, j], points[1, 2, j])
+    dbr, dbi = _tangent(px, py, inv, points[2, 0, j], points[2, 1, j], points[2, 2, j])
+    twist = ((ar * dai - ai * dar) * wa + (br * dbi - bi * dbr) * wb
+             - (sr * dsi - si * dsr) * ws) * inv_all  # fmt: skip
+    return c * x + s * xp + twist * tx, c * y + s * yp + twist * ty
+
+
+def _berry_rows(rays, inv_1pz, points, forward, out):  # pragma: no cover - compiled by numba
+    """The loop of :func:`berry_evector`: ``points`` (3, 3, k) = sun, Babinet, Brewster
+    columns (in the dtype of ``rays``); ``forward`` the packed forward rows, 1-D for the
+    projection lens model (the dimension chooses the compiled variant); ``out`` (k, 2n).
+    One loop per column, which recomputes the rotation (two output rows and an unsigned
+    pixel number per loop: it runs in vector lanes)."""
+    n = rays.shape[1]
+    ray_x, ray_y, ray_z = rays[0], rays[1], rays[2]
+    sx, sy, sz = points[0, 0, 0], points[0, 1, 0], points[0, 2, 0]
+    for j in range(points.shape[2]):
+        out_x, out_y = out[j, :n], out[j, n:]
+        jx, jy, jz = points[0, 0, j], points[0, 1, j], points[0, 2, j]
+        for i in range(np.uintp(n)):
+            px, py, pz, inv = ray_x[i], ray_y[i], ray_z[i], inv_1pz[i]
+            if forward.ndim == 1:
+                pair = _pair_projection(px, py, pz, sx, sy, sz)
+                pair_j = _pair_projection(px, py, pz, jx, jy, jz)
+            else:
+                pair = _pair_forward(forward, i, n, px, py, pz, sx, sy, sz)
+                pair_j = _pair_forward(forward, i, n, px, py, pz, jx, jy, jz)
+            base = _base(px, py, pz, inv, points, pair)
+            out_x[i], out_y[i] = _column(px, py, inv, points, j, pair_j, base)
 
 
 @functools.cache
 def _compiled() -> Any:
     """:func:`_berry_rows` compiled by numba (imported on first use, not with polins; the
-    machine code is cached on disk next to this module)."""
+    machine code is cached on disk next to this module; numpy's error model: no checks of
+    the divisions, which keep the loop out of vector lanes)."""
     import numba
 
-    global _image_pair
-    _image_pair = numba.njit(cache=True, fastmath=True, inline="always")(_image_pair)
-    return numba.njit(cache=True, fastmath=True)(_berry_rows)
+    for helper in ("_tangent", "_pair_projection", "_pair_forward", "_base", "_column"):
+        globals()[helper] = numba.njit(cache=True, fastmath=True, inline="always")(
+            globals()[helper]
+        )
+    return numba.njit(cache=True, fastmath=True, error_model="numpy")(_berry_rows)

@@ -42,6 +42,11 @@ SEP_MIN = float(np.radians(5.0))
 of the sun, inside its exclusion radius (10 deg by default)."""
 
 
+SCORE_MARGIN = 0.2
+"""The Berry solve runs when the one-step separation square of the score test reaches this
+fraction of the identification threshold."""
+
+
 def _sky(rays: NDArray, opt: MeasureOptions, berry: bool = True) -> SkyModel | None:
     return sky_model(rays, berry and opt.sky_model == "berry", opt.neutral_sep,
                      opt.fit_sep, opt.fit_delta)  # fmt: skip
@@ -65,6 +70,31 @@ def _separation_identified(ml: MLSolution, k: int, opt: MeasureOptions) -> bool:
     var = float(ml.covariance[k, k]) / min(ml.residual_rms**2, 1.0)
     ok = SEP_MIN**2 < tau < (np.pi / 2) ** 2 and np.isfinite(var)
     return ok and tau > opt.sep_z_min * np.sqrt(var)
+
+
+def _separation_possible(
+    data: PixelData,
+    ml: MLSolution,
+    zenith: float | None,
+    mat_cl: NDArray,
+    sky: SkyModel,
+    k: int,
+    opt: MeasureOptions,
+) -> bool:
+    """The score test of the neutral-point separation at zero after the Rayleigh solve
+    ``ml`` on ``data`` (its mask): one Gauss-Newton step of the Berry sky from ``sep^2 = 0``
+    (the gradient of the log-likelihood in ``sep^2`` against its Fisher information, the
+    other parameters' gradient being zero) may reach an identified separation
+    (:func:`_separation_identified`, with the margin :data:`SCORE_MARGIN`); else the
+    Berry solve is not run (docs/measurement.md §5)."""
+    theta = np.insert(ml.theta, k, 0.0)
+    step, _ = gauss_newton(data, theta, zenith, mat_cl, loss=opt.loss, max_iterations=1,
+                           epsilon_bound=opt.epsilon_max, sky=sky)  # fmt: skip
+    tau = float(step.theta[k])
+    var = float(step.covariance[k, k]) / min(step.residual_rms**2, 1.0)
+    if not np.isfinite(tau) or not np.isfinite(var):
+        return True
+    return tau > SCORE_MARGIN * max(SEP_MIN**2, opt.sep_z_min * np.sqrt(var))
 
 
 def _drop_clouds(
@@ -166,16 +196,25 @@ def compensated_solution(
     def fit(
         data: PixelData, sectors_x: SectorRuns, rays_x: NDArray, select: Selection
     ) -> tuple[MLSolution, NDArray | None, SkyModel | None, Solve]:
-        """The iterated solve in the sky model, in the Rayleigh sky when the fitted
-        neutral-point separation is not identified (sep 0: no neutral points seen)."""
+        """The iterated solve in the sky model. With the separation fitted: the Rayleigh
+        sky (sep 0) first, then the Berry sky only when the score test at sep 0 lets the
+        data identify the separation, kept when they do."""
         sky = _sky(rays_x, opt)
         run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
+        if sky is None or not sky.fit_sep:
+            ml, mask = run(theta, select)
+            return ml, mask, sky, run
+        sky_r = _sky(rays_x, opt, berry=False)
+        run_r = solve(data, sectors_x, sky_r, opt.max_iterations, tol_sigma=0.1)
+        ml_r, mask_r = run_r(np.delete(theta, k_sep), select)
+        if not problem(ml_r, True) and not _separation_possible(
+            dataclasses.replace(data, mask=mask_r), ml_r, zenith, mat_cl, sky, k_sep, opt
+        ):
+            return ml_r, mask_r, sky_r, run_r
         ml, mask = run(theta, select)
-        if sky is not None and sky.fit_sep and not _separation_identified(ml, k_sep, opt):
-            sky = _sky(rays_x, opt, berry=False)
-            run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
-            ml, mask = run(np.delete(ml.theta, k_sep), select)
-        return ml, mask, sky, run
+        if _separation_identified(ml, k_sep, opt):
+            return ml, mask, sky, run
+        return ml_r, mask_r, sky_r, run_r
 
     if not strided:
         ml, mask, sky, run = fit(data_full, sectors[1], rays[1], select_full)
