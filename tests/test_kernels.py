@@ -134,11 +134,11 @@ def test_compiled_normal_equations_match_numpy(zenith, sky, weighted, p_min):
                       np.linspace(-np.pi, np.pi, 64, endpoint=False) + np.pi / 64,
                       np.arange(64) // 32)  # fmt: skip
     r, jac, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, model)
-    run_sums, mask_pass = ml_pass_sums(data, theta, zenith, mat_cl, select, model, starts)
+    group_sums, mask_pass = ml_pass_sums(data, theta, zenith, mat_cl, select, model, runs)
     np.testing.assert_array_equal(mask_pass, mask)
     assert 0.3 < mask.mean() < 0.95
     k = theta.size
-    want, got = normal_equations(r, jac, None), sums_normal_equations(run_sums, k)
+    want, got = normal_equations(r, jac, None), sums_normal_equations(group_sums, k)
     scale = np.sqrt(np.diag(want[0]))
     np.testing.assert_allclose(got[0] / np.outer(scale, scale), want[0] / np.outer(scale, scale),
                                rtol=0, atol=2e-6)  # fmt: skip
@@ -146,10 +146,13 @@ def test_compiled_normal_equations_match_numpy(zenith, sky, weighted, p_min):
         got[1] / scale, want[1] / scale, rtol=0, atol=2e-6 * np.sqrt(want[2])
     )
     assert got[2] == pytest.approx(want[2], rel=2e-6)
-    sun_c = mat_cl @ np.array([np.sin(0.8) * np.cos(0.4), np.sin(0.8) * np.sin(0.4), np.cos(0.8)])
+    z = zenith if zenith is not None else theta[1]
+    sun_c = mat_cl @ np.array([np.sin(z) * np.cos(0.4), np.sin(z) * np.sin(0.4), np.cos(z)])
     h_want, b_want = sector_normal_equations(r, jac, None, runs, sun_c, None)
-    h_got, b_got = sums_sector_normal_equations(run_sums, k, runs, sun_c, None)
+    h_got, b_got = sums_sector_normal_equations(group_sums, k, None)
     np.testing.assert_allclose(h_got, h_want, rtol=1e-4, atol=1e-5 * np.max(want[0]))
     np.testing.assert_allclose(b_got, b_want, rtol=1e-4, atol=1e-5 * np.max(np.abs(want[1])))
-    _, b_only = sums_sector_normal_equations(run_sums, k, runs, sun_c, h_want)
-    np.testing.assert_array_equal(b_only, b_got)
+    assert sums_sector_normal_equations(group_sums, k, h_want)[0] is h_want
+    # without sectors: one group, the same sums
+    one, _ = ml_pass_sums(data, theta, zenith, mat_cl, select, model, None)
+    np.testing.assert_allclose(one[0], group_sums.sum(axis=0), rtol=1e-9)

@@ -209,11 +209,11 @@ def ml_pass_sums(
     mat_cl: NDArray,
     select: Selection | None,
     sky: SkyModel | None,
-    starts: NDArray,
+    sectors: SectorRuns | None,
 ) -> tuple[FloatArray, NDArray]:
-    """:func:`ml_evaluate` with the linear loss as per-run sums ``(m, ML_SUMS)`` of the
-    normal equations over the runs beginning at ``starts (m,)``, and the mask in force
-    (:func:`polins.compass.normal.pass_sums`; their ``J^T J``, ``J^T r``, ``r^T r``:
+    """:func:`ml_evaluate` with the linear loss as per-group sums ``(G, ML_SUMS)`` of the
+    normal equations over the jackknife groups of ``sectors`` (or one), and the mask in
+    force (:func:`polins.compass.normal.pass_sums`; their ``J^T J``, ``J^T r``, ``r^T r``:
     :func:`polins.compass.normal.sums_normal_equations`)."""
     cols, xy, _ = _predicted(data, theta, zenith, mat_cl, True, sky, rows=data.rays is None)
     sun_c = cols[:, 0]
@@ -222,7 +222,7 @@ def ml_pass_sums(
         (sun_c[0] * cols[1, j] - sun_c[1] * cols[0, j]) / rho2 for j in range(1, cols.shape[1])
     ]
     return pass_sums(data, cols, xy, float(theta[-1]), sunlight_direction(sun_c), alphas,
-                     select, starts)  # fmt: skip
+                     select, sectors)  # fmt: skip
 
 
 def _bounded_step(step: NDArray, k_sun: int) -> NDArray:
@@ -348,12 +348,11 @@ def gauss_newton(
     # The linear loss in one compiled pass (per-run sums; no residual rows are stored).
     fused = loss == "linear" and not (sky is not None and sky.fit_delta)
     fused = fused and pass_ready(data, select, theta.size)
-    starts = sectors.starts if sectors is not None else np.zeros(1, dtype=np.intp)
     accepted: tuple[NDArray, NDArray | None, NDArray | None, NDArray] | None = None
     for it in range(1, max_iterations + 1):  # noqa: B007
         if fused:
-            run_sums, mask = ml_pass_sums(data, theta, zenith, mat_cl, select, sky, starts)
-            jtj, jtr, rss = sums_normal_equations(run_sums, theta.size)
+            group_sums, mask = ml_pass_sums(data, theta, zenith, mat_cl, select, sky, sectors)
+            jtj, jtr, rss = sums_normal_equations(group_sums, theta.size)
             objective = rss
         else:
             r, jac_opt, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, sky)
@@ -378,7 +377,7 @@ def gauss_newton(
             halvings += 1
             continue
         if fused:
-            accepted = (run_sums, None, None, theta)  # the linearization of jtj, jtr
+            accepted = (group_sums, None, None, theta)  # the linearization of jtj, jtr
             loss_prev = rss * post_scale**2
         else:
             weights, scale = loss_weights(r, loss, n)
@@ -427,10 +426,10 @@ def gauss_newton(
     jackknife = share = None
     sector_parts = None
     if sectors is not None and accepted is not None:
-        r_a, jac_a, weights_a, theta_a = accepted  # r_a: the pass's run sums when fused
+        r_a, jac_a, weights_a, theta_a = accepted  # r_a: the pass's group sums when fused
         sun_c = mat_cl @ _sun_derivatives(theta_a, zenith)[0]
         if jac_a is None:
-            sector_parts = sums_sector_normal_equations(r_a, dof, sectors, sun_c, sector_h)
+            sector_parts = sums_sector_normal_equations(r_a, dof, sector_h)
         else:
             sector_parts = sector_normal_equations(r_a, jac_a, weights_a, sectors, sun_c, sector_h)
     if sector_parts is not None:

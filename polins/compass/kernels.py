@@ -269,12 +269,13 @@ def ml_pass(  # pragma: no cover - compiled by numba, which coverage cannot trac
     p_min: NDArray,
     limits: NDArray,
     starts: NDArray,
+    groups: NDArray,
     mask: NDArray,
     sums: NDArray,
 ) -> None:
     """The joint ML's residual, Jacobian and normal-equation sums in one pass
     (:func:`polins.compass.jointml.ml_evaluate` with the linear loss, then ``J^T J``,
-    ``J^T r``, ``r^T r`` per run of pixels, docs/measurement.md §3).
+    ``J^T r``, ``r^T r`` per group of runs of pixels, docs/measurement.md §3).
 
     Per-pixel arithmetic in the rows' dtype, sums in float64 (compiled with reassociation:
     summed in vector lanes). The variants are told by the arrays' dimensions (numba
@@ -288,8 +289,9 @@ def ml_pass(  # pragma: no cover - compiled by numba, which coverage cannot trac
     value ``(1, 1)``, -inf for none) and written to ``mask``; ``(0, 0)``: ``mask`` says
     which pixels count. ``limits`` = (dop_min, cos_exclusion, 1e-30,
     eps, w_0, w_1, 1, 2 alpha'_1, 2 alpha'_2, 2 alpha'_3) (``alpha'_j`` the derivative of
-    the sun's image-plane azimuth, zero for absent columns). ``sums (m, ML_SUMS)``: per
-    run beginning at ``starts (m,)`` (the last run ends at ``n``).
+    the sun's image-plane azimuth, zero for absent columns). ``sums (G, ML_SUMS)``, zeroed
+    by the caller: per group, the runs beginning at ``starts (m,)`` (the last ends at
+    ``n``) added in order to the row ``groups (m,)`` of each.
     """
     n, m = s0.size, starts.size
     dop_min, cos_exclusion, tiny = limits[0], limits[1], limits[2]
@@ -386,10 +388,22 @@ def ml_pass(  # pragma: no cover - compiled by numba, which coverage cannot trac
             g2 += d2 * dr
             g3 += d3 * dr
             rss += dr * dr
-        out = sums[run]
-        out[0], out[1], out[2], out[3], out[4] = h00, h01, h02, h03, h11
-        out[5], out[6], out[7], out[8], out[9] = h12, h13, h22, h23, h33
-        out[10], out[11], out[12], out[13], out[14] = g0, g1, g2, g3, rss
+        out = sums[groups[run]]
+        out[0] += h00
+        out[1] += h01
+        out[2] += h02
+        out[3] += h03
+        out[4] += h11
+        out[5] += h12
+        out[6] += h13
+        out[7] += h22
+        out[8] += h23
+        out[9] += h33
+        out[10] += g0
+        out[11] += g1
+        out[12] += g2
+        out[13] += g3
+        out[14] += rss
 
 
 def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> None:  # pragma: no cover

@@ -6,7 +6,7 @@ their parts per group of sky sectors. With a robust loss (IRLS weights from the 
 they are summed from the stored rows of ``r`` and ``J`` (:func:`normal_equations`,
 :func:`sector_normal_equations`). With the linear loss the rows are never stored: the
 compiled :func:`polins.compass.kernels.ml_pass` evaluates the residual and the Jacobian
-pixel after pixel, makes the pixel selection on the way, and sums per run of equal sector
+pixel after pixel, makes the pixel selection on the way, and sums per group of sky sectors
 (:func:`pass_sums`; docs/measurement.md §5).
 """
 
@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from polins.compass.kernels import ML_SUMS, compiled, dot
 from polins.compass.prediction import PixelData
-from polins.compass.sectors import SectorRuns, group_sums, sector_sums
+from polins.compass.sectors import SECTOR_AZIMUTHS, SECTOR_RINGS, SectorRuns, sector_sums
 from polins.compass.selection import Selection, compiled_arguments
 
 FloatArray = NDArray[np.float64]
@@ -34,7 +34,6 @@ __all__ = [
 ]
 
 _PASS_COLUMNS = 3  # sun/sky parameter columns of the compiled pass (then epsilon)
-_H_SUMS = (_PASS_COLUMNS + 1) * (_PASS_COLUMNS + 2) // 2  # J^T J entries of the pass sums
 
 
 def normal_equations(
@@ -104,17 +103,17 @@ def pass_sums(
     w: NDArray,
     alphas: Sequence[float],
     select: Selection | None,
-    starts: NDArray,
+    sectors: SectorRuns | None,
 ) -> tuple[FloatArray, NDArray]:
-    """Per-run sums ``(m, ML_SUMS)`` of the residual and Jacobian products
-    (:func:`polins.compass.kernels.ml_pass`) and the mask in force.
+    """Per-group sums ``(G, ML_SUMS)`` of the residual and Jacobian products
+    (:func:`polins.compass.kernels.ml_pass`) and the mask in force: the groups of
+    ``sectors`` (:meth:`SectorRuns.mirror_groups` for the sun ``cols[:, 0]``), or one.
 
     ``cols (3, 1 + j)`` are the camera-frame sun and its derivative columns, ``xy (1 + j,
     2n)`` their image-plane E-vector rows (None: the projection lens model's rays of
     ``data`` give them in the pass), ``w`` the sunlight direction, ``alphas`` the
     derivatives of the sun's image-plane azimuth by the ``j`` parameters, ``select`` the
-    selection to make (None: ``data.mask``), ``starts`` the runs' first pixels
-    (:func:`pass_ready` must hold).
+    selection to make (None: ``data.mask``) (:func:`pass_ready` must hold).
     """
     dt = data.s0.dtype
     n = data.s0.size
@@ -138,11 +137,17 @@ def pass_sums(
     cols_arg[:, : cols.shape[1]] = cols
     weight = data.inv_sigma if isinstance(data.inv_sigma, np.ndarray) else none
     projection = xy is None
-    sums = np.empty((starts.size, ML_SUMS))
+    if sectors is None:
+        starts, groups = np.zeros(1, dtype=np.intp), np.zeros(1, dtype=np.intp)
+    else:  # consecutive runs of one group as one (about half as many)
+        groups = sectors.mirror_groups(sun_c)[sectors.labels]
+        first = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
+        starts, groups = sectors.starts[first], groups[first]
+    sums = np.zeros((1 if sectors is None else SECTOR_AZIMUTHS * SECTOR_RINGS, ML_SUMS))
     compiled("ml_pass")(data.s0, data.s1, data.s2, data.c, weight,
                         np.zeros(0, dt) if projection else xy,
                         data.rays if projection else none, cols_arg, valid, rays, sun_arg, p_min,
-                        limits, starts, mask, sums)  # fmt: skip
+                        limits, starts, groups, mask, sums)  # fmt: skip
     return sums, mask
 
 
@@ -163,18 +168,16 @@ def _unpack(sums: NDArray, k: int) -> tuple[FloatArray, FloatArray]:
     return full[..., use, :][..., use], sums[..., j:][..., use]
 
 
-def sums_normal_equations(run_sums: NDArray, k: int) -> tuple[FloatArray, FloatArray, float]:
+def sums_normal_equations(sums: NDArray, k: int) -> tuple[FloatArray, FloatArray, float]:
     """``J^T J``, ``J^T r``, ``r^T r`` of ``k`` parameters from :func:`pass_sums`."""
-    total = run_sums.sum(axis=0)
+    total = sums.sum(axis=0)
     jtj, jtr = _unpack(total, k)
     return jtj, jtr, float(total[-1])
 
 
 def sums_sector_normal_equations(
-    run_sums: NDArray, k: int, sectors: SectorRuns, sun_c: NDArray, sector_h: FloatArray | None
+    sums: NDArray, k: int, sector_h: FloatArray | None
 ) -> tuple[FloatArray, FloatArray]:
-    """:func:`sector_normal_equations` from :func:`pass_sums` over the runs of ``sectors``."""
-    if sector_h is not None:  # only b_g
-        b = group_sums(run_sums[:, _H_SUMS : _H_SUMS + 1 + _PASS_COLUMNS].T, sectors, sun_c)
-        return sector_h, b[:, _columns(k)]
-    return _unpack(group_sums(run_sums.T, sectors, sun_c), k)
+    """:func:`sector_normal_equations` from the per-group :func:`pass_sums`."""
+    h, b = _unpack(sums, k)
+    return (h if sector_h is None else sector_h), b

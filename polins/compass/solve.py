@@ -220,7 +220,8 @@ def compensated_solution(
         ml, mask, sky, run = fit(data_full, sectors[1], rays[1], select_full)
         ml, mask, dropped = _drop_clouds(ml, mask, data_full, select_full, cells, run,
                                          fails(True), zenith, mat_cl, sky, opt)  # fmt: skip
-        np.logical_and(select_full.valid, ~dropped.take(cells), out=select_full.valid)
+        if dropped.any():
+            np.logical_and(select_full.valid, ~dropped.take(cells), out=select_full.valid)
         if sky is not None and sky.fit_sep:
             ml = _without(ml, k_sep)
         return ml, mask, None, problem(ml, True)
@@ -232,7 +233,8 @@ def compensated_solution(
     fallback = problem(ml, True)
     if fallback:
         return ml, None, mask_sub, fallback
-    np.logical_and(select_full.valid, ~dropped.take(cells), out=select_full.valid)
+    if dropped.any():  # a gather over all pixels (0.4 ms at full resolution)
+        np.logical_and(select_full.valid, ~dropped.take(cells), out=select_full.valid)
     theta, sector_h = ml.theta, ml.sector_h
     sky_full = _sky(rays[1], opt, berry=False)
     if sky_sub is not None and sky_sub.berry:  # the full step keeps the fitted separation
