@@ -43,8 +43,9 @@ of the sun, inside its exclusion radius (10 deg by default)."""
 
 
 SCORE_MARGIN = 0.2
-"""The Berry solve runs when the one-step separation square of the score test reaches this
-fraction of the identification threshold."""
+"""The Berry sky is solved when the one-step separation square of the score test reaches
+this fraction of the identification threshold (on realistic skies every identified
+separation reached 0.52 of it, docs/measurement.md §5)."""
 
 
 def _sky(rays: NDArray, opt: MeasureOptions, berry: bool = True) -> SkyModel | None:
@@ -74,22 +75,24 @@ def _separation_identified(ml: MLSolution, k: int, opt: MeasureOptions) -> bool:
 
 def _separation_possible(
     data: PixelData,
-    ml: MLSolution,
+    theta: NDArray,
     zenith: float | None,
     mat_cl: NDArray,
+    select: Selection,
     sky: SkyModel,
     k: int,
     opt: MeasureOptions,
 ) -> bool:
-    """The score test of the neutral-point separation at zero after the Rayleigh solve
-    ``ml`` on ``data`` (its mask): one Gauss-Newton step of the Berry sky from ``sep^2 = 0``
-    (the gradient of the log-likelihood in ``sep^2`` against its Fisher information, the
-    other parameters' gradient being zero) may reach an identified separation
-    (:func:`_separation_identified`, with the margin :data:`SCORE_MARGIN`); else the
-    Berry solve is not run (docs/measurement.md §5)."""
-    theta = np.insert(ml.theta, k, 0.0)
-    step, _ = gauss_newton(data, theta, zenith, mat_cl, loss=opt.loss, max_iterations=1,
-                           epsilon_bound=opt.epsilon_max, sky=sky)  # fmt: skip
+    """The score test of the neutral-point separation at zero: one Gauss-Newton step of
+    the Berry sky from the start ``theta`` with ``sep^2 = 0`` (the gradient of the
+    log-likelihood in ``sep^2`` against its Fisher information, jointly with the other
+    parameters) may reach an identified separation (:func:`_separation_identified`, with
+    the margin :data:`SCORE_MARGIN`); else only the Rayleigh sky is solved
+    (docs/measurement.md §5)."""
+    start = np.array(theta, dtype=float)
+    start[k] = 0.0
+    step, _ = gauss_newton(data, start, zenith, mat_cl, loss=opt.loss, max_iterations=1,
+                           epsilon_bound=opt.epsilon_max, select=select, sky=sky)  # fmt: skip
     tau = float(step.theta[k])
     var = float(step.covariance[k, k]) / min(step.residual_rms**2, 1.0)
     if not np.isfinite(tau) or not np.isfinite(var):
@@ -196,25 +199,24 @@ def compensated_solution(
     def fit(
         data: PixelData, sectors_x: SectorRuns, rays_x: NDArray, select: Selection
     ) -> tuple[MLSolution, NDArray | None, SkyModel | None, Solve]:
-        """The iterated solve in the sky model. With the separation fitted: the Rayleigh
-        sky (sep 0) first, then the Berry sky only when the score test at sep 0 lets the
-        data identify the separation, kept when they do."""
+        """The iterated solve in the sky model, in the Rayleigh sky when the fitted
+        neutral-point separation is not identified (sep 0: no neutral points seen), and
+        only in the Rayleigh sky when the score test at sep 0 finds nothing to fit."""
         sky = _sky(rays_x, opt)
         run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
-        if sky is None or not sky.fit_sep:
-            ml, mask = run(theta, select)
+        berry = sky is not None and sky.fit_sep
+        if berry and not _separation_possible(data, theta, zenith, mat_cl, select, sky, k_sep,
+                                              opt):  # fmt: skip
+            sky = _sky(rays_x, opt, berry=False)
+            run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
+            ml, mask = run(np.delete(theta, k_sep), select)
             return ml, mask, sky, run
-        sky_r = _sky(rays_x, opt, berry=False)
-        run_r = solve(data, sectors_x, sky_r, opt.max_iterations, tol_sigma=0.1)
-        ml_r, mask_r = run_r(np.delete(theta, k_sep), select)
-        if not problem(ml_r, True) and not _separation_possible(
-            dataclasses.replace(data, mask=mask_r), ml_r, zenith, mat_cl, sky, k_sep, opt
-        ):
-            return ml_r, mask_r, sky_r, run_r
         ml, mask = run(theta, select)
-        if _separation_identified(ml, k_sep, opt):
-            return ml, mask, sky, run
-        return ml_r, mask_r, sky_r, run_r
+        if berry and not _separation_identified(ml, k_sep, opt):
+            sky = _sky(rays_x, opt, berry=False)
+            run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
+            ml, mask = run(np.delete(ml.theta, k_sep), select)
+        return ml, mask, sky, run
 
     if not strided:
         ml, mask, sky, run = fit(data_full, sectors[1], rays[1], select_full)
