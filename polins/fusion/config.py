@@ -119,6 +119,12 @@ class FuseConfig:
         "constants) the non-holonomic constraint and the odometer observe while the vehicle "
         "moves; None or 0: the mounting is exact (docs/filter.md, 'Ground-vehicle aiding')",
     )
+    lever_std: float | None = _opt(
+        None,
+        "1-sigma of the errors of lever_arm_b per axis [m]: three states (random constants) "
+        "the non-holonomic constraint and the odometer observe while the vehicle turns; "
+        "None or 0: the lever arm is exact (docs/filter.md, 'Ground-vehicle aiding')",
+    )
     odometer_std: float | None = _opt(
         None,
         f"wheel-odometer speed 1-sigma [m/s], with an odometer scale-factor state; "
@@ -248,6 +254,12 @@ class FuseConfig:
         return float(self.mount_std) if self.mount_std else None
 
     @property
+    def lever_sigma(self) -> float | None:
+        """The prior 1-sigma [m] of the lever-arm error states, or None: no such states
+        (``lever_std`` None or 0)."""
+        return float(self.lever_std) if self.lever_std else None
+
+    @property
     def standstill_sigma(self) -> float | None:
         """The zero-velocity 1-sigma at (detected) standstill [m/s], or None: off."""
         kind_default = STANDSTILL_STD if self.vehicle in ("ground", "static") else None
@@ -371,8 +383,10 @@ def _check(c: FuseConfig) -> None:
         value = getattr(c, name)
         if value is not None and not (math.isfinite(value) and value > 0):
             raise UserInputError(f"{name} must be > 0 or None, got {value!r}")
-    if c.mount_std is not None and not (math.isfinite(c.mount_std) and c.mount_std >= 0):
-        raise UserInputError(f"mount_std must be >= 0 [rad] or None, got {c.mount_std!r}")
+    for name, unit in (("mount_std", "rad"), ("lever_std", "m")):
+        value = getattr(c, name)
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise UserInputError(f"{name} must be >= 0 [{unit}] or None, got {value!r}")
     if not all(a > 0 for a in c.att_std0):
         raise UserInputError(f"att_std0 must be 3 positive sigmas [rad], got {c.att_std0}")
     if c.gate_prob is not None and not 0.0 < c.gate_prob < 1.0:

@@ -42,8 +42,10 @@ HEADING_KINDS = ("yaw", "sun", "sun_azimuth")  # the measurements of the heading
 NOISE_ALLOWANCE = 2.0
 # the name of the no-clock state of the sun's ENU azimuth (docs/filter.md, "No clock")
 SUN_AZIMUTH_STATE = "sun_azimuth_n"
-# the names of the mounting pitch and yaw error states (docs/filter.md §5.6)
+# the names of the mounting pitch and yaw error states and of the lever-arm error state
+# (docs/filter.md §5.6)
 MOUNT_STATES = ("mount_pitch", "mount_yaw")
+LEVER_STATE = "lever_b"
 
 
 @functools.lru_cache(maxsize=64)
@@ -82,6 +84,7 @@ class MeasurementItem:
     speed: float = math.nan  # "odo": the odometer's forward speed [m/s]
     mat_vb: FloatArray | None = None  # "nhc", "odo": IMU mounting, body -> vehicle frame
     lever_vel_b: FloatArray | None = None  # "nhc", "odo": omega_b x lever_arm_b [m/s]
+    gyro_b: FloatArray | None = None  # "nhc", "odo" with a lever-arm state: omega_b [rad/s]
     model_std: float = 0.0  # heading kinds: the sigma's part correlated between images [rad]
 
     @property
@@ -103,8 +106,8 @@ def item_model(
     ``states`` the estimates of the sensor-error blocks by name (a ``"sun_azimuth"`` item
     needs :data:`SUN_AZIMUTH_STATE`; with :data:`MOUNT_STATES` the non-holonomic and
     odometer items use the mounting turned by their estimate,
-    :func:`~polins.fusion.measurement.mount_rotation`). The ESKF and the GTSAM graph both
-    linearize their items here.
+    :func:`~polins.fusion.measurement.mount_rotation`, with :data:`LEVER_STATE` the lever
+    arm plus its estimate). The ESKF and the GTSAM graph both linearize their items here.
     """
     var = item.std * item.std
     if item.kind == "yaw":
@@ -130,9 +133,13 @@ def item_model(
     if states is not None and MOUNT_STATES[0] in states:
         turn = mount_rotation(np.concatenate([states[name] for name in MOUNT_STATES]))
         mat_vb = turn if mat_vb is None else turn @ mat_vb
+    lever_vel_b = item.lever_vel_b
+    if states is not None and LEVER_STATE in states and item.gyro_b is not None:
+        extra = np.cross(item.gyro_b, states[LEVER_STATE])
+        lever_vel_b = extra if lever_vel_b is None else lever_vel_b + extra
     if item.kind == "odo":
-        return odometer_kernel(mat_nb, vel_n, item.speed, var, mat_vb, item.lever_vel_b)
-    return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var), mat_vb, item.lever_vel_b)
+        return odometer_kernel(mat_nb, vel_n, item.speed, var, mat_vb, lever_vel_b)
+    return non_holonomic_kernel(mat_nb, vel_n, np.full(2, var), mat_vb, lever_vel_b)
 
 
 def sun_elevation_n(mat_nb: FloatArray, azimuth_b: float, elevation_b: float) -> float:

@@ -282,6 +282,28 @@ def mount_rotation(mount_error: FloatArray) -> FloatArray:
     return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
 
 
+def lever_jacobian(
+    lin: Linearized, mat_vb: FloatArray | None, gyro_b: FloatArray | None
+) -> FloatArray:
+    """``d h / d lever`` (dim, 3) of the lever arm's error [m/s / m] for a non-holonomic or
+    odometer model at the body rate ``gyro_b`` [rad/s] and the mounting ``mat_vb``, zero for
+    the others (docs/filter.md, "Ground-vehicle aiding"): the reference point's velocity
+    ``v_v`` has ``mat_vb (omega_b x lever)``, so ``d v_v / d lever = mat_vb [omega_b x]``
+    (the model's rows: the NHC's lateral and vertical, the odometer's forward). The model is
+    linear in the lever arm: exact with the configured mounting, first order with a mounting
+    estimate ``e`` (which turns these columns by ``|e|``).
+    """
+    out = np.zeros((lin.H.shape[0], 3))
+    if gyro_b is None:
+        return out
+    cols = skew(gyro_b) if mat_vb is None else mat_vb @ skew(gyro_b)
+    if lin.name == "nhc":
+        out[:] = cols[1:3]
+    elif lin.name == "odo":
+        out[:] = cols[0:1]
+    return out
+
+
 def mount_jacobian(lin: Linearized) -> FloatArray:
     """``d h / d (pitch, yaw)`` (dim, 2) of the mounting error for a non-holonomic or
     odometer model [m/s / rad], zero for the others (docs/filter.md, "Ground-vehicle

@@ -143,6 +143,7 @@ class VehicleAiding:
         self.mat_vb = mat_vb_from_mount(mount) if np.any(mount) else None
         lever = np.asarray(config.lever_arm_b, dtype=float)
         self.lever_arm_b = lever if np.any(lever) else None
+        self.lever_state = config.lever_sigma is not None  # the items carry omega_b
         self.detect = self.zupt_std is not None and not self.static
         self.active = self.nhc_std is not None or self.zupt_std is not None
         self._gyro = np.zeros((0, 3))  # the last n - 1 samples
@@ -180,15 +181,19 @@ class VehicleAiding:
 
     def attach(self, item: MeasurementItem, gyro_b: FloatArray) -> MeasurementItem:
         """``item`` with the mounting and ``omega_b x lever_arm_b`` at the rate ``gyro_b``
-        (unchanged if it has them already)."""
+        [rad/s], and the rate itself with a lever-arm state (unchanged if it has them
+        already)."""
         if (
-            (self.lever_arm_b is None and self.mat_vb is None)
+            (self.lever_arm_b is None and self.mat_vb is None and not self.lever_state)
             or item.mat_vb is not None
-            or (item.lever_vel_b is not None)
+            or item.lever_vel_b is not None
+            or item.gyro_b is not None
         ):
             return item
         lever_vel_b = None if self.lever_arm_b is None else np.cross(gyro_b, self.lever_arm_b)
-        return dataclasses.replace(item, mat_vb=self.mat_vb, lever_vel_b=lever_vel_b)
+        rate = np.array(gyro_b, dtype=float) if self.lever_state else None
+        return dataclasses.replace(item, mat_vb=self.mat_vb, lever_vel_b=lever_vel_b,
+                                   gyro_b=rate)  # fmt: skip
 
     def odometer(
         self,

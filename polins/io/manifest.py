@@ -30,6 +30,7 @@
     mount_rpy_deg = [0.5, -1.0, 2.0]  # roll, pitch, yaw of the IMU in the vehicle frame
     mount_std_deg = 2.0               # optional: estimate the mounting's pitch and yaw errors
     lever_arm_b = [-0.6, 0.1, -0.3]   # IMU -> vehicle reference point, IMU axes [m]
+    lever_std = 0.3                   # optional: estimate the lever arm's error, 1-sigma [m]
     odometer = "odometer.csv"         # optional wheel-odometer stream: t [s], speed [m/s]
     odometer_std = 0.05               # its 1-sigma [m/s] (default 0.05)
 
@@ -129,6 +130,12 @@ def _sigma(v: Any) -> float:
     return float(v)
 
 
+def _sigma_or_zero(v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not (0 <= v < math.inf):
+        raise UserInputError("expected a number >= 0 (0: off)")
+    return float(v)
+
+
 # section -> key -> (required, validator)
 _MANIFEST_SCHEMA: dict[str, dict[str, tuple[bool, Callable[[Any], Any]]]] = {
     "log": {
@@ -153,6 +160,7 @@ _MANIFEST_SCHEMA: dict[str, dict[str, tuple[bool, Callable[[Any], Any]]]] = {
         "mount_rpy_deg": (False, _triple),
         "mount_std_deg": (False, number_in(0.0, 90.0)),
         "lever_arm_b": (False, _triple),
+        "lever_std": (False, _sigma_or_zero),
         "odometer": (False, _str),
         "odometer_std": (False, _sigma),
     },
@@ -255,7 +263,7 @@ def _filter_table(path: Path, table: Mapping[str, Any]) -> dict[str, Any]:
 
 def vehicle_config(vehicle: Mapping[str, Any], base: FuseConfig) -> FuseConfig:
     """``base`` with the options of a manifest's ``[vehicle]`` table (kind, mounting and
-    its prior sigma in degrees, lever arm [m], the odometer's sigma)."""
+    its prior sigma in degrees, lever arm and its prior sigma [m], the odometer's sigma)."""
     opts: dict[str, Any] = {}
     if "kind" in vehicle:
         opts["vehicle"] = vehicle["kind"]
@@ -265,6 +273,8 @@ def vehicle_config(vehicle: Mapping[str, Any], base: FuseConfig) -> FuseConfig:
         opts["mount_std"] = math.radians(vehicle["mount_std_deg"])
     if "lever_arm_b" in vehicle:
         opts["lever_arm_b"] = tuple(vehicle["lever_arm_b"])
+    if "lever_std" in vehicle:
+        opts["lever_std"] = float(vehicle["lever_std"])
     if "odometer" in vehicle:
         opts["odometer_std"] = vehicle.get("odometer_std", ODOMETER_STD)
     return FuseConfig.from_options(base, **opts)

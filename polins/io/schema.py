@@ -50,6 +50,11 @@ _SOLUTION: dict[str, tuple[str, str]] = {
     "mount_pitch_std": (_ANG, "1-sigma of mount_pitch"),
     "mount_yaw_std": (_ANG, "1-sigma of mount_yaw"),
     **{
+        f"lever_b{a}": ("m", f"error of the configured lever_arm_b, IMU {a} (only with lever_std)")
+        for a in "xyz"
+    },
+    **{f"lever_b{a}_std": ("m", f"1-sigma of lever_b{a}") for a in "xyz"},
+    **{
         f"site_rot_n{a}": (_ANG, f"ENU frame rotation of the site error, {a} (only with site_std)")
         for a in "xyz"
     },

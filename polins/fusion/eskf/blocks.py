@@ -2,7 +2,8 @@
 
 A :class:`Block` is one named part of the error state (``att``, ``vel``, ``pos``, ``bg``,
 ``ba``, with scale factors ``sg``, ``sa``; the optional odometer scale ``so``, mounting
-errors ``mount_pitch``, ``mount_yaw`` and the sky's states). It declares
+errors ``mount_pitch``, ``mount_yaw``, lever-arm error ``lever_b`` and the sky's states).
+It declares
 
 * ``size``: its number of states;
 * ``columns(step)``: its columns of the continuous dynamics ``F``, as a mapping from the
@@ -44,8 +45,15 @@ from scipy.spatial.transform import Rotation
 
 from polins.fusion.config import FuseConfig
 from polins.fusion.eskf.dynamics import StepNominal
-from polins.fusion.items import MOUNT_STATES, MeasurementItem, item_model
-from polins.fusion.measurement import BA, BG, Linearized, mount_jacobian, wrap_residual
+from polins.fusion.items import LEVER_STATE, MOUNT_STATES, MeasurementItem, item_model
+from polins.fusion.measurement import (
+    BA,
+    BG,
+    Linearized,
+    lever_jacobian,
+    mount_jacobian,
+    wrap_residual,
+)
 from polins.fusion.sky_states import (
     heading_bias_jacobian,
     site_rotation_std,
@@ -156,6 +164,9 @@ MOUNT_PITCH = Block(MOUNT_STATES[0], 1, lambda step: {}, lambda m, c: c.mount_si
                     jacobian=lambda item, lin: mount_jacobian(lin)[:, 0:1])  # fmt: skip
 MOUNT_YAW = Block(MOUNT_STATES[1], 1, lambda step: {}, lambda m, c: c.mount_sigma or 0.0,
                   jacobian=lambda item, lin: mount_jacobian(lin)[:, 1:2])  # fmt: skip
+# the lever arm's error, IMU axes (random constants), with lever_std
+LEVER = Block(LEVER_STATE, 3, lambda step: {}, lambda m, c: c.lever_sigma or 0.0,
+              jacobian=lambda item, lin: lever_jacobian(lin, item.mat_vb, item.gyro_b))  # fmt: skip
 
 
 # Without a site the Earth rate (OMEGA_IE) is not mechanized: the gyro bias block covers
@@ -216,6 +227,8 @@ def error_blocks(config: FuseConfig) -> tuple[Block, ...]:
         blocks += (ODOMETER_SCALE,)
     if config.mount_sigma is not None:
         blocks += (MOUNT_PITCH, MOUNT_YAW)
+    if config.lever_sigma is not None:
+        blocks += (LEVER,)
     return blocks + sky_blocks(config)
 
 

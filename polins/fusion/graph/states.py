@@ -1,4 +1,4 @@
-"""The graph's sensor-error variables (odometer scale, mounting, site, no-clock sun azimuth, heading bias) and their factors.
+"""The graph's sensor-error variables (odometer scale, mounting, lever arm, site, no-clock sun azimuth, heading bias) and their factors.
 
 Each is a block of the ESKF (:mod:`polins.fusion.eskf.blocks`, docs/filter.md §5.6, §5.7)
 and becomes GTSAM variables here (docs/filter.md §9):
@@ -10,6 +10,8 @@ and becomes GTSAM variables here (docs/filter.md §9):
   keyframe with the prior ``mount_std``, linked as constants the way the scale factors are
   (``BetweenFactorVector`` of ``mount_std sqrt(dt / CONSTANT_S)``): one key for the whole
   log made ISAM2 3x slower on a 60 s drive (it sits in every clique's separator);
+* ``lever_b`` (the lever arm's error, constants): a ``Vector3`` ``r<k>`` per keyframe with
+  the prior ``lever_std``, linked the same way;
 * ``site_rot_n`` (the ENU frame rotation of an approximate site, three constants): one
   ``Vector3`` ``l0`` with the ESKF's independent 1-sigmas
   (:func:`~polins.fusion.sky_states.site_rotation_std`);
@@ -24,7 +26,7 @@ and becomes GTSAM variables here (docs/filter.md §9):
 A measurement that sees one of them (or a sun vector with a 2x2 covariance: the fit's
 azimuth / elevation sigmas, docs/filter.md §5.3) becomes an :func:`item_factor`: a ``CustomFactor`` on the shared model
 (:func:`polins.fusion.items.item_model`) extended by the columns of
-:mod:`polins.fusion.sky_states`, the odometer's scale and the mounting
+:mod:`polins.fusion.sky_states`, the odometer's scale, the mounting and the lever arm
 (:func:`GraphStates.model`), the same linearization the solvers gate with.
 """
 
@@ -46,6 +48,7 @@ from polins.fusion.graph.factors import body_jacobian
 from polins.fusion.graph.imu import CONSTANT_S
 from polins.fusion.items import (
     HEADING_KINDS,
+    LEVER_STATE,
     MOUNT_STATES,
     SUN_AZIMUTH_STATE,
     MeasurementItem,
@@ -56,6 +59,7 @@ from polins.fusion.measurement import (
     N_ERROR,
     VEL,
     Linearized,
+    lever_jacobian,
     mount_jacobian,
     sun_basis_b,
     sun_kernel,
@@ -92,6 +96,12 @@ class Variable:
 
 ODOMETER_SCALE = Variable("o", 1, False, (("so", 1),), ("odo",))
 MOUNT = Variable("m", 2, True, tuple((name, 1) for name in MOUNT_STATES), ("nhc", "odo"))
+LEVER = Variable("r", 3, True, ((LEVER_STATE, 3),), ("nhc", "odo"))
+# ISAM2 relinearization thresholds other than 1e-3: the mounting 1e-2 rad, the attitude's
+# (the NHC is linear in it to ``v e^2 / 2``, 2.5 mm/s at 5 m/s: relinearizing at every
+# 1e-3 rad of its settling re-eliminated every keyframe that sees it, ISAM2 3x slower on a
+# 60 s drive); the lever arm never (the models are linear in it)
+RELINEARIZE = {MOUNT: 1e-2, LEVER: 1e6}
 SITE_ROTATION = Variable("l", 3, False, (("site_rot_n", 3),), ("yaw", "sun"))
 SUN_AZIMUTH = Variable(
     "z", 2, True, (("sun_azimuth_n", 1), ("sun_azimuth_rate", 1)), ("sun_azimuth",)
@@ -175,14 +185,14 @@ class GraphStates:
     """The sensor-error variables a configuration asks for (module docstring).
 
     Their estimates form one vector ``extra`` (the ESKF's block order: ``so``,
-    ``mount_pitch``, ``mount_yaw``, ``site_rot_n``, ``sun_azimuth_n``, ``sun_azimuth_rate``,
-    ``heading_bias``) that follows
+    ``mount_pitch``, ``mount_yaw``, ``lever_b``, ``site_rot_n``, ``sun_azimuth_n``,
+    ``sun_azimuth_rate``, ``heading_bias``) that follows
     the 15 navigation and bias errors in :class:`~polins.fusion.graph.problem.Estimates`.
 
     Parameters
     ----------
     config : FuseConfig
-        ``odometer_std`` (an odometer: ``so``), ``mount_std`` (the mounting),
+        ``odometer_std`` (an odometer: ``so``), ``mount_std`` (the mounting), ``lever_std``,
         ``site_std`` with ``site``, ``no_clock``,
         ``heading_bias_sigma`` (``heading_bias_std``, docs/filter.md §5.7).
     t_key : (K,) ndarray
@@ -200,6 +210,8 @@ class GraphStates:
             variables.append(ODOMETER_SCALE)
         if config.mount_sigma is not None:
             variables.append(MOUNT)
+        if config.lever_sigma is not None:
+            variables.append(LEVER)
         if config.site_std is not None and config.site is not None:
             variables.append(SITE_ROTATION)
         if config.no_clock:
@@ -287,6 +299,8 @@ class GraphStates:
                 sig = np.array([c.odometer_scale_std])
             elif var is MOUNT:
                 sig = np.full(2, c.mount_sigma)
+            elif var is LEVER:
+                sig = np.full(3, c.lever_sigma)
             elif var is SITE_ROTATION:
                 assert c.site is not None and c.site_std is not None
                 sig = np.array(site_rotation_std(c.site.lat, c.site_std))
@@ -309,10 +323,11 @@ class GraphStates:
             ki, kj = self.key(var, k - 1), self.key(var, k)
             if var is SUN_AZIMUTH:
                 out.append(sun_azimuth_factor(ki, kj, dt, c.sun_azimuth_rate_std))
-            elif var is MOUNT:
-                std = max(float(c.mount_sigma) * math.sqrt(dt / CONSTANT_S), 1e-12)  # type: ignore[arg-type]
-                noise = gtsam.noiseModel.Isotropic.Sigma(2, std)
-                out.append(gtsam.BetweenFactorVector(ki, kj, np.zeros(2), noise))
+            elif var in (MOUNT, LEVER):  # constants (module docstring)
+                sigma = c.mount_sigma if var is MOUNT else c.lever_sigma
+                std = max(float(sigma) * math.sqrt(dt / CONSTANT_S), 1e-12)  # type: ignore[arg-type]
+                noise = gtsam.noiseModel.Isotropic.Sigma(var.size, std)
+                out.append(gtsam.BetweenFactorVector(ki, kj, np.zeros(var.size), noise))
             elif var is HEADING_BIAS:
                 assert self.bias_std is not None
                 out.append(gauss_markov_factor(ki, kj, dt, self.bias_std,
@@ -361,11 +376,9 @@ class GraphStates:
         return {self.key(v, k): t for v in self.variables}
 
     def thresholds(self) -> list[tuple[str, FloatArray]]:
-        """ISAM2 relinearization thresholds per symbol letter: 1e-3 of the variable's units;
-        the mounting 1e-2 rad, the attitude's (the NHC is linear in it to ``v e^2 / 2``, 2.5
-        mm/s at 5 m/s: relinearizing at every 1e-3 rad of its settling re-eliminated every
-        keyframe that sees it, ISAM2 3x slower on a 60 s drive)."""
-        return [(v.letter, np.full(v.size, 1e-2 if v is MOUNT else 1e-3)) for v in self.variables]
+        """ISAM2 relinearization thresholds per symbol letter: 1e-3 of the variable's units,
+        except :data:`RELINEARIZE`'s."""
+        return [(v.letter, np.full(v.size, RELINEARIZE.get(v, 1e-3))) for v in self.variables]
 
     def model(
         self,
@@ -385,13 +398,16 @@ class GraphStates:
         ``1 + k`` (:func:`~polins.fusion.vehicle.scaled_odometer`), its ``k`` column is the
         predicted speed over ``1 + k`` (the derivative of the scaled residual). With the
         mounting variable, a non-holonomic or odometer item uses the mounting turned by its
-        estimate and its columns :func:`~polins.fusion.measurement.mount_jacobian`."""
+        estimate and its columns :func:`~polins.fusion.measurement.mount_jacobian`; with the
+        lever-arm variable, the lever arm plus its estimate and
+        :func:`~polins.fusion.measurement.lever_jacobian`."""
         idx = self.index
         states: dict[str, FloatArray] = {}
         if "sun_azimuth_n" in idx:
             states[SUN_AZIMUTH_STATE] = extra[idx["sun_azimuth_n"]]
-        for name in MOUNT_STATES if MOUNT_STATES[0] in idx else ():
-            states[name] = extra[idx[name]]
+        for name in (*MOUNT_STATES, LEVER_STATE):
+            if name in idx:
+                states[name] = extra[idx[name]]
         it = item
         if item.kind == "odo" and "so" in idx:
             it = scaled_odometer(item, {"so": extra[idx["so"]]})
@@ -412,6 +428,9 @@ class GraphStates:
         if MOUNT_STATES[0] in idx:
             start = N_ERROR + idx[MOUNT_STATES[0]].start
             H[:, start : start + 2] = mount_jacobian(lin)
+        if LEVER_STATE in idx:
+            cols = lever_jacobian(lin, item.mat_vb, item.gyro_b)
+            H[:, N_ERROR + idx[LEVER_STATE].start : N_ERROR + idx[LEVER_STATE].stop] = cols
         if "site_rot_n" in idx:
             cols = sun_attitude_columns(item, lin)
             H[:, N_ERROR + idx["site_rot_n"].start : N_ERROR + idx["site_rot_n"].stop] = cols
