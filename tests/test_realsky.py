@@ -2,12 +2,14 @@
 honesty of the heading sigma on them (docs/measurement.md §12), the region of interest."""
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 import polins
+from polins.calibration import apply_to_camera, fit_sky_rotation
 from polins.compass.camera import pixel_rays_c
 from polins.compass.measure import measure, measure_with_maps
 from polins.frames import wrap_angle, yaw_from_rot_nb
@@ -74,10 +76,34 @@ def _case(rng):
     return sun_n, rot
 
 
-def _honesty(cam, n_images, seed, clean=False, **options):
+def sky_rotation_calibrated(cam, gain_residual, rng):
+    """``cam`` calibrated as a user would (docs/calibrate.md#sky-rotation): 12 images of a
+    clear realistic sky (no clouds, sun zenith 30-60 deg) from the sensor whose channel
+    gains are ``cam``'s times ``1 + gain_residual``, looking up and turning on a turntable
+    whose axis is 0.5 deg off the optical axis, fitted by
+    :func:`polins.calibration.fit_sky_rotation` (without the IFOV correction: the renderer
+    has no IFOV error). The camera file then holds the fitted gains, angles and
+    efficiencies and ``instrumental_dop_std``."""
+    sun_n = polins.sun_vector_n(rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(30, 60)))
+    sky = replace(random_real_sky(rng, sun_n, n_clouds=0), gain_residual=gain_residual)
+    turns = np.concatenate([[0.0], np.sort(rng.uniform(0.0, 2 * np.pi, 11))])
+    mount = Rotation.from_euler("x", 0.5, degrees=True)
+    raws = [render_real_raw(cam, sun_n, Rotation.from_euler("z", a) * mount, sky, rng)
+            for a in turns]  # fmt: skip
+    return apply_to_camera(cam, fit_sky_rotation(raws, cam, ifov_correction=False))
+
+
+def _honesty(cam, n_images, seed, clean=False, calibrated=False, **options):
     """Heading errors, yaw_std, yaw_std_noise and the sun-free azimuth errors and sigmas
-    [rad] of the default (compensated) method over seeded realistic skies."""
+    [rad] of the default (compensated) method over seeded realistic skies. ``calibrated``:
+    one camera for all images, its channel-gain residual (+-0.5 %) fixed and the camera
+    file calibrated by :func:`sky_rotation_calibrated` (else a new residual per image and
+    the file as it is)."""
     rng = np.random.default_rng(seed)
+    cam_file, gain_residual = cam, None
+    if calibrated:
+        gain_residual = rng.uniform(-0.005, 0.005, 4)
+        cam_file = sky_rotation_calibrated(cam, gain_residual, rng)
     out = []
     for _ in range(n_images):
         sun_n, rot = _case(rng)
@@ -85,11 +111,13 @@ def _honesty(cam, n_images, seed, clean=False, **options):
         if clean:  # the estimator's own model: Rayleigh, no gain residual, no clouds
             sky = RealSky(neutral_sep=0.0, vignetting=0.0, horizon_depolarization=0.0,
                           epsilon=sky.epsilon)  # fmt: skip
+        if gain_residual is not None:
+            sky = replace(sky, gain_residual=gain_residual)
         raw = render_real_raw(cam, sun_n, rot, sky, rng)
         with warnings.catch_warnings():
             warnings.simplefilter("error")
-            m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, **options)
-            free = measure(raw, cam, rot_nb_prior=rot, **options)
+            m = measure(raw, cam_file, sun_n=sun_n, rot_nb_prior=rot, **options)
+            free = measure(raw, cam_file, rot_nb_prior=rot, **options)
         assert m.ok and m.method == "compensated", m.reason
         assert free.ok and free.sun_branch == "elevation", free.reason
         true_b = rot.inv().apply(sun_n)
@@ -120,8 +148,9 @@ def test_sigma_is_honest_on_realistic_skies():
     _check_honest(err, std)
     _check_honest(err_b, std_b)
     assert np.sqrt(np.mean((err / std_noise) ** 2)) > 2.0  # 3.0
-    # compensated RMSE [deg]: 0.111 with the Berry sky and the rotated-cloud cells (0.114
-    # before; 48 images: 0.180 and 0.197 at two seeds, 0.208 and 0.257 before)
+    # compensated RMSE [deg]: 0.126 with the fitted-sky DoP test (0.111 with the Berry sky
+    # and the rotated-cloud cells, 0.114 before; 48 images: 0.179, 0.180 and 0.197, 0.208
+    # and 0.257 before): a new uncalibrated gain residual per image
     assert np.sqrt(np.mean(np.degrees(err) ** 2)) < 0.13
 
 
@@ -143,6 +172,65 @@ def test_sigma_is_honest_on_many_realistic_skies():
     err, std, _, err_b, std_b = _honesty(CAM.downscaled(2), 24, seed=4)
     _check_honest(err, std)
     _check_honest(err_b, std_b)
+
+
+def _rmse_deg(err):
+    return float(np.degrees(np.sqrt(np.mean(np.square(err)))))
+
+
+def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_realistic_skies():
+    # Issue 15: one camera (a fixed +-0.5 % channel-gain residual) calibrated by a sky
+    # rotation, 16 realistic skies (neutral points, thin clouds, CIE radiance, vignetting,
+    # tilt up to 5 deg) at 1/4 resolution (the slow variant: 48 at 1/4 and 1/2): the
+    # compensated RMSE is below 0.1 deg and the sigma covers the error, with and without
+    # sun_n. Measured 0.058 deg (sun-free 0.059 deg), RMS(err/sigma) 0.69 (0.75), max 1.47;
+    # before the fitted-sky DoP test of the cloud passes: 0.104 deg, 1.06, max 1.93. Other
+    # seeds and the 48-image sets: docs/measurement.md §12.
+    err, std, _, err_b, std_b = _honesty(CAM4, 16, seed=2, calibrated=True)
+    _check_honest(err, std)
+    _check_honest(err_b, std_b)
+    assert _rmse_deg(err) <= 0.1 and _rmse_deg(err_b) <= 0.1, (_rmse_deg(err), _rmse_deg(err_b))
+
+
+@pytest.mark.slow
+def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_many_realistic_skies():
+    for cam in (CAM4, CAM.downscaled(2)):
+        err, std, _, err_b, std_b = _honesty(cam, 48, seed=7, calibrated=True)
+        _check_honest(err, std)
+        _check_honest(err_b, std_b)
+        assert _rmse_deg(err) <= 0.1 and _rmse_deg(err_b) <= 0.1, (_rmse_deg(err), _rmse_deg(err_b))
+
+
+def test_channel_angle_residual_is_covered_by_the_mixing_part():
+    # Channel angles off by 0.5 deg (1 sigma, zero mean: a common offset turns every
+    # heading alike and is the boresight's) on clean skies: the camera-fixed mixing part
+    # of the sigma (instrumental_mixing_std from polins.calibration.images.mixing_std)
+    # covers the error the nominal file makes.
+    from polins.calibration.images import mixing_std
+
+    rng = np.random.default_rng(12)
+    angle_std = np.radians(0.5)
+    mixing = mixing_std(CAM4.gain, CAM4.transmission_angle, CAM4.efficiency,
+                        np.full(4, angle_std), np.zeros(4))  # fmt: skip
+    err, std, corr = [], [], []
+    for _ in range(16):
+        sun_n, rot = _case(rng)
+        d_alpha = rng.normal(0.0, angle_std, 4)
+        sensor = replace(
+            CAM4, transmission_angle=CAM4.transmission_angle + d_alpha - d_alpha.mean()
+        )
+        sky = RealSky(neutral_sep=0.0, vignetting=0.0, horizon_depolarization=0.0)
+        raw = render_real_raw(sensor, sun_n, rot, sky, rng)
+        kw = {"sun_n": sun_n, "rot_nb_prior": rot, "instrumental_dop_std": 0.0,
+              "max_field_angle": np.radians(40.0)}  # fmt: skip
+        m = measure(raw, CAM4, instrumental_mixing_std=mixing, **kw)
+        assert measure(raw, CAM4, **kw).yaw_std_correlated == 0.0
+        err.append(float(wrap_angle(m.yaw - yaw_from_rot_nb(rot))))
+        std.append(m.yaw_std)
+        corr.append(m.yaw_std_correlated)
+    err, std, corr = map(np.array, (err, std, corr))
+    _check_honest(err, std)
+    assert np.sqrt(np.mean((err / np.sqrt(std**2 - corr**2)) ** 2)) > 1.5  # needed
 
 
 def test_gain_residual_is_the_correlated_part():
@@ -168,7 +256,8 @@ def test_gain_residual_is_the_correlated_part():
 
 def test_cloud_mask_removes_most_of_the_cloud_error():
     # Thin clouds only (AoP rotated by up to 3 deg): the default DoP-deficit mask of sky
-    # cells (cloud_dop_ratio=0.95) and the rotated-cell test (cloud_aop_z=4) cut the heading
+    # cells (cloud_dop_ratio=0.95), the rotated-cell test (cloud_aop_z=4) and the fitted
+    # sky's DoP test (cloud_fit_ratio=0.97) cut the heading
     # error, and the sigma (with the default camera-fixed part) stays honest; on a clean sky
     # they drop almost no pixel.
     rng = np.random.default_rng(8)
@@ -180,7 +269,7 @@ def test_cloud_mask_removes_most_of_the_cloud_error():
                       clouds=clouds)  # fmt: skip
         raw = render_real_raw(CAM4, sun_n, rot, sky, rng)
         kw = {"sun_n": sun_n, "rot_nb_prior": rot}
-        m = measure(raw, CAM4, cloud_dop_ratio=None, cloud_aop_z=None, **kw)
+        m = measure(raw, CAM4, cloud_dop_ratio=None, cloud_aop_z=None, cloud_fit_ratio=None, **kw)
         masked = measure(raw, CAM4, **kw)
         assert masked.ok and masked.n_pixels < m.n_pixels
         err.append(float(wrap_angle(m.yaw - yaw_from_rot_nb(rot))))
@@ -193,7 +282,8 @@ def test_cloud_mask_removes_most_of_the_cloud_error():
         measure(raw, CAM4, cloud_dop_ratio=1.5)
     clean = RealSky(neutral_sep=0.0, vignetting=0.0, horizon_depolarization=0.0)
     raw = render_real_raw(CAM4, sun_n, rot, clean, rng)
-    n_clean = measure(raw, CAM4, cloud_dop_ratio=None, cloud_aop_z=None, **kw).n_pixels
+    off = {"cloud_dop_ratio": None, "cloud_aop_z": None, "cloud_fit_ratio": None}
+    n_clean = measure(raw, CAM4, **off, **kw).n_pixels
     assert measure(raw, CAM4, **kw).n_pixels >= 0.99 * n_clean
 
 

@@ -135,7 +135,8 @@ class SkyRotationResult:
 
     def camera_changes(self) -> dict[str, Any]:
         """The camera-model fields this calibration sets."""
-        return channel_changes(self.gain, self.gain_std, self.transmission_angle, self.efficiency)
+        return channel_changes(self.gain, self.gain_std, self.transmission_angle, self.efficiency,
+                               self.transmission_angle_std, self.efficiency_std)  # fmt: skip
 
 
 def ring_windows(cam: CameraModel, n_rings: int) -> tuple[FloatArray, FloatArray]:

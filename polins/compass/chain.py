@@ -62,6 +62,7 @@ from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import METHODS, Measurement, MeasurementMaps, MeasureOptions
 from polins.compass.modelerror import (
     cloudy_cells,
+    depolarized_cells,
     fitted_sensitivity,
     instrumental_sensitivity,
     model_weights,
@@ -77,6 +78,7 @@ from polins.compass.solve import compensated_solution
 from polins.errors import UserInputError
 from polins.frames import heading_deg_from_yaw, wrap_angle
 from polins.models import CameraModel
+from polins.sky.neutral_points import berry_neutral_points_level
 
 __all__ = ["Compensation", "measure_image"]
 
@@ -88,6 +90,10 @@ direct-sunlight coefficient it estimated (its median over the used pixels is rep
 
 _SECTOR_MIN_SHARE = 1e-3
 """Smallest share of the azimuth information for a jackknife group to count."""
+
+_DOP_TEST_PIXELS = 60_000
+"""Pixels of the fitted sky's DoP test (every k-th field-of-view pixel): its cells' sums
+need many more than the joint ML's subsample (docs/measurement.md §4)."""
 
 
 def _excluded_sun(sun_c: NDArray, rays: NDArray, cos_excl: float) -> NDArray:
@@ -348,6 +354,18 @@ def measure_image(
         rays=cache.lens_rays,
     )
 
+    depolarized = None
+    if opt.cloud_fit_ratio is not None:  # thin clouds by the fitted sky's DoP (§4)
+        dense = subsample(cam, dtype, max(1, n_fov // _DOP_TEST_PIXELS))
+        rows_d, valid_d = est_rows.take(dense.index, axis=1), valid[dense.index]
+        cells_d, up_c, fit_ratio = cells.take(dense.index), mat_cl[:, 2], opt.cloud_fit_ratio
+
+        def depolarized(azimuth: float, zenith_sun: float, sep: float) -> NDArray:
+            points = berry_neutral_points_level(azimuth, zenith_sun, sep)
+            points_c = (mat_cl @ points[0][:, 0], mat_cl @ points[1][:, 0])
+            return depolarized_cells(rows_d, valid_d, dense.rays, cells_d, points_c, up_c,
+                                     fit_ratio)  # fmt: skip
+
     used_method, fallback = method, ""
     gap = eigen_gap(eig0)
     mask: NDArray
@@ -357,6 +375,7 @@ def measure_image(
             data_sub if stride > 1 else data_full, data_full, theta, zen_arg, mat_cl, sel_sub,
             full_select, cells, sub.index, (sector_runs(cam, stride), sector_runs(cam)),
             (sub.rays, cache.rays), lambda ml, conv: _ml_problem(ml, opt, conv), opt,
+            depolarized,
         )  # fmt: skip
         if fallback:
             used_method = "traditional"  # weighted, with the reason (docs/measurement.md §11)
@@ -421,7 +440,8 @@ def measure_image(
     else:
         sensitivity = instrumental_sensitivity(data_used, theta, zen_arg, mat_cl,
                                                with_epsilon=used_method == "compensated")  # fmt: skip
-    std_instrumental = opt.instrumental_dop_std * sensitivity
+    std_instrumental = float(np.hypot(opt.instrumental_dop_std * sensitivity[0],
+                                      opt.instrumental_mixing_std * sensitivity[1]))  # fmt: skip
     n_pixels = int(np.count_nonzero(mask))
     if n_pixels < opt.min_pixels:
         reason = f"too few valid pixels ({n_pixels} < {opt.min_pixels})"

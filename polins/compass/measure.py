@@ -174,8 +174,9 @@ def _dispatch(
             raw, cam, sun_n=sun_n, rot_nb_prior=rot_nb_prior, maps=maps, **options
         )
     else:
-        if cam.instrumental_dop_std is not None and "instrumental_dop_std" not in options:
-            options = {**options, "instrumental_dop_std": cam.instrumental_dop_std}
+        for name in ("instrumental_dop_std", "instrumental_mixing_std"):
+            if getattr(cam, name) is not None and name not in options:
+                options = {**options, name: getattr(cam, name)}
         opt: MeasureOptions = measure_options(**options)
         result = measure_image(
             raw,

@@ -82,6 +82,11 @@ class MeasureOptions:
         1-sigma per component of the camera-fixed polarization the channel calibration
         leaves [-] (0.002 for gains good to +-0.5 %; 0 for a perfect calibration); gives
         :attr:`Measurement.yaw_std_correlated` (§12).
+    instrumental_mixing_std : float
+        1-sigma of the camera-fixed mixing of the linear Stokes components that the
+        channel angles and efficiencies leave [-] (0: taken as exact; a calibration's
+        figure, e.g. 0.0009 for angles good to 0.05 deg); part of
+        :attr:`Measurement.yaw_std_correlated` (§12).
     max_field_angle : float or None
         Region of interest: largest ray angle from the optical axis used [rad] (None: the
         camera file's ``[roi]`` and field of view only).
@@ -123,6 +128,12 @@ class MeasureOptions:
         joint ML solved again (docs/measurement.md §4); None: no such test.
     cloud_aop_min : float
         Smallest mean rotation of a cell that counts as cloud [rad].
+    cloud_fit_ratio : float or None
+        ``"compensated"``: thin-cloud cells after the fit: sky cells whose summed polarized
+        intensity (on about 60,000 pixels) falls below this fraction of the fitted sky's
+        (its neutral-point DoP shape, the level of the cells at the same elevation) by more
+        than 3 sigmas are dropped with two rings of neighbours and the joint ML solved again
+        (docs/measurement.md §4); None: no such test.
     tilt_std : float
         1-sigma roll/pitch error about the horizontal axis towards the sun [rad]; adds
         ``cot(Z) tilt_std`` to the heading sigma.
@@ -184,6 +195,7 @@ class MeasureOptions:
     sigma_floor: float = 0.0
     model_scale: float = 2.0
     instrumental_dop_std: float = 0.002
+    instrumental_mixing_std: float = 0.0
     max_field_angle: float | None = None
     model_aop_std: float = 0.0
     model_field_angle: float = float(np.radians(60.0))
@@ -196,6 +208,7 @@ class MeasureOptions:
     fit_delta: bool = False
     cloud_aop_z: float | None = 4.0
     cloud_aop_min: float = float(np.radians(0.1))
+    cloud_fit_ratio: float | None = 0.97
     tilt_std: float = 0.0
     yaw_gate: float | None = None
     gradient_max: float | None = 0.05
@@ -224,6 +237,7 @@ class MeasureOptions:
             "sigma_floor",
             "model_scale",
             "instrumental_dop_std",
+            "instrumental_mixing_std",
             "model_aop_std",
             "model_neutral_angle",
             "tilt_std",
@@ -238,8 +252,9 @@ class MeasureOptions:
             raise UserInputError(f"dop_min={self.dop_min} outside [0, 1)")
         if self.max_field_angle is not None and not 0 < self.max_field_angle <= np.pi / 2:
             raise UserInputError(f"max_field_angle={self.max_field_angle} outside (0, pi/2] rad")
-        if self.cloud_dop_ratio is not None and not 0 < self.cloud_dop_ratio < 1:
-            raise UserInputError(f"cloud_dop_ratio={self.cloud_dop_ratio} outside (0, 1)")
+        for name in ("cloud_dop_ratio", "cloud_fit_ratio"):
+            if getattr(self, name) is not None and not 0 < getattr(self, name) < 1:
+                raise UserInputError(f"{name}={getattr(self, name)} outside (0, 1)")
         if not self.model_field_angle > 0:
             raise UserInputError(f"model_field_angle={self.model_field_angle} must be > 0 [rad]")
         if self.sky_model not in SKY_MODELS:

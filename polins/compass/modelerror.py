@@ -31,6 +31,7 @@ from polins.models import CameraModel
 __all__ = [
     "CLOUD_CELLS",
     "cloudy_cells",
+    "depolarized_cells",
     "fitted_sensitivity",
     "instrumental_sensitivity",
     "model_weights",
@@ -106,6 +107,112 @@ def cloudy_cells(
     return (count >= _CELL_MIN_PIXELS) & (sum_p < (ratio * d_max) * sum_clear)
 
 
+_FIT_SHAPE_TEST = 0.15  # fitted sky's DoP shape above which a pixel is tested
+_FIT_Z = 3.0  # a cell's deficit must exceed this many of its sigmas
+_FIT_RINGS = 2  # rings of neighbours dropped with a depolarized cell
+_BAND = float(np.radians(7.5))  # elevation band of the clear-sky level [rad]
+_BAND_MIN_CELLS = 6  # cells a band needs for its median (else it joins the next)
+
+
+def _grow(flagged: NDArray, rings: int) -> NDArray:
+    """Flagged cells ``(CLOUD_CELLS**2,)`` and ``rings`` rings of their 4-neighbours."""
+    grown = flagged.reshape(CLOUD_CELLS, CLOUD_CELLS)
+    for _ in range(rings):
+        ring = grown.copy()
+        ring[1:] |= grown[:-1]
+        ring[:-1] |= grown[1:]
+        ring[:, 1:] |= grown[:, :-1]
+        ring[:, :-1] |= grown[:, 1:]
+        grown = ring
+    return grown.ravel()
+
+
+def _band_level(ratio: NDArray, elevation: NDArray) -> NDArray:
+    """Median of the cells' ``ratio`` ``(m,)`` over bands of :data:`_BAND` in their
+    ``elevation`` [rad], a band of fewer than :data:`_BAND_MIN_CELLS` cells joined to the
+    next (the last to the previous): ``(m,)``."""
+    order = np.argsort(elevation)
+    band = np.floor(elevation[order] / _BAND)
+    level = np.empty_like(ratio)
+    start, m = 0, order.size
+    while start < m:
+        stop = max(int(np.searchsorted(band, band[start], side="right")), start + _BAND_MIN_CELLS)
+        stop = m if m - stop < _BAND_MIN_CELLS else stop
+        level[order[start:stop]] = np.median(ratio[order[start:stop]])
+        start = stop
+    return level
+
+
+def depolarized_cells(
+    rows: NDArray,
+    valid: NDArray,
+    rays: NDArray,
+    cells: NDArray,
+    points_c: tuple[NDArray, NDArray],
+    up_c: NDArray,
+    ratio: float,
+) -> NDArray:
+    """Sky cells ``(CLOUD_CELLS**2,)`` bool whose DoP falls short of the fitted clear sky's
+    (docs/measurement.md §4).
+
+    The fitted sky's DoP shape is ``f = |w| / (2 - |w|)``, ``|w| = sin T_1 sin T_2`` (T_k
+    the angles to its Babinet and Brewster points, docs/model.md §6.3). Per cell, over the
+    valid pixels with ``f >`` :data:`_FIT_SHAPE_TEST`, ``q_c = sum p / sum f S0`` and its
+    sigma from the pixels' scatter about ``q_c f S0``; the clear-sky level is the median
+    ``q`` of the cells at the same elevation (:func:`_band_level`: a horizon
+    depolarization is a function of the elevation, a cloud is local). A cell with
+    ``q_c < ratio level_c`` and ``level_c - q_c >`` :data:`_FIT_Z` sigmas is flagged, with
+    :data:`_FIT_RINGS` rings of neighbours (a cloud's rim turns the E-vector too).
+
+    Parameters
+    ----------
+    rows : (3, n)
+        Stokes rows S0, S1, S2 [DN]. valid : (n,) bool.
+    rays : (3, n)
+        Camera-frame unit rays.
+    cells : (n,) int
+        The pixels' :func:`sky_cells`.
+    points_c : ((3,), (3,))
+        Camera-frame unit Babinet and Brewster points of the fit (both the sun for the
+        Rayleigh sky).
+    up_c : (3,)
+        Camera-frame unit vertical (a cell's elevation: that of its tested pixels' mean ray).
+    ratio : float
+        ``cloud_fit_ratio`` [-].
+    """
+    n_cells = CLOUD_CELLS * CLOUD_CELLS
+    cos2 = np.asarray(points_c, dtype=rays.dtype) @ rays  # (2, n)
+    np.multiply(cos2, cos2, out=cos2)
+    w = np.sqrt(np.clip((1.0 - cos2[0]) * (1.0 - cos2[1]), 0.0, 1.0))
+    shape = w / (2.0 - w)
+    at = np.flatnonzero(valid & (shape > _FIT_SHAPE_TEST) & (rows[0] > 0))
+    ct = cells.take(at)
+    s0, s1, s2 = rows[:, at]
+    p = np.hypot(s1, s2)
+    clear = shape.take(at) * s0
+    count = np.bincount(ct, minlength=n_cells)
+    used = count >= _CELL_MIN_PIXELS
+    if np.count_nonzero(used) < 2 * _BAND_MIN_CELLS:
+        return np.zeros(n_cells, dtype=bool)
+    sin_el = np.asarray(up_c, dtype=rays.dtype) @ rays[:, at]
+    sum_p, sum_clear, sum_pp, sum_pc, sum_cc, sum_up = (
+        np.bincount(ct, weights=x, minlength=n_cells)
+        for x in (p, clear, p * p, p * clear, clear * clear, sin_el)
+    )
+    safe = np.where(used, sum_clear, 1.0)
+    q = np.where(used, sum_p / safe, 0.0)
+    # the pixels' scatter about q f S0: sum (p - q f S0)^2
+    scatter = np.maximum(sum_pp - 2.0 * q * sum_pc + q * q * sum_cc, 0.0)
+    sigma = np.sqrt(scatter) / safe
+    idx = np.flatnonzero(used)
+    elevation = np.arcsin(np.clip(sum_up[idx] / count[idx], -1.0, 1.0))
+    level = _band_level(q[idx], elevation)
+    deficit = level - q[idx]
+    flagged = np.zeros(n_cells, dtype=bool)
+    flagged[idx] = (q[idx] < ratio * level) & (deficit > _FIT_Z * sigma[idx])
+    return _grow(flagged, _FIT_RINGS)
+
+
 def rotated_cells(
     data: PixelData,
     theta: NDArray,
@@ -150,23 +257,18 @@ def rotated_cells(
     used = den > 0
     if np.any(used):  # in units of the cells' own spread (the residuals are not all noise)
         z = z / max(1.0, 1.4826 * float(np.median(z[used])))
-    flagged = (used & (z > z_min) & (np.abs(rot) > angle_min)).reshape(CLOUD_CELLS, -1)
-    grown = flagged.copy()  # and their neighbours: a cloud's rim is turned too
-    grown[1:] |= flagged[:-1]
-    grown[:-1] |= flagged[1:]
-    grown[:, 1:] |= flagged[:, :-1]
-    grown[:, :-1] |= flagged[:, 1:]
-    return grown.ravel() & (den > 0)
+    flagged = used & (z > z_min) & (np.abs(rot) > angle_min)
+    return _grow(flagged, 1) & (den > 0)  # and their neighbours: a cloud's rim is turned too
 
 
 def fitted_sensitivity(
     data: PixelData, theta: NDArray, zenith: float | None, mat_cl: NDArray, sky: SkyModel
-) -> float:
+) -> tuple[float, float]:
     """Yaw change per unit camera-fixed polarization ``sqrt(g_1^2 + g_2^2)`` [rad] of a
     joint ML that estimates ``delta_perp`` (``theta = (A_l[, Z_l], delta_perp, eps)``,
     ``sky`` with ``fit_delta``): that component is absorbed, what is left is the part
-    along the sunlight direction that epsilon does not absorb (docs/measurement.md §12).
-    Same arguments as :func:`instrumental_sensitivity`."""
+    along the sunlight direction that epsilon does not absorb (docs/measurement.md §12);
+    and per unit camera-fixed mixing. Same arguments as :func:`instrumental_sensitivity`."""
     _, jac, _, _ = ml_evaluate(data, theta, zenith, mat_cl, True, None, sky)
     assert jac is not None
     return _yaw_per_delta(data, jac.astype(np.float64), theta, zenith, mat_cl)
@@ -204,8 +306,9 @@ def model_weights(
 
 def instrumental_sensitivity(
     data: PixelData, theta: NDArray, zenith: float | None, mat_cl: NDArray, with_epsilon: bool
-) -> float:
-    """Yaw change per unit camera-fixed polarization, ``sqrt(g_1^2 + g_2^2)`` [rad].
+) -> tuple[float, float]:
+    """Yaw change per unit camera-fixed polarization, ``sqrt(g_1^2 + g_2^2)`` [rad], and per
+    unit camera-fixed mixing of the linear Stokes components (``sqrt(g_a^2 + g_b^2)``).
 
     Parameters
     ----------
@@ -229,26 +332,29 @@ def instrumental_sensitivity(
 
 def _yaw_per_delta(
     data: PixelData, j: NDArray, theta: NDArray, zenith: float | None, mat_cl: NDArray
-) -> float:
+) -> tuple[float, float]:
     """``sqrt(g_1^2 + g_2^2)`` [rad] of the linear response ``d theta = -(J J^T)^-1 J dr``
-    of the estimate (Jacobian rows ``j``, float64) to a camera-fixed polarization ``delta``
-    (docs/measurement.md §12); NaN when ``J J^T`` is singular."""
+    of the estimate (Jacobian rows ``j``, float64) to a camera-fixed polarization ``delta``,
+    and the same for a camera-fixed mixing ``dL = [[a, b], [b, -a]] L`` of the linear
+    Stokes components (docs/measurement.md §12); NaN when ``J J^T`` is singular."""
     sun_l = _sun_level(theta, zenith)
     xy = image_plane_evector(data, (mat_cl @ sun_l)[:, None])
     n = data.s0.size
     n1, n2, e2 = doubled_prediction(xy[0, :n], xy[0, n:])
-    scale = data.s0.astype(np.float64) / e2
+    scale = 1.0 / e2.astype(np.float64)
     if data.mask is not None:
         scale = scale * data.mask
     if isinstance(data.inv_sigma, np.ndarray):
         scale = scale * data.inv_sigma
-    # dr for delta = (1, 0) and (0, 1): n . (S0, 0) = -sin 2zeta S0, n . (0, S0) = cos 2zeta S0.
-    dr = np.stack([-n2 * scale, n1 * scale])
+    s0, s1, s2 = (x.astype(np.float64) * scale for x in (data.s0, data.s1, data.s2))
+    # dr = n . dL with n = (-sin 2zeta, cos 2zeta): delta = (1, 0) and (0, 1) give dL = (S0, 0)
+    # and (0, S0); the mixing a and b give dL = (S1, -S2) and (S2, S1).
+    dr = np.stack([-n2 * s0, n1 * s0, -n2 * s1 - n1 * s2, n1 * s1 - n2 * s2])
     try:
-        dtheta = -np.linalg.solve(j @ j.T, j @ dr.T)  # (k, 2)
+        dtheta = -np.linalg.solve(j @ j.T, j @ dr.T)  # (k, 4)
     except np.linalg.LinAlgError:
-        return float("nan")
-    return float(np.hypot(dtheta[0, 0], dtheta[0, 1]))
+        return float("nan"), float("nan")
+    return float(np.hypot(dtheta[0, 0], dtheta[0, 1])), float(np.hypot(dtheta[0, 2], dtheta[0, 3]))
 
 
 _SENSITIVITY_PIXELS = 4000  # a ratio of sums: a few thousand pixels give it to ~1 %

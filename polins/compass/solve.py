@@ -6,8 +6,10 @@ Step 3 of :mod:`polins.compass.chain` (docs/measurement.md §5, §12):
    its neutral-point separation, the camera-fixed ``delta_perp``;
    :mod:`polins.compass.skymodel`) on the pixel subsample;
 2. with ``cloud_aop_z``: sky cells whose mean AoP residual is significant (a thin cloud
-   turns the E-vector, :func:`polins.compass.modelerror.rotated_cells`) are dropped and the
-   subsample is solved again, up to :data:`CLOUD_ROUNDS` times;
+   turns the E-vector, :func:`polins.compass.modelerror.rotated_cells`), and with
+   ``cloud_fit_ratio`` those whose DoP falls short of the fitted sky's (the chain's
+   ``depolarized``, :func:`polins.compass.modelerror.depolarized_cells`), are dropped and
+   the subsample is solved again, up to :data:`CLOUD_ROUNDS` times;
 3. one Gauss-Newton step on all valid pixels, the neutral-point separation kept at the
    subsample's value (the Berry prediction is one compiled pass over the pixels).
    Without a subsample (``stride == 1``) the full set is solved directly, to a tenth of a
@@ -31,7 +33,7 @@ from polins.compass.sectors import SectorRuns
 from polins.compass.selection import Selection
 from polins.compass.skymodel import SkyModel, sky_model
 
-__all__ = ["CLOUD_ROUNDS", "SEP_MIN", "compensated_solution"]
+__all__ = ["CLOUD_ROUNDS", "SEP_MIN", "Depolarized", "compensated_solution"]
 
 CLOUD_ROUNDS = 3
 """Largest number of rotated-cloud passes (each drops cells and solves again)."""
@@ -100,6 +102,11 @@ def _separation_possible(
     return tau > SCORE_MARGIN * max(SEP_MIN**2, opt.sep_z_min * np.sqrt(var))
 
 
+Depolarized = Callable[[float, float, float], NDArray]
+"""``depolarized(azimuth, zenith, neutral_sep)`` [rad] of the fitted level-frame sun and
+separation: the sky cells ``(CLOUD_CELLS**2,)`` bool whose DoP falls short of that sky's."""
+
+
 def _drop_clouds(
     ml: MLSolution,
     mask: NDArray | None,
@@ -112,17 +119,25 @@ def _drop_clouds(
     mat_cl: NDArray,
     sky: SkyModel | None,
     opt: MeasureOptions,
+    depolarized: Depolarized | None,
 ) -> tuple[MLSolution, NDArray | None, NDArray]:
-    """Rotated-cloud passes on one pixel set: the solution, its mask and the dropped cells
-    ``(CLOUD_CELLS**2,)`` bool."""
+    """Cloud passes on one pixel set (rotated and, with ``depolarized``, depolarized
+    cells): the solution, its mask and the dropped cells ``(CLOUD_CELLS**2,)`` bool."""
     dropped = np.zeros(CLOUD_CELLS * CLOUD_CELLS, dtype=bool)
-    if opt.cloud_aop_z is None:
+    if opt.cloud_aop_z is None and depolarized is None:
         return ml, mask, dropped
+    k_sep = 1 if zenith is not None else 2
     for _ in range(CLOUD_ROUNDS):
         if problem(ml):
             break
-        flagged = rotated_cells(dataclasses.replace(data, mask=mask), ml.theta, zenith, mat_cl,
-                                sky, cells, opt.cloud_aop_z, opt.cloud_aop_min)  # fmt: skip
+        flagged = np.zeros_like(dropped)
+        if opt.cloud_aop_z is not None:
+            flagged = rotated_cells(dataclasses.replace(data, mask=mask), ml.theta, zenith,
+                                    mat_cl, sky, cells, opt.cloud_aop_z, opt.cloud_aop_min)  # fmt: skip
+        if depolarized is not None and sky is not None and sky.berry:  # its DoP shape fits
+            sep = np.sqrt(max(float(ml.theta[k_sep]), 0.0)) if sky.fit_sep else sky.neutral_sep
+            zenith_sun = float(ml.theta[1]) if zenith is None else zenith
+            flagged = flagged | depolarized(float(ml.theta[0]), zenith_sun, float(sep))
         flagged &= ~dropped
         if not flagged.any():
             break
@@ -146,6 +161,7 @@ def compensated_solution(
     rays: tuple[NDArray, NDArray],
     problem: Callable[[MLSolution, bool], str],
     opt: MeasureOptions,
+    depolarized: Depolarized | None = None,
 ) -> tuple[MLSolution, NDArray | None, NDArray | None, str]:
     """The joint ML of one image (module notes).
 
@@ -170,6 +186,8 @@ def compensated_solution(
         Camera-frame unit rays of the subsample and of the full set.
     problem : callable
         ``problem(ml, converged)``: why a solution cannot be used ("" if it can).
+    depolarized : callable, optional
+        The DoP test of the cloud passes (:data:`Depolarized`); None: none.
 
     Returns
     -------
@@ -221,7 +239,7 @@ def compensated_solution(
     if not strided:
         ml, mask, sky, run = fit(data_full, sectors[1], rays[1], select_full)
         ml, mask, dropped = _drop_clouds(ml, mask, data_full, select_full, cells, run,
-                                         fails(True), zenith, mat_cl, sky, opt)  # fmt: skip
+                                         fails(True), zenith, mat_cl, sky, opt, depolarized)  # fmt: skip
         if dropped.any():
             np.logical_and(select_full.valid, ~dropped.take(cells), out=select_full.valid)
         if sky is not None and sky.fit_sep:
@@ -231,7 +249,7 @@ def compensated_solution(
     ml, mask_sub, sky_sub, run = fit(data_sub, sectors[0], rays[0], select_sub)
     cells_sub = cells.take(sub_index)
     ml, mask_sub, dropped = _drop_clouds(ml, mask_sub, data_sub, select_sub, cells_sub, run,
-                                         fails(True), zenith, mat_cl, sky_sub, opt)  # fmt: skip
+                                         fails(True), zenith, mat_cl, sky_sub, opt, depolarized)  # fmt: skip
     fallback = problem(ml, True)
     if fallback:
         return ml, None, mask_sub, fallback

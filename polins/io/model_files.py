@@ -124,11 +124,11 @@ def camera_model_toml(
             "gain": cam.gain,
             "efficiency": cam.efficiency,
             "dark_offset_dn": cam.dark_offset_dn,
-            **(
-                {}
-                if cam.instrumental_dop_std is None
-                else {"instrumental_dop_std": cam.instrumental_dop_std}
-            ),
+            **{
+                name: getattr(cam, name)
+                for name in ("instrumental_dop_std", "instrumental_mixing_std")
+                if getattr(cam, name) is not None
+            },
             **{MAP_FIELDS[f]: Path(p).as_posix() for f, p in paths.items()},
         },
         "noise": {

@@ -127,6 +127,7 @@ _CAMERA_SCHEMA: Schema = {
         "efficiency": vector(4),
         "dark_offset_dn": vector(4),
         "instrumental_dop_std": Optional(nonneg),
+        "instrumental_mixing_std": Optional(nonneg),
         **{key: Optional(string) for key in MAP_FIELDS.values()},
     },
     "noise": {"read_noise_dn": nonneg, "conversion_gain_e_per_dn": positive},
@@ -209,6 +210,9 @@ class CameraModel:
     # 1-sigma of the camera-fixed polarization the calibration leaves [-] (docs/measurement.md
     # §12); None: the measurement's default, a calibration good to +-0.5 % in gain
     instrumental_dop_std: float | None = None
+    # 1-sigma of the camera-fixed mixing of S1, S2 that the channel angles and efficiencies
+    # leave [-] (docs/measurement.md §12); None: 0, the file's angles taken as exact
+    instrumental_mixing_std: float | None = None
 
     def __post_init__(self) -> None:
         expected = (*self.superpixel_shape, 4)
@@ -458,6 +462,7 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
         efficiency=pol["efficiency"],
         dark_offset_dn=pol["dark_offset_dn"],
         instrumental_dop_std=pol.get("instrumental_dop_std"),
+        instrumental_mixing_std=pol.get("instrumental_mixing_std"),
         read_noise_dn=d["noise"]["read_noise_dn"],
         conversion_gain_e_per_dn=d["noise"]["conversion_gain_e_per_dn"],
         projection=lens["projection"],
