@@ -53,7 +53,7 @@ class Drive:
         gyro_vib, accel_vib = road_vibration(self.traj.t, forward_speed(self.vehicle), rng)
         ideal[["gx", "gy", "gz"]] += gyro_vib
         ideal[["ax", "ay", "az"]] += accel_vib
-        self.imu, _ = imu_errors(ideal, MEMS, rng)
+        self.imu, self.errors = imu_errors(ideal, MEMS, rng)  # the true sensor errors
         self.odometry = odometer_speeds(self.vehicle, rng, **UGV_ODOMETER)
         idx = np.arange(400, len(self.traj.t), 200)  # 1 Hz headings, 0.1 deg
         yaw_std = math.radians(0.1)
@@ -72,8 +72,8 @@ def drive() -> Drive:
     return Drive(seed=3, duration_s=200.0)
 
 
-def attitude_scores(traj: Trajectory, sol: pd.DataFrame, t_min: float = 10.0) -> dict:
-    """Per angle: RMS error [deg], RMS(err/sigma), fraction within 3 sigma."""
+def attitude_errors(traj: Trajectory, sol: pd.DataFrame, t_min: float = 10.0) -> dict:
+    """Per angle (yaw, pitch, roll): the errors [rad] after ``t_min`` and their sigmas."""
     k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
     truth = traj.rot_nb[k].as_euler("ZYX")
     keep = sol["t"].to_numpy() > t_min
@@ -82,10 +82,15 @@ def attitude_scores(traj: Trajectory, sol: pd.DataFrame, t_min: float = 10.0) ->
         ok = keep & np.isfinite(sol[name].to_numpy())  # the yaw is NaN until acquired
         assert ok.mean() > 0.8
         err = np.angle(np.exp(1j * (sol[name].to_numpy() - truth[:, j])))[ok]
-        std = sol[f"{name}_std"].to_numpy()[ok]
-        out[name] = (math.degrees(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean((err / std) ** 2))),
-                     float(np.mean(np.abs(err) < 3 * std)))  # fmt: skip
+        out[name] = (err, sol[f"{name}_std"].to_numpy()[ok])
     return out
+
+
+def attitude_scores(traj: Trajectory, sol: pd.DataFrame, t_min: float = 10.0) -> dict:
+    """Per angle: RMS error [deg], RMS(err/sigma), fraction within 3 sigma."""
+    return {name: (math.degrees(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean((err / std) ** 2))),
+                   float(np.mean(np.abs(err) < 3 * std)))
+            for name, (err, std) in attitude_errors(traj, sol, t_min).items()}  # fmt: skip
 
 
 def horizontal_error_m(traj: Trajectory, sol: pd.DataFrame) -> float:
@@ -382,3 +387,38 @@ def test_per_sample_filter_matches_the_fast_path(drive: Drive):
     last = ref.solution.iloc[-1]
     np.testing.assert_allclose(filt.state().vel_n, last[["ve", "vn", "vu"]].to_numpy(float),
                                atol=1e-4)  # fmt: skip
+
+
+@pytest.mark.slow
+def test_smoothed_attitude_is_consistent_over_drives_not_on_each():
+    """Issue 13: one drive's smoothed RMS(err/sigma) is a statistic of few degrees of freedom.
+
+    The smoothed tilt error of a MEMS drive with the odometer is mostly one offset for the
+    whole drive: the tilt and the accelerometer bias along it, which the turns of the whole
+    drive tell apart, are estimated once per drive. Over drives the model is consistent,
+    on each drive it need not be near 1 (docs/filter.md §8). Measured on these 16 drives:
+    RMS over the drives of RMS(err/sigma) yaw / pitch / roll 1.02 / 1.07 / 0.87, of each
+    drive's mean err/sigma 0.45 / 0.84 / 0.62, final accelerometer-bias states x / y
+    1.17 / 0.87; the largest single drive 2.41 (pitch, drive 106: -2.3 sigma all along,
+    its bias x -3.5 sigma). A filter with the gyro ARW 30 % low: 1.17 / 1.46 / 1.24,
+    0.52 / 1.15 / 0.89, 1.58 / 1.20; with it doubled: 0.82 / 0.69 / 0.51.
+    """
+    rms, mean, bias = [], [], []
+    for seed in range(100, 116):
+        drive = Drive(seed, 200.0)
+        result = drive.fuse(odometry=True, smooth=True, vehicle="ground", mount_rpy=MOUNT,
+                            lever_arm_b=UGV_LEVER_ARM_B)  # fmt: skip
+        sol = result.solution
+        z = [err / std for err, std in attitude_errors(drive.traj, sol).values()]
+        rms.append([np.sqrt(np.mean(z_angle**2)) for z_angle in z])
+        mean.append([np.mean(z_angle) for z_angle in z])
+        last = sol.iloc[-1]
+        bias.append(
+            [(last[c] - drive.errors[c].iloc[-1]) / last[f"{c}_std"] for c in ("bax", "bay")]
+        )
+    rms_all = np.sqrt(np.mean(np.square(rms), axis=0))
+    mean_all = np.sqrt(np.mean(np.square(mean), axis=0))
+    bias_all = np.sqrt(np.mean(np.square(bias), axis=0))
+    assert np.all((rms_all >= 0.75) & (rms_all <= 1.25)), rms_all
+    assert np.all(mean_all <= 1.0), mean_all  # the run-long offsets are covered
+    assert np.all(bias_all <= 1.35), bias_all
