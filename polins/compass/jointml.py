@@ -345,7 +345,7 @@ def gauss_newton(
         post_scale = 1.0
     mask = data.mask
     theta_prev, step, loss_prev, halvings = theta, np.zeros_like(theta), np.inf, 0
-    # The linear loss in one compiled pass (per-run sums; no residual rows are stored).
+    # The linear loss in one compiled pass (sums per jackknife group; no rows are stored).
     fused = loss == "linear" and not (sky is not None and sky.fit_delta)
     fused = fused and pass_ready(data, select, theta.size)
     accepted: tuple[NDArray, NDArray | None, NDArray | None, NDArray] | None = None

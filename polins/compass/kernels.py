@@ -250,7 +250,7 @@ def predicted_select_pass(  # pragma: no cover - compiled by numba, which covera
 
 
 ML_SUMS = 15
-"""Sums per run of :func:`ml_pass`: ``J^T J`` (10, upper triangle row by row), ``J^T r``
+"""Sums per group of :func:`ml_pass`: ``J^T J`` (10, upper triangle row by row), ``J^T r``
 (4) and ``r^T r`` of the four columns (three sun/sky parameters, epsilon)."""
 
 
