@@ -223,8 +223,8 @@ def compensated_solution(
         sky = _sky(rays_x, opt)
         run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
         berry = sky is not None and sky.fit_sep
-        if berry and not _separation_possible(data, theta, zenith, mat_cl, select, sky, k_sep,
-                                              opt):  # fmt: skip
+        if sky is not None and berry and not _separation_possible(
+                data, theta, zenith, mat_cl, select, sky, k_sep, opt):  # fmt: skip
             sky = _sky(rays_x, opt, berry=False)
             run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
             ml, mask = run(np.delete(theta, k_sep), select)
