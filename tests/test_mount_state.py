@@ -15,10 +15,17 @@ import pytest
 from gtsam.symbol_shorthand import V, X
 from scipy.spatial.transform import Rotation
 from test_graph_states import numeric_jacobians
-from test_vehicle import MEMS, MOUNT, SITE, UGV_LEVER_ARM_B, Drive, attitude_scores
+from test_vehicle import (
+    MEMS,
+    MOUNT,
+    SITE,
+    UGV_LEVER_ARM_B,
+    Drive,
+    attitude_scores,
+    fast_and_per_sample,
+)
 
 from polins.errors import UserInputError
-from polins.fusion.api import build_filter, run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.graph.states import GraphStates
 from polins.fusion.items import LEVER_STATE, MOUNT_STATES, MeasurementItem, item_model
@@ -191,18 +198,10 @@ def test_eskf_estimates_the_lever_arm_and_stays_consistent(drive: Drive):
 def test_per_sample_filter_estimates_the_mounting_as_the_fast_path(drive: Drive):
     # the streaming path (ESKF.propagate per sample, as NavigationStream) and run_fusion's
     # fast path apply the same updates to the mounting and lever-arm states
-    short = drive.imu[drive.imu["t"] <= 15.0]
-    heads = drive.headings[drive.headings["t"] <= 15.0]
     cfg = FuseConfig.from_options(imu_model=MEMS, **SITE, vehicle="ground", mount_rpy=CONFIGURED,
                                   mount_std=MOUNT_STD, lever_std=0.5)  # fmt: skip
-    ref = run_fusion(short, heads, "eskf", None, cfg).solution.iloc[-1]
-    t = short["t"].to_numpy()
-    filt = build_filter(t[0], 0.005, None, cfg)
-    for row in heads.itertuples():
-        filt.add_measurement(row.t, yaw=row.yaw, yaw_std=row.yaw_std)
-    gyro, accel = short[["gx", "gy", "gz"]].to_numpy(), short[["ax", "ay", "az"]].to_numpy()
-    for k in range(len(t)):
-        filt.propagate(t[k], gyro[k], accel[k])
+    fast, filt = fast_and_per_sample(drive, cfg)
+    ref = fast.solution.iloc[-1]
     nav = filt.state()
     for name in MOUNT_STATES:
         assert abs(float(nav.errors[name][0]) - ref[name]) < 1e-6, name

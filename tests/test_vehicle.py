@@ -363,15 +363,13 @@ def test_static_vehicle_has_zero_velocity_at_every_epoch():
     assert speed["static"] < 0.01 < speed["free"], speed
 
 
-def test_per_sample_filter_matches_the_fast_path(drive: Drive):
-    """``ESKF.propagate`` one sample at a time (streaming) applies the same vehicle updates
-    as ``run_fusion``'s fast path and ends on its estimate."""
+def fast_and_per_sample(drive: Drive, cfg: FuseConfig, t_end: float = 15.0):
+    """``run_fusion``'s fast path and a filter propagated one sample at a time (as
+    ``NavigationStream``) over the drive's first ``t_end`` seconds with its headings."""
     from polins.fusion.api import build_filter
 
-    short = drive.imu[drive.imu["t"] <= 15.0]
-    heads = drive.headings[drive.headings["t"] <= 15.0]
-    options = {"vehicle": "ground", "mount_rpy": MOUNT, "lever_arm_b": UGV_LEVER_ARM_B}
-    cfg = FuseConfig.from_options(imu_model=MEMS, **SITE, **options)
+    short = drive.imu[drive.imu["t"] <= t_end]
+    heads = drive.headings[drive.headings["t"] <= t_end]
     ref = run_fusion(short, heads, "eskf", None, cfg)
     t = short["t"].to_numpy()
     filt = build_filter(t[0], 0.005, None, cfg)
@@ -380,6 +378,15 @@ def test_per_sample_filter_matches_the_fast_path(drive: Drive):
     gyro, accel = short[["gx", "gy", "gz"]].to_numpy(), short[["ax", "ay", "az"]].to_numpy()
     for k in range(len(t)):
         filt.propagate(t[k], gyro[k], accel[k])
+    return ref, filt
+
+
+def test_per_sample_filter_matches_the_fast_path(drive: Drive):
+    """``ESKF.propagate`` one sample at a time (streaming) applies the same vehicle updates
+    as ``run_fusion``'s fast path and ends on its estimate."""
+    options = {"vehicle": "ground", "mount_rpy": MOUNT, "lever_arm_b": UGV_LEVER_ARM_B}
+    cfg = FuseConfig.from_options(imu_model=MEMS, **SITE, **options)
+    ref, filt = fast_and_per_sample(drive, cfg)
     names = [r.name for r in filt.records]
     ref_names = ref.updates["name"].tolist()
     assert names.count("zupt") == ref_names.count("zupt") >= 30
