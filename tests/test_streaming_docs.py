@@ -162,8 +162,11 @@ def test_result_does_not_depend_on_the_executor():
         st = nav.state()
         assert st.heading_known
         headings.append(st.nav.row()["heading_deg"])
-    # the thread executor replays from a snapshot: the same updates, other rounding
-    assert headings[0] == pytest.approx(headings[1], abs=1e-8)
+    # the thread executor replays from a snapshot: the same updates, other rounding and
+    # covariance steps (the yaw_std differs by 5e-4 relative); the acquired yaw's
+    # correlation with the tilt (docs/filter.md §7.1) carries that into the heading:
+    # measured 1.7e-8 deg apart (2e-9 without the correlation)
+    assert headings[0] == pytest.approx(headings[1], abs=1e-7)
 
 
 def test_buffers_are_bounded_and_count_what_they_drop():

@@ -32,16 +32,19 @@ def yaw_offset(
     vel_n: FloatArray | None,
     tilt_coupling: bool,
     tilt_cov: FloatArray | None = None,
-) -> tuple[float, float]:
+) -> tuple[float, float, FloatArray]:
     """The yaw rotation [rad] that zeroes the residual of a yaw / sun ``item`` at the
-    attitude ``mat_nb``, and its 1-sigma [rad].
+    attitude ``mat_nb``, its 1-sigma [rad] and its tilt gain ``a`` (2,) [-].
 
     The sigma is the item's (for a sun vector divided by the cosine of the sun elevation).
     A tilt-coupled yaw (docs/measurement.md, tilt coupling) also implies a yaw that moves
     by ``-(H_tilt / H_yaw) dtheta`` with the estimate's tilt error ``dtheta``: with
     ``tilt_cov`` (the 2 x 2 covariance [rad^2] of the navigation-frame tilt errors about
-    East and North) that part is added in quadrature (docs/filter.md §7.1).
+    East and North) that part is added in quadrature (docs/filter.md §7.1). The yaw set by
+    the offset is then in error by ``-a . dtheta`` plus the item's noise (``a`` zero for a
+    sun vector, whose tilt part is not modelled here).
     """
+    gain = np.zeros(2)
     if item.kind == "yaw":
         # one step for the yaw of body x (exact), three Newton steps with the tilt
         # coupling (the model depends on the prior's tilt)
@@ -51,16 +54,17 @@ def yaw_offset(
             mat = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix() @ mat_nb
             lin = item_model(item, mat, vel_n, tilt_coupling)
             delta += float(lin.residual[0] / lin.H[0, 2])
+        if coupled:
+            gain = lin.H[0, 0:2] / lin.H[0, 2]  # the last step's, at the converged yaw
         if coupled and tilt_cov is not None:
-            a = lin.H[0, 0:2] / lin.H[0, 2]  # the last step's, at the converged yaw
-            std = math.hypot(std, math.sqrt(max(float(a @ tilt_cov @ a), 0.0)))
-        return float(wrap_angle(delta)), std
+            std = math.hypot(std, math.sqrt(max(float(gain @ tilt_cov @ gain), 0.0)))
+        return float(wrap_angle(delta)), std, gain
     s_n = np.asarray(item.sun_n, dtype=float)
     s_n = s_n / np.linalg.norm(s_n)
     rot0 = Rotation.from_matrix(mat_nb)
     yaw_meas = yaw_from_sun(rot0, item.sun_b, s_n)  # type: ignore[arg-type]
     std = item.std / max(float(np.hypot(s_n[0], s_n[1])), 1e-3)
-    return float(wrap_angle(yaw_meas - yaw_from_rot_nb(rot0))), std
+    return float(wrap_angle(yaw_meas - yaw_from_rot_nb(rot0))), std, gain
 
 
 def consensus(

@@ -108,7 +108,11 @@ def sun_azimuth_jacobian(item: MeasurementItem, lin: Linearized) -> FloatArray:
 
 
 def link_acquired_yaw(
-    P: FloatArray, index: Mapping[str, slice], sun_n: FloatArray | None = None, yaw: int = 2
+    P: FloatArray,
+    index: Mapping[str, slice],
+    sun_n: FloatArray | None = None,
+    yaw: int = 2,
+    tilt_gain: FloatArray | None = None,
 ) -> FloatArray:
     """The covariance after a yaw acquisition from headings that carry heading offsets.
 
@@ -116,13 +120,18 @@ def link_acquired_yaw(
     (``P[yaw, yaw]`` on entry, uncorrelated) minus the offsets: ``e = n - c . x`` with ``c``
     1 on the heading bias and, on the site rotation ``site_rot_n``, the heading's
     sensitivity to a frame rotation: ``(-s_x s_z, -s_y s_z, s_x^2 + s_y^2) / (s_x^2 +
-    s_y^2)`` for the ENU sun ``sun_n`` of the headings, ``(0, 0, 1)`` without it. ``P``
-    becomes ``A P A^T`` for that linear map (the offsets' own rows unchanged). Without such
-    states ``P`` is returned unchanged.
+    s_y^2)`` for the ENU sun ``sun_n`` of the headings, ``(0, 0, 1)`` without it, and on
+    the tilt (the attitude error's East and North, rows ``yaw - 2 .. yaw - 1``) the
+    tilt-coupled headings' ``tilt_gain`` (docs/filter.md §7.1). ``P`` becomes ``A P A^T``
+    for that linear map (the offsets' own rows unchanged). Without such states ``P`` is
+    returned unchanged.
     """
-    if "heading_bias" not in index and "site_rot_n" not in index:
+    coupled = tilt_gain is not None and bool(np.any(tilt_gain))
+    if "heading_bias" not in index and "site_rot_n" not in index and not coupled:
         return P
     c = np.zeros(P.shape[0])
+    if coupled:
+        c[yaw - 2 : yaw] = tilt_gain
     if "heading_bias" in index:
         c[index["heading_bias"]] = 1.0
     if "site_rot_n" in index:

@@ -45,13 +45,16 @@ HELD = "held for the yaw acquisition"
 
 @dataclass(frozen=True)
 class Candidate:
-    """A heading held for the acquisition: time [s], yaw offset and its 1-sigma [rad], and
-    its update record."""
+    """A heading held for the acquisition: time [s], yaw offset and its 1-sigma [rad], its
+    update record, its tilt gain [-] and the 1-sigma of its own noise [rad]
+    (:func:`~polins.fusion.acquisition.yaw_offset`)."""
 
     t: float
     offset: float
     std: float
     record: UpdateRecord
+    gain: FloatArray
+    noise_std: float
 
 
 @dataclass
@@ -123,19 +126,26 @@ def hold_heading(filt: Filter, item: MeasurementItem, rec: UpdateRecord | None) 
         The heading's record.
     """
     mat = inject_nav(filt.mat_nb, filt.vel_n, filt.lat, filt.lon, filt.alt_m, filt.x[:9])[0]
-    offset, std = yaw_offset(item, mat, filt.vel_n, filt.tilt_coupling, filt.P[0:2, 0:2])
+    offset, std, gain = yaw_offset(item, mat, filt.vel_n, filt.tilt_coupling, filt.P[0:2, 0:2])
     rec = rec or filt.reject(item, HELD)
     acq, records = filt.acquisition, filt.records
-    for c in acq.hold(Candidate(item.t, offset, std, rec)):
+    noise_std = item.std if item.kind == "yaw" else std
+    for c in acq.hold(Candidate(item.t, offset, std, rec, gain, noise_std)):
         if c.record.reason == HELD:
             _amend(records, c.record, False, f"{HELD}: no consensus of {acq.k} in {acq.n}")
     found = acq.found(filt.yaw_aligned)
     if found is None:
         return rec
-    delta, std, members = found
+    delta, _, members = found
+    # the weighted mean's error: -gain . dtheta (the tilt part is common to the members)
+    # plus the mean of their own noises
+    w = np.array([1.0 / c.std**2 for c in members])
+    w /= w.sum()
+    gain = w @ np.array([c.gain for c in members])
+    noise_std = math.sqrt(float(np.sum((w * np.array([c.noise_std for c in members])) ** 2)))
     filt.reset()
     filt.mat_nb, filt.vel_n, filt.P = rotate_yaw(
-        delta, std, filt.mat_nb, filt.vel_n, filt.P, filt.layout, item.sun_n
+        delta, noise_std, filt.mat_nb, filt.vel_n, filt.P, filt.layout, item.sun_n, gain
     )
     if filt.yaw_aligned:
         reason = f"re-acquired: {acq.rejections} consecutive rejections"

@@ -122,13 +122,14 @@ def rotate_yaw(
     P: FloatArray,
     layout: Layout,
     sun_n: FloatArray | None = None,
+    tilt_gain: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Attitude, velocity and covariance with the yaw turned by ``delta`` [rad] (the error
     state is zero: called after a reset). The rotation turns the velocity and the
     attitude/velocity covariance with it; the yaw variance becomes ``std**2`` [rad^2], its
     correlations zero, except with the states that turn the measured heading (a heading
-    bias, a site error seen with the ENU sun ``sun_n`` of the headings:
-    :func:`~polins.fusion.sky_states.link_acquired_yaw`)."""
+    bias, a site error seen with the ENU sun ``sun_n`` of the headings, the tilt through
+    the headings' ``tilt_gain`` (2,) [-]: :func:`~polins.fusion.sky_states.link_acquired_yaw`)."""
     rz = Rotation.from_rotvec([0.0, 0.0, delta]).as_matrix()
     att, vel = layout["att"], layout["vel"]
     T = np.eye(layout.n)
@@ -138,4 +139,4 @@ def rotate_yaw(
     P[2, :] = 0.0
     P[:, 2] = 0.0
     P[2, 2] = std**2
-    return rz @ mat_nb, rz @ vel_n, link_acquired_yaw(P, layout.index, sun_n)
+    return rz @ mat_nb, rz @ vel_n, link_acquired_yaw(P, layout.index, sun_n, tilt_gain=tilt_gain)

@@ -383,7 +383,7 @@ class Problem:
                 state = self.preintegrate(k, bias, np.zeros(6)).predict(state, bias)
             k_state = max(k_state, mf.k)
             mat = state.attitude().matrix()
-            offset, std = yaw_offset(mf.item, mat, None, self.tilt_coupling, np.diag(tilt_var))
+            offset, std, _ = yaw_offset(mf.item, mat, None, self.tilt_coupling, np.diag(tilt_var))
             offsets.append(offset)
             stds.append(std)
             lo = max(0, len(offsets) - c.acquire_n)
