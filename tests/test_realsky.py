@@ -178,6 +178,15 @@ def _rmse_deg(err):
     return float(np.degrees(np.sqrt(np.mean(np.square(err)))))
 
 
+def _check_tenth_of_a_degree(cam, n_images, seed):
+    """The calibrated-camera Monte-Carlo: the compensated heading and the sun-free azimuth
+    within 0.1 deg RMS, their sigmas honest (:func:`_check_honest`)."""
+    err, std, _, err_b, std_b = _honesty(cam, n_images, seed=seed, calibrated=True)
+    _check_honest(err, std)
+    _check_honest(err_b, std_b)
+    assert _rmse_deg(err) <= 0.1 and _rmse_deg(err_b) <= 0.1, (_rmse_deg(err), _rmse_deg(err_b))
+
+
 def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_realistic_skies():
     # Issue 15: one camera (a fixed +-0.5 % channel-gain residual) calibrated by a sky
     # rotation, 16 realistic skies (neutral points, thin clouds, CIE radiance, vignetting,
@@ -186,19 +195,13 @@ def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_realistic_skies():
     # sun_n. Measured 0.058 deg (sun-free 0.059 deg), RMS(err/sigma) 0.69 (0.75), max 1.47;
     # before the fitted-sky DoP test of the cloud passes: 0.104 deg, 1.06, max 1.93. Other
     # seeds and the 48-image sets: docs/measurement.md §12.
-    err, std, _, err_b, std_b = _honesty(CAM4, 16, seed=2, calibrated=True)
-    _check_honest(err, std)
-    _check_honest(err_b, std_b)
-    assert _rmse_deg(err) <= 0.1 and _rmse_deg(err_b) <= 0.1, (_rmse_deg(err), _rmse_deg(err_b))
+    _check_tenth_of_a_degree(CAM4, 16, seed=2)
 
 
 @pytest.mark.slow
 def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_many_realistic_skies():
     for cam in (CAM4, CAM.downscaled(2)):
-        err, std, _, err_b, std_b = _honesty(cam, 48, seed=7, calibrated=True)
-        _check_honest(err, std)
-        _check_honest(err_b, std_b)
-        assert _rmse_deg(err) <= 0.1 and _rmse_deg(err_b) <= 0.1, (_rmse_deg(err), _rmse_deg(err_b))
+        _check_tenth_of_a_degree(cam, 48, seed=7)
 
 
 @pytest.mark.slow
@@ -208,10 +211,7 @@ def test_calibrated_camera_reaches_a_tenth_of_a_degree_at_full_resolution():
     # seeds reach 0.08-0.12 deg; at full resolution 16-image sets at seeds 4, 6, 8, 11, 12 gave
     # 0.018-0.061 deg with RMS(err/sigma) 0.81-1.19, max 3.5 (docs/measurement.md §12). Here:
     # 0.031 deg (sun-free 0.024 deg), RMS(err/sigma) 0.81 (0.71), max 1.64 (1.49).
-    err, std, _, err_b, std_b = _honesty(CAM, 16, seed=8, calibrated=True)
-    _check_honest(err, std)
-    _check_honest(err_b, std_b)
-    assert _rmse_deg(err) <= 0.1 and _rmse_deg(err_b) <= 0.1, (_rmse_deg(err), _rmse_deg(err_b))
+    _check_tenth_of_a_degree(CAM, 16, seed=8)
 
 
 def test_channel_angle_residual_is_covered_by_the_mixing_part():
