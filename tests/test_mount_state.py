@@ -157,6 +157,17 @@ def drive() -> Drive:
     return Drive(seed=3, duration_s=200.0)
 
 
+def check_needed(drive: Drive, sol: pd.DataFrame, sol_without: pd.DataFrame) -> None:
+    """``sol`` (with the states) consistent: yaw / pitch / roll RMS(err/sigma) in [0.7, 1.3],
+    >= 98 % within 3 sigma; ``sol_without`` over-confident in tilt (> 2, < 90 %)."""
+    scores = attitude_scores(drive.traj, sol)
+    for name, (_, ratio, within) in scores.items():
+        assert 0.7 <= ratio <= 1.3 and within >= 0.98, (name, scores)
+    wrong = attitude_scores(drive.traj, sol_without)
+    assert max(wrong["pitch"][1], wrong["roll"][1]) > 2.0, wrong
+    assert min(wrong["pitch"][2], wrong["roll"][2]) < 0.9, wrong
+
+
 def test_eskf_estimates_the_mounting_and_stays_consistent(drive: Drive):
     # 200 s MEMS UGV drive (measured: pitch -1.003 +- 0.030 deg, yaw 1.491 +- 0.076 deg;
     # yaw / pitch / roll RMS(err/sigma) 1.26 / 0.83 / 0.87, 100 % within 3 sigma, as with
@@ -165,14 +176,9 @@ def test_eskf_estimates_the_mounting_and_stays_consistent(drive: Drive):
     est, std = mount_estimate(sol)
     assert np.all(np.abs(est - TRUTH) < 3 * std), (np.degrees(est), np.degrees(std))
     assert np.all(std < math.radians(0.3)), np.degrees(std)
-    scores = attitude_scores(drive.traj, sol)
-    for name, (_, ratio, within) in scores.items():
-        assert 0.7 <= ratio <= 1.3 and within >= 0.98, (name, scores)
     # without the states the NHC pulls the tilt off and the sigmas do not cover it
     # (measured: pitch / roll 3.4 / 2.1, 80 / 82 % within 3 sigma)
-    wrong = attitude_scores(drive.traj, fuse(drive, "eskf", None).solution)
-    assert max(wrong["pitch"][1], wrong["roll"][1]) > 2.0, wrong
-    assert min(wrong["pitch"][2], wrong["roll"][2]) < 0.9, wrong
+    check_needed(drive, sol, fuse(drive, "eskf", None).solution)
     # mount_std = 0 is off: no columns
     assert "mount_pitch" not in fuse(drive, "eskf", 0.0).solution
 
@@ -186,13 +192,8 @@ def test_eskf_estimates_the_lever_arm_and_stays_consistent(drive: Drive):
     est, std = mount_estimate(sol, LEVER_COLUMNS)
     assert np.all(np.abs(est - UGV_LEVER_ARM_B) < 3 * std), (est, std)
     assert np.all(std[:2] < 0.03) and 0.1 < std[2] < 0.4, std
-    scores = attitude_scores(drive.traj, sol)
-    for name, (_, ratio, within) in scores.items():
-        assert 0.7 <= ratio <= 1.3 and within >= 0.98, (name, scores)
     # without the states (measured: pitch / roll 9.9 / 4.8, 12 / 47 % within 3 sigma)
-    wrong = attitude_scores(drive.traj, fuse_lever(drive, "eskf", None).solution)
-    assert max(wrong["pitch"][1], wrong["roll"][1]) > 2.0, wrong
-    assert min(wrong["pitch"][2], wrong["roll"][2]) < 0.9, wrong
+    check_needed(drive, sol, fuse_lever(drive, "eskf", None).solution)
 
 
 def test_per_sample_filter_estimates_the_mounting_as_the_fast_path(drive: Drive):
