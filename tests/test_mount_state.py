@@ -273,29 +273,29 @@ def test_mounting_states_are_consistent_over_drives(backend: str, state: str):
 def test_manifest_mount_std_deg_and_lever_std(tmp_path: Path):
     imu = pd.DataFrame({"t": np.arange(0, 2, 0.01), "gx": 0.0, "gy": 0.0, "gz": 0.0,
                         "ax": 0.0, "ay": 0.0, "az": 9.8})  # fmt: skip
-    vehicle = {"kind": "ground", "mount_rpy_deg": [0.5, -1.0, 2.0], "mount_std_deg": 2.0}
-    manifest = write_log(tmp_path / "log", epoch_utc="2023-09-05T07:00:00Z", camera="paper-table1",
-                         imu_model="mems-typical", lat_deg=45.0, lon_deg=126.0, alt_m=0.0, imu=imu,
-                         images=[], vehicle=vehicle)  # fmt: skip
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        cfg = read_log(manifest).config
+
+    def written(name: str, vehicle: dict) -> tuple[Path, FuseConfig]:
+        manifest = write_log(tmp_path / name, epoch_utc="2023-09-05T07:00:00Z",
+                             camera="paper-table1", imu_model="mems-typical", lat_deg=45.0,
+                             lon_deg=126.0, alt_m=0.0, imu=imu, images=[],
+                             vehicle=vehicle)  # fmt: skip
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return Path(manifest), read_log(manifest).config
+
+    manifest, cfg = written(
+        "log", {"kind": "ground", "mount_rpy_deg": [0.5, -1.0, 2.0], "mount_std_deg": 2.0}
+    )
     assert cfg.mount_std == pytest.approx(math.radians(2.0), rel=1e-15)
     assert cfg.mount_sigma == cfg.mount_std
     assert FuseConfig(mount_std=0.0).mount_sigma is None and FuseConfig().mount_sigma is None
     with pytest.raises(UserInputError, match="mount_std"):
         FuseConfig(mount_std=-0.01)
-    text = Path(manifest).read_text().replace("mount_std_deg = 2.0", "mount_std_deg = -1.0")
-    Path(manifest).write_text(text)
+    text = manifest.read_text().replace("mount_std_deg = 2.0", "mount_std_deg = -1.0")
+    manifest.write_text(text)
     with pytest.raises(ManifestError, match=r"vehicle\.mount_std_deg"):
         read_log(manifest)
-    vehicle = {"kind": "ground", "lever_arm_b": [-0.6, 0.1, -0.3], "lever_std": 0.3}
-    manifest = write_log(tmp_path / "log2", epoch_utc="2023-09-05T07:00:00Z", camera="paper-table1",
-                         imu_model="mems-typical", lat_deg=45.0, lon_deg=126.0, alt_m=0.0, imu=imu,
-                         images=[], vehicle=vehicle)  # fmt: skip
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        cfg = read_log(manifest).config
+    _, cfg = written("log2", {"kind": "ground", "lever_arm_b": [-0.6, 0.1, -0.3], "lever_std": 0.3})
     assert cfg.lever_std == 0.3 and cfg.lever_sigma == 0.3 and cfg.mount_sigma is None
     assert FuseConfig(lever_std=0.0).lever_sigma is None
     with pytest.raises(UserInputError, match="lever_std"):
