@@ -1,6 +1,8 @@
 """Polarization compass: raw image -> sun vector -> heading, covariance and refusals
 (docs/model.md §9-10, 12), on images from the independent renderer tests/render_simple.py."""
 
+import warnings
+
 import numpy as np
 import pytest
 from render_simple import random_attitude, render
@@ -365,6 +367,25 @@ def test_nan_pixels_are_masked_not_propagated():
     b = measure(holed, CAM4, sun_n=SUN_N, rot_nb_prior=rot)
     assert b.ok and np.isfinite(b.yaw_std) and b.n_pixels < a.n_pixels
     assert abs(np.degrees(b.yaw - a.yaw)) < 3 * np.degrees(a.yaw_std_meas)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_tiny_region_with_a_free_zenith_falls_back_with_a_reason(seed):
+    # Found: a 2 deg region with the zenith free left the score test's or the separation
+    # test's Gauss-Newton step without a selected pixel (residual RMS 0), and measure raised
+    # ZeroDivisionError (and the eigen fallback's zero gap a RuntimeWarning). Now it returns
+    # a result: ok with a finite yaw, or a reason.
+    rng = np.random.default_rng(seed)
+    rot = Rotation.from_euler(
+        "ZYX", [rng.uniform(-3, 3), rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05)]
+    )
+    sun_n = polins.sun_vector_n(rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(12, 30)))
+    raw = render(CAM4, sun_n, rot, noise_std=1.5, rng=rng, epsilon=0.01)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # and no numpy warning escapes
+        m = measure(raw, CAM4, sun_n=sun_n, rot_nb_prior=rot, max_field_angle=np.radians(2.0),
+                    min_pixels=10, fixed_zenith=False)  # fmt: skip
+    assert (m.ok and np.isfinite(m.yaw) and np.isfinite(m.yaw_std)) or (not m.ok and m.reason)
 
 
 def test_horizon_fallback_uses_the_prior():

@@ -26,6 +26,7 @@ __all__ = [
     "eigen_gap",
     "eigen_level_rows",
     "eigen_sun_covariance",
+    "gap_pseudo_inverse",
     "sandwich_covariance",
     "sandwich_middle",
     "sun_eigen",
@@ -157,11 +158,22 @@ def sandwich_middle(e: NDArray, omega: NDArray, sun: NDArray) -> NDArray:
     return moment(e, wr * wr)
 
 
-def sandwich_covariance(solution: EigenSolution, middle: NDArray) -> FloatArray:
-    """``A+ middle A+`` with ``A+ = sum_{j=2,3} v_j v_j^T / (lambda_j - lambda_1)``."""
+def gap_pseudo_inverse(solution: EigenSolution) -> FloatArray:
+    """``A+ = sum_{j=2,3} v_j v_j^T / (lambda_j - lambda_1)`` (3, 3) of the eigen solution
+    (docs/model.md §10.2); infinite or NaN entries when an eigen gap is zero (no pixels
+    selected): the covariances built on it then say so, without a numpy warning."""
     lam, vec = solution.eigenvalues, solution.eigenvectors
-    a_plus = sum(np.outer(vec[:, j], vec[:, j]) / (lam[j] - lam[0]) for j in (1, 2))
-    return np.asarray(a_plus @ middle @ a_plus, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.asarray(
+            sum(np.outer(vec[:, j], vec[:, j]) / (lam[j] - lam[0]) for j in (1, 2)), dtype=float
+        )
+
+
+def sandwich_covariance(solution: EigenSolution, middle: NDArray) -> FloatArray:
+    """``A+ middle A+`` with ``A+`` of :func:`gap_pseudo_inverse`."""
+    a_plus = gap_pseudo_inverse(solution)
+    with np.errstate(invalid="ignore"):
+        return np.asarray(a_plus @ middle @ a_plus, dtype=float)
 
 
 def eigen_sun_covariance(

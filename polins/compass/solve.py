@@ -20,6 +20,7 @@ Step 3 of :mod:`polins.compass.chain` (docs/measurement.md §5, §12):
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -65,12 +66,22 @@ def _without(ml: MLSolution, k: int) -> MLSolution:
     return dataclasses.replace(ml, theta=theta, covariance=cov, jackknife=jack, sector_h=h)
 
 
+def _separation_variance(ml: MLSolution, k: int) -> float:
+    """The variance of the fitted ``theta[k]`` at least the pixel noise's (the covariance
+    over ``min(residual_rms^2, 1)``); NaN when the solution selected no pixels (a zero or
+    non-finite residual RMS)."""
+    rms = float(ml.residual_rms)
+    if not (np.isfinite(rms) and rms > 0.0):
+        return math.nan
+    return float(ml.covariance[k, k]) / min(rms**2, 1.0)
+
+
 def _separation_identified(ml: MLSolution, k: int, opt: MeasureOptions) -> bool:
     """The fitted square of the neutral-point separation ``theta[k]`` is significant (above
     ``sep_z_min`` of its sigma, the sigma at least the pixel noise's) and the separation in
     range (:data:`SEP_MIN` to 90 deg)."""
     tau = float(ml.theta[k])
-    var = float(ml.covariance[k, k]) / min(ml.residual_rms**2, 1.0)
+    var = _separation_variance(ml, k)
     ok = SEP_MIN**2 < tau < (np.pi / 2) ** 2 and np.isfinite(var)
     return ok and tau > opt.sep_z_min * np.sqrt(var)
 
@@ -96,7 +107,7 @@ def _separation_possible(
     step, _ = gauss_newton(data, start, zenith, mat_cl, loss=opt.loss, max_iterations=1,
                            epsilon_bound=opt.epsilon_max, select=select, sky=sky)  # fmt: skip
     tau = float(step.theta[k])
-    var = float(step.covariance[k, k]) / min(step.residual_rms**2, 1.0)
+    var = _separation_variance(step, k)
     if not np.isfinite(tau) or not np.isfinite(var):
         return True
     return tau > SCORE_MARGIN * max(SEP_MIN**2, opt.sep_z_min * np.sqrt(var))
