@@ -120,7 +120,10 @@ def imu_errors(
     errors : DataFrame
         The true error states per sample: ``t``, biases ``bgx, bgy, bgz`` [rad/s] and
         ``bax, bay, baz`` [m/s^2] at ``t`` (turn-on plus random walk), and the constant
-        scale-factor errors ``sgx, sgy, sgz, sax, say, saz`` [-].
+        scale-factor errors ``sgx, sgy, sgz, sax, say, saz`` [-]. A model's axis
+        misalignment is not among them: on a near-level vehicle a filter's accelerometer-bias
+        states estimate ``b + M g_b``, not ``b`` (docs/imu-model.md, "Cross-axis coupling and
+        misalignment").
     """
     missing = [c for c in IMU_COLUMNS if c not in ideal.columns]
     if missing:
