@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.frames import rot_lb_from_rot_nb, skew, wrap_angle
+from polins.ins.strapdown import rotvec_matrix
 
 FloatArray = NDArray[np.float64]
 
@@ -274,12 +275,9 @@ def mount_rotation(mount_error: FloatArray) -> FloatArray:
     """The mounting error's rotation of the vehicle frame, ``exp([(0, pitch, yaw) x])``
     (3, 3), of the mounting pitch and yaw errors ``mount_error`` (2,) [rad]: the true
     ``mat_vb`` is this times the configured one (docs/filter.md, "Ground-vehicle aiding")."""
-    pitch, yaw = (float(v) for v in mount_error)
-    angle = math.hypot(pitch, yaw)
-    if angle == 0.0:
-        return np.eye(3)
-    k = skew(np.array([0.0, pitch, yaw]) / angle)  # Rodrigues (scipy costs ~20 us a call)
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+    out = np.empty((3, 3))  # the strapdown's Rodrigues (scipy costs ~20 us a call)
+    rotvec_matrix(0.0, float(mount_error[0]), float(mount_error[1]), out)
+    return out
 
 
 def lever_jacobian(

@@ -289,7 +289,7 @@ def strapdown_step(
     return strapdown_step_detail(state, omega0_b, omega1_b, f0_b, f1_b, t1, mech)[0]
 
 
-def _rotvec_matrix(x: float, y: float, z: float, out: FloatArray) -> None:
+def rotvec_matrix(x: float, y: float, z: float, out: FloatArray) -> None:
     """``exp([phi x])`` of the rotation vector ``(x, y, z)`` into ``out`` (3, 3) (Rodrigues,
     half-angle form; series below 1e-6 rad)."""
     theta2 = x * x + y * y + z * z
@@ -397,7 +397,7 @@ def _mul3_py(a: FloatArray, b: FloatArray, out: FloatArray) -> None:  # pragma: 
 
 
 # the functions _run calls: numba dispatchers once compiled (:func:`_compiled`)
-_gravity, _radii, _rotvec, _mul3 = somigliana, radii_from_sin2, _rotvec_matrix, _mul3_py
+_gravity, _radii, _rotvec, _mul3 = somigliana, radii_from_sin2, rotvec_matrix, _mul3_py
 
 
 @functools.cache
@@ -409,7 +409,7 @@ def _compiled() -> Any:
     global _gravity, _radii, _rotvec, _mul3
     _gravity = numba.njit(cache=True)(somigliana)
     _radii = numba.njit(cache=True)(radii_from_sin2)
-    _rotvec = numba.njit(cache=True)(_rotvec_matrix)
+    _rotvec = numba.njit(cache=True)(rotvec_matrix)
     _mul3 = numba.njit(cache=True)(_mul3_py)
     return numba.njit(cache=True)(_run)
 
