@@ -20,6 +20,7 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from polins.compass.jointml import ml_evaluate
 from polins.compass.lens import camera_constants
@@ -116,15 +117,10 @@ _BAND_MIN_CELLS = 6  # cells a band needs for its median (else it joins the next
 
 def _grow(flagged: NDArray, rings: int) -> NDArray:
     """Flagged cells ``(CLOUD_CELLS**2,)`` and ``rings`` rings of their 4-neighbours."""
-    grown = flagged.reshape(CLOUD_CELLS, CLOUD_CELLS)
-    for _ in range(rings):
-        ring = grown.copy()
-        ring[1:] |= grown[:-1]
-        ring[:-1] |= grown[1:]
-        ring[:, 1:] |= grown[:, :-1]
-        ring[:, :-1] |= grown[:, 1:]
-        grown = ring
-    return grown.ravel()
+    if rings < 1:  # binary_dilation would repeat until nothing changes
+        return flagged.copy()
+    grid = flagged.reshape(CLOUD_CELLS, CLOUD_CELLS)
+    return ndimage.binary_dilation(grid, iterations=rings).ravel()  # cross: 4-neighbours
 
 
 def _band_level(ratio: NDArray, elevation: NDArray) -> NDArray:
