@@ -231,20 +231,22 @@ def compensated_solution(
         """The iterated solve in the sky model, in the Rayleigh sky when the fitted
         neutral-point separation is not identified (sep 0: no neutral points seen), and
         only in the Rayleigh sky when the score test at sep 0 finds nothing to fit."""
+
+        def rayleigh(start: NDArray) -> tuple[MLSolution, NDArray | None, SkyModel | None, Solve]:
+            sky_r = _sky(rays_x, opt, berry=False)
+            run_r = solve(data, sectors_x, sky_r, opt.max_iterations, tol_sigma=0.1)
+            ml_r, mask_r = run_r(np.delete(start, k_sep), select)
+            return ml_r, mask_r, sky_r, run_r
+
         sky = _sky(rays_x, opt)
-        run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
         berry = sky is not None and sky.fit_sep
         if sky is not None and berry and not _separation_possible(
                 data, theta, zenith, mat_cl, select, sky, k_sep, opt):  # fmt: skip
-            sky = _sky(rays_x, opt, berry=False)
-            run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
-            ml, mask = run(np.delete(theta, k_sep), select)
-            return ml, mask, sky, run
+            return rayleigh(theta)
+        run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
         ml, mask = run(theta, select)
         if berry and not _separation_identified(ml, k_sep, opt):
-            sky = _sky(rays_x, opt, berry=False)
-            run = solve(data, sectors_x, sky, opt.max_iterations, tol_sigma=0.1)
-            ml, mask = run(np.delete(ml.theta, k_sep), select)
+            return rayleigh(ml.theta)
         return ml, mask, sky, run
 
     if not strided:
