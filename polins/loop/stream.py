@@ -184,7 +184,7 @@ class NavigationStream:
         self._rows: deque[dict[str, Any]] = deque(maxlen=self.options.max_table_rows)
         self._events = EventBuffer(self.options.max_table_rows)
         self._gate = ImuGate(self._events, imu_model.full_scale(), self.config.initial.align_s,
-                             self.options.max_imu_gap_s)  # fmt: skip
+                             self.config.gap_s or 5.0 * self.imu_dt)  # fmt: skip
         self.n_images = 0  # images added (including skipped ones)
         self._t_last_image = -math.inf
         self._head: ESKF | None = None
