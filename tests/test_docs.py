@@ -327,3 +327,14 @@ if __name__ == "__main__":  # print the inventory: python tests/test_docs.py
     table = pd.DataFrame(inventory()).T
     print(table.to_string())
     print("total", dict(table.sum()))
+
+
+def test_the_index_lists_the_pages_of_the_navigation():
+    """docs/index.md's page table and mkdocs.yml's nav name the same pages in the same order."""
+    nav = re.findall(r"^  - [^:]+: (\S+\.md)$", (ROOT / "mkdocs.yml").read_text(), re.M)
+    table = re.findall(
+        r"^\| \[[^\]]+\]\(([\w-]+\.md)\) \|", (ROOT / "docs" / "index.md").read_text(), re.M
+    )
+    assert nav[0] == "index.md"
+    assert table == nav[1:]
+    assert sorted(nav) == sorted(p.name for p in (ROOT / "docs").glob("*.md"))
