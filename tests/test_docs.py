@@ -200,7 +200,8 @@ def docs_camera(tmp_path_factory) -> tuple[Path, dict[str, Any]]:
     """The files of ``<!-- doctest: fixture camera -->``: ``mycam.toml`` (``paper-table1`` at
     1/8), ``sky/`` (12 clear-sky images over a full turn about the vertical, with the IFOV
     error), ``sky-test/`` (4 more) and ``sky.png`` (one more), all of the sun at Berlin
-    (52.5, 13.3) on 2026-06-01T10:15+02:00."""
+    (52.5, 13.3) on 2026-06-01T10:15+02:00; ``flats/`` (3 frames of uniform unpolarized
+    light)."""
     import polins
     from polins.io import write_image
     from polins.io.model_files import camera_model_toml
@@ -219,6 +220,12 @@ def docs_camera(tmp_path_factory) -> tuple[Path, dict[str, Any]]:
             write_image(folder / name / f"{i:03d}.png", raw)
     rot_nb = Rotation.from_euler("z", 40.0, degrees=True)
     write_image(folder / "sky.png", polins.sim.render_raw(cam, sun_n, rot_nb, rng=rng, ifov=True))
+    (folder / "flats").mkdir()
+    for i in range(3):  # uniform unpolarized light
+        raw = polins.sim.render_raw(
+            cam, sun_n, rot_nb, dop_max=0.0, epsilon=0.0, radiance=1500.0, rng=rng
+        )
+        write_image(folder / "flats" / f"{i:03d}.png", raw)
     return folder, {}
 
 
