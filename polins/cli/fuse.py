@@ -75,7 +75,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
     from polins.io import read_log
     from polins.io.checks import preflight_warnings, run_verdict
     from polins.io.outputs import output_set
-    from polins.io.report import format_summary, summarize, write_report
+    from polins.evaluation import format_summary, summarize, write_report
     from polins.loop import LoopOptions, run_log
     from polins.models import load_imu
 
