@@ -20,10 +20,10 @@ import pytest
 import polins.loop
 from polins.cli import main
 from polins.compass.measure import NoiseModelWarning
+from polins.evaluation import heading_plot_series, summarize
 from polins.io import read_log
 from polins.io.checks import run_verdict, time_base_hint
 from polins.io.outputs import clean_stale, output_set, read_stamp
-from polins.evaluation import heading_plot_series, summarize
 from polins.io.schema import schema_markdown
 from polins.loop.offline import RunResult
 from polins.loop.tables import EVENT_COLUMNS, EventBuffer, measurement_frame
