@@ -24,6 +24,7 @@ from polins.compass.measure import (
 from polins.compass.pixels import mosaic_channels
 from polins.compass.polarimetry import stokes_from_channels
 from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.sim.algorithm1 import measure_algorithm1
 
 CAM = polins.load_camera("paper-table1")
 CAM4 = CAM.downscaled(4)
@@ -42,7 +43,8 @@ def _level(yaw_deg):
 @pytest.mark.parametrize("model", ["projection", "meridian"])
 def test_noise_free_heading_is_exact_for_any_attitude(model):
     # docs/model.md §12.2 and §12.8: noise-free, eps = 0, tilt up to 10 deg, both lens models:
-    # heading error < 1e-6 deg for every method but "paper" (here < 1e-9 deg in float64).
+    # heading error < 1e-6 deg for every method and for the paper's Algorithm 1 (here < 1e-9 deg
+    # in float64).
     cam = CAM4.with_changes(polarization_model=model)
     rng = np.random.default_rng(10)
     for _ in range(3):
@@ -64,8 +66,8 @@ def test_noise_free_heading_is_exact_for_any_attitude(model):
             )
             assert m.eigen_gap > 0.99 and m.n_pixels > 15_000
         # docs/model.md §8.2: with the scale-consistent Eq. 22 the paper's k_m is exactly 0 without
-        # noise, so "paper" is exact here too (it only adds noise).
-        m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, method="paper")
+        # noise, so Algorithm 1 is exact here too (it only adds noise).
+        m, _ = measure_algorithm1(raw, cam, sun_n=sun_n, rot_nb_prior=rot)
         assert abs(_err_deg(m, rot)) < 1e-9 and m.epsilon == 0.0
 
 
@@ -156,7 +158,7 @@ def test_flipped_stokes_sign_is_90_degrees_off():
     # lie in the scattering plane and the heading is ~90 deg wrong.
     rot = Rotation.from_euler("ZYX", [1.0, np.radians(3.0), 0.0])
     raw = render(CAM4, SUN_N, rot)
-    m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper", eq14="printed")
+    m, _ = measure_algorithm1(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, eq14="printed")
     assert abs(abs(_err_deg(m, rot)) - 90.0) < 5.0
     # Same with the library's own eigen solution on sign-flipped Stokes vectors.
     stokes, _ = stokes_from_channels(mosaic_channels(raw, CAM4), CAM4)
@@ -335,16 +337,16 @@ def test_refusals_and_input_errors():
     with pytest.raises(TypeError, match="eq22"):  # a paper-only switch
         measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="traditional", eq22="printed")
     with pytest.raises(ValueError, match="eq22"):
-        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper", eq22="as printed")
+        measure_algorithm1(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, eq22="as printed")
     assert measure_options(sun_exclusion=0.3) == MeasureOptions(sun_exclusion=0.3)
-    # The one-time check of a stream: the paper's switches only with method="paper".
-    paper_opts = {"eq22": "printed", "weighted": False}
-    assert check_measure_options("paper", paper_opts) == MeasureOptions(weighted=False)
-    assert paper_opts == {"eq22": "printed", "weighted": False}  # not modified
+    # The one-time check of a stream; the paper's Algorithm 1 is a reproduction, not a method.
+    assert check_measure_options("traditional", {"dop_min": 0.05}) == MeasureOptions(dop_min=0.05)
     with pytest.raises(TypeError, match="eq22"):
-        check_measure_options("compensated", paper_opts)
-    with pytest.raises(ValueError, match="eq14"):
-        check_measure_options("paper", {"eq14": "flipped"})
+        check_measure_options("compensated", {"eq22": "printed"})
+    with pytest.raises(ValueError, match=r"polins\.sim\.algorithm1"):
+        check_measure_options("paper", {})
+    with pytest.raises(ValueError, match=r"polins\.sim\.algorithm1"):
+        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper")
     with pytest.raises(ValueError, match="method"):
         check_measure_options("svd", {})
     with pytest.raises(ValueError, match="method"):

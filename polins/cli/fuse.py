@@ -71,11 +71,11 @@ def filter_changes(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_fuse(args: argparse.Namespace) -> int:
+    from polins.evaluation import format_summary, summarize, write_report
     from polins.fusion.config import FuseConfig
     from polins.io import read_log
     from polins.io.checks import preflight_warnings, run_verdict
     from polins.io.outputs import output_set
-    from polins.io.report import format_summary, summarize, write_report
     from polins.loop import LoopOptions, run_log
     from polins.models import load_imu
 
@@ -170,7 +170,7 @@ def add_fuse(sub: Any) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help="image processes, >= 1 (None: all cores)")  # fmt: skip
     p.add_argument(
-        "--method", choices=["compensated", "traditional", "paper"], default="compensated",
+        "--method", choices=["compensated", "traditional"], default="compensated",
         help="heading estimator",
     )  # fmt: skip
     p.add_argument("--update", choices=["yaw", "sun"], default="yaw", help="filter update kind")

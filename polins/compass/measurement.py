@@ -21,9 +21,29 @@ from polins.errors import UnknownOptionError, UserInputError
 
 FloatArray = NDArray[np.float64]
 
-METHODS = ("compensated", "traditional", "paper")
-"""The methods of ``polins.measure``; ``"paper"`` is the reproduction mode of
-:mod:`polins.compass.paper`."""
+METHODS = ("compensated", "traditional")
+"""The methods of ``polins.measure`` (the paper's Algorithm 1 is reproduced in
+:mod:`polins.sim.algorithm1`, not offered as a method)."""
+
+
+def check_method(method: str) -> None:
+    """Raise a one-line :class:`UserInputError` for a method not in :data:`METHODS`."""
+    if method in METHODS:
+        return
+    hint = ""
+    if method == "paper":
+        hint = " (the paper's Algorithm 1 is polins.sim.algorithm1.measure_algorithm1)"
+    raise UserInputError(f"method={method!r}: expected one of {METHODS}{hint}")
+
+
+class Refusal(Exception):
+    """A stage of the chain refuses the image: the reason and the valid pixels it had
+    (the chain turns it into :meth:`Measurement.refused`)."""
+
+    def __init__(self, reason: str, n_pixels: int = 0) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.n_pixels = n_pixels
 
 
 class NoiseModelWarning(UserWarning):
@@ -42,6 +62,8 @@ __all__ = [
     "Measurement",
     "MeasurementMaps",
     "NoiseModelWarning",
+    "Refusal",
+    "check_method",
     "measure_options",
 ]
 
@@ -330,8 +352,7 @@ class Measurement:
         ``sin Z sqrt(yaw_std_noise^2 + yaw_std_model^2)``. With ``fixed_zenith`` the
         elevation of sun_b comes from the ephemeris and the prior tilt, not from the image.
     epsilon, epsilon_std : float
-        Direct-sunlight coefficient and its sigma ("compensated"; "paper": median per-pixel
-        k_m / 4 without a sigma; "traditional": NaN).
+        Direct-sunlight coefficient and its sigma ("compensated"; "traditional": NaN).
     n_pixels : int
         Valid pixels used.
     eigen_gap : float
