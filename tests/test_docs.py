@@ -246,16 +246,26 @@ def _install_fixture(name: str, cwd: Path, namespace: dict[str, Any], request) -
 
 
 # ------------------------------------------------------------------------------ running
-def _commands(code: str) -> list[str]:
-    """The shell lines of a block, continuation lines joined."""
-    return [c for c in code.replace("\\\n", " ").splitlines() if c.strip()]
+def _commands(code: str) -> list[tuple[int, str]]:
+    """The shell commands of a block with the offset of their first line, continuation
+    lines joined."""
+    commands: list[tuple[int, str]] = []
+    start, parts = 0, []
+    for k, line in enumerate(code.splitlines()):
+        parts.append(line.removesuffix("\\"))
+        if not line.endswith("\\"):
+            if "".join(parts).strip():
+                commands.append((start, " ".join(parts)))
+            start, parts = k + 1, []
+    return commands
 
 
 def _run_shell(block: Block, code: str) -> None:
     from polins.cli import main
 
-    for line in _commands(code):
+    for offset, line in _commands(code):
         argv = shlex.split(line, comments=True)
+        where = f"{_shown(block.page)}:{block.line + offset}"
         if not argv:
             continue
         if argv[0] == "polins":
@@ -263,8 +273,8 @@ def _run_shell(block: Block, code: str) -> None:
         elif argv[0] == "python":
             status = subprocess.run([sys.executable, *argv[1:]], check=False).returncode
         else:
-            raise AssertionError(f"{block.where}: cannot run {argv[0]!r}: mark it doctest skip")
-        assert status == 0, f"{block.where}: `{line.strip()}` exited {status}"
+            raise AssertionError(f"{where}: cannot run {argv[0]!r}: mark the block doctest skip")
+        assert status == 0, f"{where}: `{line.strip()}` exited {status}"
 
 
 def _run_python(block: Block, code: str, namespace: dict[str, Any]) -> None:
@@ -358,6 +368,14 @@ def test_the_harness_reports_page_and_line(tmp_path):
     assert Path(frame.path) == page and frame.lineno + 1 == 6  # the page's line 6
     with pytest.raises(AssertionError, match="not in the block"):
         Block(page, 1, "python", "x = 2", replace=[("y", "z")]).source()
+    code = "# a comment\npolins sun --time 2023-09-05T07:06Z \\\n    --lat 45 --lon 126\n\npolins nope\n"
+    assert _commands(code) == [
+        (0, "# a comment"),
+        (1, "polins sun --time 2023-09-05T07:06Z      --lat 45 --lon 126"),
+        (4, "polins nope"),
+    ]
+    with pytest.raises(AssertionError, match=r"page.md:15: `polins nope` exited 2"):
+        _run_shell(Block(page, 11, "bash", code), code)
 
 
 if __name__ == "__main__":  # print the inventory: python tests/test_docs.py
