@@ -10,9 +10,9 @@ import pandas as pd
 import pytest
 
 from polins.cli import main
+from polins.evaluation import summarize, truth_at
 from polins.frames import euler_from_rot_nb, wrap_angle
 from polins.io import load_raw, read_log
-from polins.evaluation import summarize, truth_at
 from polins.loop import LoopOptions, NavigationStream, run_log
 
 DURATION_S = 12.0
