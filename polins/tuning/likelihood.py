@@ -193,10 +193,13 @@ class TuneResult:
             start = f"{b.nis_mean:.3g} ({b.verdict})" if b else "-"
             lines.append(
                 f"{kind} NIS mean {start} -> {after.nis_mean:.3g} ({after.verdict}); "
-                f"band {after.nis_band[0]:.3g} .. {after.nis_band[1]:.3g}; lag-1 autocorr "
+                f"band {after.nis_band[0]:.3g} .. {after.nis_band[1]:.3g} from "
+                f"{after.n_eff:.0f} independent of {after.n}; lag-1 autocorr "
                 f"{after.autocorr[0] if after.autocorr.size else math.nan:.3f} "
                 f"(white within ±{after.autocorr_band:.3f})"
             )
+            if after.cause:
+                lines.append(f"  likely cause: {after.cause}")
         return "\n".join(lines)
 
 
@@ -334,8 +337,8 @@ def tune(
         identifiable=ident,
         nll_before=nll(theta_start, params, {}),
         nll_after=nll(np.log([values[p] for p in params]), params, {}),
-        stats_before=innovation_stats(before.updates, prob=prob),
-        stats_after=innovation_stats(after.updates, prob=prob),
+        stats_before=innovation_stats(before.updates, prob=prob, gate_prob=cfg.gate_prob),
+        stats_after=innovation_stats(after.updates, prob=prob, gate_prob=cfg.gate_prob),
         config=tuned_config,
         measurements=tuned_meas,
         before=before,
