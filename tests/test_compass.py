@@ -667,3 +667,44 @@ def test_the_camera_file_states_its_calibration_residual(tmp_path):
     assert back.instrumental_dop_std == 0.0
     assert back.roi_max_field_angle == pytest.approx(np.radians(50.0))
     np.testing.assert_allclose(back.roi_polygons[0], roi.roi_polygons[0], atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- stages
+def test_stages_compose_to_measure():
+    # The chain is its stages (docs/measurement.md §0): composing them by hand gives the
+    # same measurement to the last bit, each stage's result is a frozen dataclass, and a
+    # stage that refuses says why.
+    import dataclasses
+
+    from polins.compass.chain import heading_measurement, instrumental_std, sun_branch
+    from polins.compass.heading import image_geometry
+    from polins.compass.image import image_stokes
+    from polins.compass.pixels import check_raw
+    from polins.compass.skypixels import sky_pixels
+    from polins.compass.solution import solve_image
+
+    rng = np.random.default_rng(21)
+    rot = random_attitude(rng, 5.0)
+    raw = render(CAM4, SUN_N, rot, epsilon=0.01, noise_std=1.5, rng=rng, dtype=np.uint16)
+    opt = MeasureOptions(tilt_std=np.radians(0.1))
+    for method in ("compensated", "traditional"):
+        geo = image_geometry(CAM4, SUN_N, rot)
+        img = image_stokes(check_raw(raw, CAM4), CAM4, opt)
+        px = sky_pixels(img, CAM4, geo, opt)
+        sol = solve_image(img, CAM4, px, geo, opt, method)
+        n_pixels = int(np.count_nonzero(sol.mask))
+        branch = sun_branch(img, px, sol, geo, opt, n_pixels)
+        std_instr = instrumental_std(img, CAM4, px, sol, geo, opt)
+        fixed = method == "compensated"
+        by_hand = heading_measurement(sol, branch, geo, opt, n_pixels, fixed, std_instr)
+        m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method=method, tilt_std=opt.tilt_std)
+        assert m.ok and m.method == method and by_hand.method == method
+        for f in ("yaw", "yaw_std", "sun_std", "epsilon", "residual_rms", "yaw_std_correlated"):
+            assert getattr(by_hand, f) == getattr(m, f) or np.isnan(getattr(m, f)), f
+        for stage in (geo, img, px, sol, branch):
+            assert dataclasses.is_dataclass(stage)
+            with pytest.raises(dataclasses.FrozenInstanceError):
+                stage.__setattr__(dataclasses.fields(stage)[0].name, None)
+    dark = np.zeros_like(raw)
+    refused = measure(dark, CAM4, sun_n=SUN_N, rot_nb_prior=rot)
+    assert not refused.ok and refused.reason.startswith("too few valid pixels")
