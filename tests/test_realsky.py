@@ -266,9 +266,9 @@ def test_gain_residual_is_the_correlated_part():
 
 
 def test_cloud_mask_removes_most_of_the_cloud_error():
-    # Thin clouds only (AoP rotated by up to 3 deg): the default DoP-deficit mask of sky
-    # cells (cloud_dop_ratio=0.95), the rotated-cell test (cloud_aop_z=4) and the fitted
-    # sky's DoP test (cloud_fit_ratio=0.97) cut the heading
+    # Thin clouds only (AoP rotated by up to 3 deg): the cloud detectors of clouds="auto"
+    # (the DoP-deficit mask of sky cells, the rotated-cell test and the fitted sky's DoP
+    # test) cut the heading
     # error, and the sigma (with the default camera-fixed part) stays honest; on a clean sky
     # they drop almost no pixel.
     rng = np.random.default_rng(8)
@@ -280,7 +280,7 @@ def test_cloud_mask_removes_most_of_the_cloud_error():
                       clouds=clouds)  # fmt: skip
         raw = render_real_raw(CAM4, sun_n, rot, sky, rng)
         kw = {"sun_n": sun_n, "rot_nb_prior": rot}
-        m = measure(raw, CAM4, cloud_dop_ratio=None, cloud_aop_z=None, cloud_fit_ratio=None, **kw)
+        m = measure(raw, CAM4, clouds="off", **kw)
         masked = measure(raw, CAM4, **kw)
         assert masked.ok and masked.n_pixels < m.n_pixels
         err.append(float(wrap_angle(m.yaw - yaw_from_rot_nb(rot))))
@@ -289,12 +289,11 @@ def test_cloud_mask_removes_most_of_the_cloud_error():
     rmse, rmse_mask = (float(np.sqrt(np.mean(np.square(e)))) for e in (err, err_mask))
     assert rmse_mask < 0.75 * rmse, (np.degrees(rmse), np.degrees(rmse_mask))
     _check_honest(np.array(err_mask), np.array(std_mask))
-    with pytest.raises(ValueError, match="cloud_dop_ratio"):
-        measure(raw, CAM4, cloud_dop_ratio=1.5)
+    with pytest.raises(ValueError, match="clouds"):
+        measure(raw, CAM4, clouds=None)
     clean = RealSky(neutral_sep=0.0, vignetting=0.0, horizon_depolarization=0.0)
     raw = render_real_raw(CAM4, sun_n, rot, clean, rng)
-    off = {"cloud_dop_ratio": None, "cloud_aop_z": None, "cloud_fit_ratio": None}
-    n_clean = measure(raw, CAM4, **off, **kw).n_pixels
+    n_clean = measure(raw, CAM4, clouds="off", **kw).n_pixels
     assert measure(raw, CAM4, **kw).n_pixels >= 0.99 * n_clean
 
 
@@ -375,8 +374,7 @@ def test_camera_fixed_polarization_fitted_per_image():
 
 def test_sky_model_options_are_checked():
     raw = np.zeros(CAM4.shape, dtype=np.uint16)
-    for bad in ({"sky_model": "mie"}, {"neutral_sep": 2.0}, {"cloud_aop_z": 0.0},
-                {"cloud_aop_min": -1.0}):  # fmt: skip
+    for bad in ({"sky_model": "mie"}, {"clouds": "thin"}, {"fit_delta": None}):
         with pytest.raises(ValueError):
             measure(raw, CAM4, rot_nb_prior=Rotation.identity(), **bad)
 

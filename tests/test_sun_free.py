@@ -181,7 +181,7 @@ def test_compensated_never_accepts_an_unphysical_epsilon(tmp_path):
                     assert abs(m.epsilon) < 0.1 and m.epsilon == pytest.approx(0.0125, abs=0.02)
                 else:
                     assert m.reason.startswith("compensated -> traditional: ")
-    with pytest.raises(ValueError, match="separability_max"):
+    with pytest.raises(TypeError, match="separability_max -> a constant"):
         measure(raw, CAM8, separability_max=1.5)
 
 

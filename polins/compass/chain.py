@@ -36,6 +36,7 @@ from polins.compass.heading import (
     yaw_from_sun_level,
 )
 from polins.compass.image import ImageStokes, image_stokes
+from polins.compass.instrumental import fitted_sensitivity, instrumental_sensitivity
 from polins.compass.jointml import ml_evaluate
 from polins.compass.kernels import dot
 from polins.compass.measurement import (
@@ -45,7 +46,6 @@ from polins.compass.measurement import (
     Refusal,
     check_method,
 )
-from polins.compass.modelerror import fitted_sensitivity, instrumental_sensitivity
 from polins.compass.pixels import check_raw
 from polins.compass.skymodel import sky_model
 from polins.compass.skypixels import SkyPixels, sky_pixels
@@ -54,13 +54,47 @@ from polins.frames import heading_deg_from_yaw, wrap_angle
 from polins.models import CameraModel
 
 __all__ = [
+    "BRANCH_CONTRAST_MIN",
+    "BRANCH_Z_MIN",
+    "EIGEN_GAP_MIN",
+    "ELEVATION_STD_MAX",
+    "INSTRUMENTAL_DOP_STD",
+    "MODEL_SCALE",
+    "ZENITH_MIN",
     "Branch",
     "heading_measurement",
     "instrumental_std",
+    "instrumental_stds",
     "measure_image",
     "measure_stokes",
     "sun_branch",
 ]
+
+
+ZENITH_MIN = float(np.radians(5.0))
+"""A sun closer than this to the zenith is refused [rad]: the azimuth is unobservable."""
+
+EIGEN_GAP_MIN = 0.5
+"""A normalised eigen-gap below this is refused (docs/model.md §10.1)."""
+
+MODEL_SCALE = 2.0
+"""Calibration of the sky-model part of the sigma: the jackknife's variance beyond the pixel
+noise times ``MODEL_SCALE^2`` (calibrated on realistic skies, with and without ``sun_n``;
+docs/measurement.md §12)."""
+
+INSTRUMENTAL_DOP_STD = 0.002
+"""``instrumental_dop_std="auto"`` without a camera-file figure: gains good to +-0.5 %."""
+
+ELEVATION_STD_MAX = float(np.radians(5.0))
+"""Sun-free measurement: ``sun_elevation_b`` is reported when its sigma is below this [rad]."""
+
+BRANCH_Z_MIN = 5.0
+"""Sun-free measurement: significance [sigmas] an elevation or a brightness difference needs
+to choose the 180 deg branch (docs/measurement.md §11)."""
+
+BRANCH_CONTRAST_MIN = 0.02
+"""Sun-free measurement: smallest relative brightness difference between the sun side and
+the antisun side for the brightness to choose the branch [-]."""
 
 
 @dataclass(frozen=True)
@@ -88,8 +122,8 @@ def _check_sun(geo: Geometry, opt: MeasureOptions) -> None:
         return
     if geo.sun_n[2] <= 0.0:
         raise Refusal("sun below the horizon")
-    if geo.zenith < opt.zenith_min:
-        zenith_min_deg = float(np.degrees(opt.zenith_min))
+    if geo.zenith < ZENITH_MIN:
+        zenith_min_deg = float(np.degrees(ZENITH_MIN))
         raise Refusal(f"sun within {zenith_min_deg:.3g} deg of the zenith: heading unobservable")
 
 
@@ -138,8 +172,8 @@ def measure_image(
         _check_sun(geo, opt)
     except Refusal as r:
         return Measurement.refused(method, r.reason, r.n_pixels), None
-    img = image_stokes(arr, cam, opt, gain_correction=opt.gain_correction)
-    return measure_stokes(img, cam, geo, opt, method=method, maps=maps, weighted=opt.weighted)
+    img = image_stokes(arr, cam, opt)
+    return measure_stokes(img, cam, geo, opt, method=method, maps=maps)
 
 
 def measure_stokes(
@@ -159,7 +193,7 @@ def measure_stokes(
     except Refusal as r:
         return Measurement.refused(method, r.reason, r.n_pixels), None
     sol = solve_image(img, cam, px, geo, opt, method, weighted=weighted)
-    std_instrumental = instrumental_std(img, px, sol, geo, opt)
+    std_instrumental = instrumental_std(img, cam, px, sol, geo, opt)
     n_pixels = int(np.count_nonzero(sol.mask))
     if n_pixels < opt.min_pixels:
         reason = f"too few valid pixels ({n_pixels} < {opt.min_pixels})"
@@ -178,8 +212,26 @@ def measure_stokes(
     ), mapped
 
 
+def instrumental_stds(cam: CameraModel, opt: MeasureOptions) -> tuple[float, float]:
+    """``instrumental_dop_std`` and ``instrumental_mixing_std`` [-], ``"auto"`` resolved:
+    the camera file's figures, else :data:`INSTRUMENTAL_DOP_STD` and 0."""
+    dop_std, mixing_std = opt.instrumental_dop_std, opt.instrumental_mixing_std
+    if dop_std == "auto":
+        dop_std = (
+            INSTRUMENTAL_DOP_STD if cam.instrumental_dop_std is None else cam.instrumental_dop_std
+        )
+    if mixing_std == "auto":
+        mixing_std = 0.0 if cam.instrumental_mixing_std is None else cam.instrumental_mixing_std
+    return float(dop_std), float(mixing_std)
+
+
 def instrumental_std(
-    img: ImageStokes, px: SkyPixels, sol: Solution, geo: Geometry, opt: MeasureOptions
+    img: ImageStokes,
+    cam: CameraModel,
+    px: SkyPixels,
+    sol: Solution,
+    geo: Geometry,
+    opt: MeasureOptions,
 ) -> float:
     """The camera-fixed polarization's yaw sigma [rad] on the subsample (a ratio of sums,
     docs/measurement.md §12); 0 where the sensitivity is not finite."""
@@ -191,8 +243,8 @@ def instrumental_std(
     else:
         sensitivity = instrumental_sensitivity(data_used, sol.theta, sol.zenith, geo.mat_cl,
                                                with_epsilon=sol.method == "compensated")  # fmt: skip
-    std = float(np.hypot(opt.instrumental_dop_std * sensitivity[0],
-                         opt.instrumental_mixing_std * sensitivity[1]))  # fmt: skip
+    dop_std, mixing_std = instrumental_stds(cam, opt)
+    std = float(np.hypot(dop_std * sensitivity[0], mixing_std * sensitivity[1]))
     return std if np.isfinite(std) else 0.0
 
 
@@ -210,7 +262,7 @@ def sun_branch(
     Raises
     ------
     Refusal
-        Without an ephemeris, the chosen sun within ``zenith_min`` of the zenith.
+        Without an ephemeris, the chosen sun within :data:`ZENITH_MIN` of the zenith.
     """
     sun_l = sol.sun_l / np.linalg.norm(sol.sun_l)
     if geo.sun_n is not None:
@@ -232,13 +284,13 @@ def sun_branch(
         brightness,
         geo.sun_azimuth_b_prior,
         elevation_min=opt.horizon_fallback,
-        z_min=opt.branch_z_min,
-        contrast_min=opt.branch_contrast_min,
+        z_min=BRANCH_Z_MIN,
+        contrast_min=BRANCH_CONTRAST_MIN,
     )
     sun_l = sign * sun_l
     zenith = float(np.arccos(np.clip(sun_l[2], -1.0, 1.0)))
-    if zenith < opt.zenith_min:
-        zenith_min_deg = float(np.degrees(opt.zenith_min))
+    if zenith < ZENITH_MIN:
+        zenith_min_deg = float(np.degrees(ZENITH_MIN))
         reason = f"sun within {zenith_min_deg:.3g} deg of the zenith: azimuth unobservable"
         raise Refusal(reason, n_pixels)
     return Branch(sun_l, branch, zenith)
@@ -249,12 +301,13 @@ def _check_solution(
 ) -> None:
     """Refuse a small eigen-gap, a heading outside the gate, a large residual or a
     singular covariance."""
-    if not sol.eigen_gap >= opt.eigen_gap_min:
-        raise Refusal(f"eigen-gap {sol.eigen_gap:.3f} below {opt.eigen_gap_min}", n_pixels)
-    if opt.yaw_gate is not None and abs(float(wrap_angle(yaw - geo.yaw_prior))) > opt.yaw_gate:
+    if not sol.eigen_gap >= EIGEN_GAP_MIN:
+        raise Refusal(f"eigen-gap {sol.eigen_gap:.3f} below {EIGEN_GAP_MIN}", n_pixels)
+    if opt.gate is not None and abs(float(wrap_angle(yaw - geo.yaw_prior))) > opt.gate:
         raise Refusal("heading outside the gate around the prior yaw", n_pixels)
-    if opt.residual_rms_max is not None and not sol.residual_rms <= opt.residual_rms_max:
-        reason = f"residual RMS {sol.residual_rms:.3g} above {opt.residual_rms_max:g}"
+    limit = opt.residual_limit
+    if limit is not None and not sol.residual_rms <= limit:
+        reason = f"residual RMS {sol.residual_rms:.3g} above {limit:g}"
         raise Refusal(reason, n_pixels)
     if not np.isfinite(sol.var_yaw) or sol.var_yaw < 0:
         raise Refusal("singular covariance", n_pixels)
@@ -279,16 +332,15 @@ def heading_measurement(
     std_meas = float(np.sqrt(sol.var_yaw))
     # Model error: the jackknife's variance beyond the pixel noise, calibrated (§12).
     var_model = max(sol.var_jack - sol.var_yaw, 0.0) if np.isfinite(sol.var_jack) else 0.0
-    std_sky = opt.model_scale * np.sqrt(var_model)
-    std_model = float(np.sqrt(std_sky**2 + std_instrumental**2 + opt.sigma_floor**2))
-    std_noise = opt.kappa * std_meas
-    yaw_std, sun_std = filter_sigmas(std_noise, std_model, br.zenith, opt.tilt_std)
+    std_sky = MODEL_SCALE * np.sqrt(var_model)
+    std_model = float(np.sqrt(std_sky**2 + std_instrumental**2))
+    yaw_std, sun_std = filter_sigmas(std_meas, std_model, br.zenith, opt.tilt_std)
     sun_b = geo.mat_lb.T @ sun_l
     var_az_b, var_el_b = sun_angle_variances(sun_b, geo.mat_lb.T @ sol.cov_sun_l @ geo.mat_lb)
     azimuth_b = float(np.arctan2(sun_b[1], sun_b[0]))
     elevation_b = float(np.arcsin(np.clip(sun_b[2], -1.0, 1.0)))
     elevation_b_std = float("nan") if fixed else float(np.sqrt(var_el_b))
-    if not fixed and not elevation_b_std <= opt.elevation_std_max:
+    if not fixed and not elevation_b_std <= ELEVATION_STD_MAX:
         elevation_b = float("nan")
     reasons = [sol.fallback]
     azimuth_b_alt = float("nan")
@@ -314,12 +366,12 @@ def heading_measurement(
         eigen_gap=sol.eigen_gap,
         residual_rms=float(sol.residual_rms),
         sun_azimuth_b=azimuth_b,
-        sun_azimuth_b_std=float(np.hypot(opt.kappa * np.sqrt(var_az_b), std_model)),
+        sun_azimuth_b_std=float(np.hypot(np.sqrt(var_az_b), std_model)),
         sun_elevation_b=elevation_b,
         sun_elevation_b_std=elevation_b_std,
         sun_azimuth_b_alt=azimuth_b_alt,
         sun_branch=br.branch,
-        yaw_std_noise=std_noise,
+        yaw_std_noise=std_meas,
         yaw_std_model=std_model,
         yaw_std_correlated=float(std_instrumental),
         yaw_std_jackknife=float(np.sqrt(sol.var_jack)),

@@ -26,7 +26,11 @@ from polins.models import CameraModel
 from polins.sky.neutral_points import berry_neutral_points_level
 
 __all__ = [
+    "CLOUD_AOP_MIN",
+    "CLOUD_AOP_Z",
     "CLOUD_CELLS",
+    "CLOUD_DOP_RATIO",
+    "CLOUD_FIT_RATIO",
     "DopTest",
     "cloudy_cells",
     "depolarized_cells",
@@ -34,6 +38,21 @@ __all__ = [
     "rotated_cells",
     "sky_cells",
 ]
+
+CLOUD_DOP_RATIO = 0.95
+"""A cell whose polarized intensity is below this fraction of the clear sky's (Rayleigh
+shape, starting sun) is cloud (:func:`cloudy_cells`)."""
+
+CLOUD_AOP_Z = 4.0
+"""A cell whose mean AoP residual exceeds this many sigmas (and :data:`CLOUD_AOP_MIN`) is
+cloud (:func:`rotated_cells`)."""
+
+CLOUD_AOP_MIN = float(np.radians(0.1))
+"""Smallest mean E-vector rotation of a cloud cell [rad]."""
+
+CLOUD_FIT_RATIO = 0.97
+"""A cell whose polarized intensity is below this fraction of the fitted sky's level (by
+more than 3 sigmas) is cloud (:func:`depolarized_cells`)."""
 
 _SHAPE_FIT = 0.5  # Rayleigh DoP shape above which d_max is fitted
 _SHAPE_TEST = 0.3  # ... and above which a pixel is tested (near the sun and the antisun the
@@ -81,7 +100,7 @@ def cloudy_cells(
     sun_c : (3,)
         Camera-frame unit sun.
     ratio : float
-        ``cloud_dop_ratio`` [-].
+        :data:`CLOUD_DOP_RATIO` [-].
     valid : (n,) bool
     cells : (n,) int
         The pixels' :func:`sky_cells`.
@@ -169,7 +188,7 @@ def depolarized_cells(
     up_c : (3,)
         Camera-frame unit vertical (a cell's elevation: that of its tested pixels' mean ray).
     ratio : float
-        ``cloud_fit_ratio`` [-].
+        :data:`CLOUD_FIT_RATIO` [-].
     """
     n_cells = CLOUD_CELLS * CLOUD_CELLS
     cos2 = np.asarray(points_c, dtype=rays.dtype) @ rays  # (2, n)

@@ -120,7 +120,7 @@ def filter_sigmas(
     Parameters
     ----------
     yaw_std_noise : float
-        Pixel-noise part (inflated by ``kappa``) [rad].
+        Pixel-noise part [rad].
     yaw_std_model : float
         Model-error part (jackknife over sky sectors, calibrated) [rad].
     zenith : float

@@ -20,7 +20,19 @@ from polins.compass.measurement import MeasureOptions
 from polins.compass.polarimetry import StokesCalibration, stokes_calibration, stokes_image
 from polins.models import CameraModel
 
-__all__ = ["ImageStokes", "image_stokes"]
+__all__ = ["GN_PIXELS", "GRADIENT_MAX", "REDUNDANCY_MAX_SIGMA", "ImageStokes", "image_stokes"]
+
+GRADIENT_MAX = 0.05
+"""Largest relative intensity gradient ``|grad S0|/S0`` of a valid pixel [1/superpixel]
+(docs/measurement.md §4)."""
+
+REDUNDANCY_MAX_SIGMA = 4.0
+"""Largest redundancy residual ``|nu|`` of a valid pixel [channel-noise sigmas]
+(docs/model.md §7.3)."""
+
+GN_PIXELS = 15_000
+"""Target size of the fixed pixel subsample of the starting sun and the Gauss-Newton
+iterations (every k-th field-of-view pixel; docs/measurement.md §5)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,8 +131,8 @@ def image_stokes(
         cam,
         cal,
         s0_min=opt.s0_min_dn,
-        redundancy_max_sigma=opt.redundancy_max_sigma,
-        gradient_max=opt.gradient_max,  # the DoP is cut per selection
+        redundancy_max_sigma=REDUNDANCY_MAX_SIGMA,
+        gradient_max=GRADIENT_MAX,  # the DoP is cut per selection
         channels=channels,
     )
     sigma_l2 = image.sigma2 * cal.sigma_l_factors() ** 2
@@ -130,7 +142,7 @@ def image_stokes(
     else:
         inv_sigma_l2 = 1.0 / float(sigma_l2)
     n_fov = cache.pixels.size
-    stride = max(1, n_fov // opt.gn_pixels) if opt.gn_pixels > 0 else 1
+    stride = max(1, n_fov // GN_PIXELS)
     sub = subsample(cam, dtype, stride)
     # Every 4th subsample pixel: ~4,000 pixels give the ratio to ~2 %.
     ratio = _noise_ratio(image.rows[3], image.sigma2, image.unsaturated, sub.index[::4])

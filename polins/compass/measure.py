@@ -157,9 +157,6 @@ def _dispatch(
     maps: bool,
 ) -> tuple[Measurement, MeasurementMaps | None]:
     check_method(method)
-    for name in ("instrumental_dop_std", "instrumental_mixing_std"):
-        if getattr(cam, name) is not None and name not in options:
-            options = {**options, name: getattr(cam, name)}
     opt: MeasureOptions = measure_options(**options)
     result = measure_image(
         raw,

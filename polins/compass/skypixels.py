@@ -1,10 +1,9 @@
-"""The pixel-selection stage of one image: region of interest, masks, clouds, starting sun, weights.
+"""The pixel-selection stage of one image: region of interest, masks, clouds, starting sun.
 
 The second stage of :mod:`polins.compass.chain` (docs/measurement.md §4, §5 step 1): the
 region of interest, harmless data for the invalid pixels, the starting sun (the eigen
 solution on the fixed subsample, the sun circle taken from the prior or, without an
-ephemeris, from a first eigen solution), the thin-cloud cells by their DoP deficit, the
-pixel weights, and the selection rules (:class:`polins.compass.selection.Selection`) of the
+ephemeris, from a first eigen solution), the thin-cloud cells by their DoP deficit, and the selection rules (:class:`polins.compass.selection.Selection`) of the
 subsample and of the full set that the solve stage applies along the predicted AoP.
 """
 
@@ -15,18 +14,22 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.compass.clouds import cloudy_cells, sky_cells
+from polins.compass.clouds import CLOUD_DOP_RATIO, cloudy_cells, sky_cells
 from polins.compass.eigen import EigenSolution, eigen_level_rows
 from polins.compass.heading import Geometry, resolve_sun_sign
 from polins.compass.image import ImageStokes
 from polins.compass.kernels import dot_rows
 from polins.compass.measurement import MeasureOptions, Refusal
-from polins.compass.modelerror import model_weights
 from polins.compass.prediction import PixelData, pixel_data
 from polins.compass.selection import Selection
 from polins.models import CameraModel
 
-__all__ = ["SkyPixels", "sky_pixels"]
+__all__ = ["SNR_MIN", "SkyPixels", "sky_pixels"]
+
+SNR_MIN = 3.0
+"""Smallest polarized intensity of a used pixel in units of its noise sigma_L: rejects
+unpolarized scenery (occluders, ground, clouds) whose noise alone would pass ``dop_min``
+(docs/measurement.md §4)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,8 +43,6 @@ class SkyPixels:
         field-of-view pixels and of the subsample (``valid`` is ``select_full.valid``).
     rows_sub : (3, n_sub)
         The subsample's (S0, S1, S2) [DN].
-    inv_weight_l2 : (n,) or float
-        Pixel weights ``1/var(r_i)`` [1/DN^2].
     data_sub, data_full : PixelData
         The subsample and all pixels for the estimators.
     select_sub, select_full : Selection
@@ -57,7 +58,6 @@ class SkyPixels:
     valid: NDArray
     valid_sub: NDArray
     rows_sub: NDArray
-    inv_weight_l2: NDArray | float
     data_sub: PixelData
     data_full: PixelData
     select_sub: Selection
@@ -114,7 +114,7 @@ def _starting_sun(
     keep = valid_sub.copy()
     p2 = s1d * s1d + s2d * s2d
     keep &= p2 >= opt.dop_min**2 * (s0d * s0d)
-    keep &= p2 >= opt.snr_min**2 / inv_sigma2
+    keep &= p2 >= SNR_MIN**2 / inv_sigma2
 
     def starting_eigen(mask: NDArray) -> EigenSolution:
         eig, _, _ = eigen_level_rows(s1d, s2d, inv_sigma2, sub.basis, img.cache.projection,
@@ -146,8 +146,8 @@ def sky_pixels(
     """
     cache, sub = img.cache, img.sub
     valid = img.valid
-    if opt.max_field_angle is not None:  # the region of interest of this image
-        valid &= cache.rays[2] >= img.dtype(np.cos(opt.max_field_angle))
+    if opt.roi is not None:  # the region of interest of this image
+        valid &= cache.rays[2] >= img.dtype(np.cos(opt.roi))
     _fill_invalid(img, valid)
     rows_sub = img.estimate.take(sub.index, axis=1)
     valid_sub = valid[sub.index]
@@ -157,30 +157,23 @@ def sky_pixels(
         sun_l0 = resolve_sun_sign(eig0.sun, geo.sun_n, geo.yaw_prior, opt.horizon_fallback)
 
     cells = sky_cells(cam)
-    if opt.cloud_dop_ratio is not None:  # thin clouds: cells with a DoP deficit (§4)
-        cloudy = cloudy_cells(rows_sub, sub.rays, geo.mat_cl @ sun_l0, opt.cloud_dop_ratio,
+    if opt.clouds == "auto":  # thin clouds: cells with a DoP deficit (§4)
+        cloudy = cloudy_cells(rows_sub, sub.rays, geo.mat_cl @ sun_l0, CLOUD_DOP_RATIO,
                               valid_sub, cells.take(sub.index))  # fmt: skip
         if cloudy.any():
             valid &= ~cloudy.take(cells)
             valid_sub = valid[sub.index]
 
-    # Weights: the pixel noise, and with model_aop_std > 0 a model error of the AoP that
-    # grows with the field angle and towards the sun and the antisun (§4).
-    inv_weight_l2 = img.inv_sigma_l2
-    if opt.model_aop_std > 0:
-        inv_weight_l2 = model_weights(img.inv_sigma_l2, img.estimate, cache.rays,
-                                      geo.mat_cl @ sun_l0, opt)  # fmt: skip
-
     # The selection rules: the DoP and noise cuts along the predicted direction.
     cos_excl = float(np.cos(opt.sun_exclusion))
     select_sub = Selection(valid_sub, sub.rays, cos_excl, opt.dop_min,
-                           opt.snr_min / _sqrt_at(img.inv_sigma_l2, sub.index))  # fmt: skip
+                           SNR_MIN / _sqrt_at(img.inv_sigma_l2, sub.index))  # fmt: skip
     select_full = Selection(valid, cache.rays, cos_excl, opt.dop_min,
-                            opt.snr_min / _sqrt_at(img.inv_sigma_l2, None))  # fmt: skip
+                            SNR_MIN / _sqrt_at(img.inv_sigma_l2, None))  # fmt: skip
     est = img.estimate
     data_sub = pixel_data(rows_sub[0], rows_sub[1], rows_sub[2], sub.forward,
-                          _sqrt_at(inv_weight_l2, sub.index), packed=True, rays=sub.lens_rays)  # fmt: skip
-    data_full = pixel_data(est[0], est[1], est[2], cache.forward, _sqrt_at(inv_weight_l2, None),
+                          _sqrt_at(img.inv_sigma_l2, sub.index), packed=True, rays=sub.lens_rays)  # fmt: skip
+    data_full = pixel_data(est[0], est[1], est[2], cache.forward, _sqrt_at(img.inv_sigma_l2, None),
                            packed=True, rays=cache.lens_rays)  # fmt: skip
-    return SkyPixels(valid, valid_sub, rows_sub, inv_weight_l2, data_sub, data_full, select_sub,
-                     select_full, eig0, sun_l0, cells)  # fmt: skip
+    return SkyPixels(valid, valid_sub, rows_sub, data_sub, data_full, select_sub, select_full,
+                     eig0, sun_l0, cells)  # fmt: skip

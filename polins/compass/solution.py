@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.compass.clouds import DOP_TEST_PIXELS, DopTest
+from polins.compass.clouds import CLOUD_FIT_RATIO, DOP_TEST_PIXELS, DopTest
 from polins.compass.eigen import (
     eigen_gap,
     eigen_level_rows,
@@ -32,7 +32,7 @@ from polins.compass.measurement import MeasureOptions
 from polins.compass.sectors import eigen_jackknife, jackknife_variance, sector_runs
 from polins.compass.selection import selection_mask
 from polins.compass.skypixels import SkyPixels
-from polins.compass.solve import SolveSetup, compensated_solution
+from polins.compass.solve import NEUTRAL_SEP, SolveSetup, compensated_solution
 from polins.models import CameraModel
 
 __all__ = ["Solution", "solve_compensated", "solve_image", "solve_traditional"]
@@ -128,12 +128,12 @@ def solve_compensated(
     sun_l0 = px.sun_l0
     a0 = float(np.arctan2(sun_l0[1], sun_l0[0]))
     z0 = float(np.arccos(np.clip(sun_l0[2], -1.0, 1.0)))
-    extra = [opt.neutral_sep**2] * (opt.fit_sep and opt.sky_model == "berry")
+    extra = [NEUTRAL_SEP**2] * (opt.sky_model == "berry")
     extra += [0.0] * opt.fit_delta
     theta = np.array([a0, *([] if fixed else [z0]), *extra, opt.epsilon0])
     dop_test = None
-    if opt.cloud_fit_ratio is not None:  # thin clouds by the fitted sky's DoP (§4)
-        dop_test = _dop_test(img, cam, px, geo, opt.cloud_fit_ratio)
+    if opt.clouds == "auto":  # thin clouds by the fitted sky's DoP (§4)
+        dop_test = _dop_test(img, cam, px, geo, CLOUD_FIT_RATIO)
     sub, cache = img.sub, img.cache
     data = (px.data_sub if img.stride > 1 else px.data_full, px.data_full)
     solved = compensated_solution(
@@ -182,7 +182,7 @@ def solve_traditional(
     covariance, its jackknife and the residual RMS on the subsample."""
     cache, est, mat_cl, mat_lc = img.cache, img.estimate, geo.mat_cl, geo.mat_lc
     mask = selection_mask(px.data_full, px.select_full, mat_cl @ px.sun_l0)
-    eig, e, omega = eigen_level_rows(est[1], est[2], px.inv_weight_l2, cache.basis,
+    eig, e, omega = eigen_level_rows(est[1], est[2], img.inv_sigma_l2, cache.basis,
                                      cache.projection, mat_lc, weighted, mask=mask)  # fmt: skip
     sun_l = eig.sun
     if geo.sun_n is not None:

@@ -5,7 +5,7 @@ The solve stage of :mod:`polins.compass.chain` (docs/measurement.md §5, §12):
 1. Gauss-Newton of the joint ML with the sky model of the options (Rayleigh or Berry with
    its neutral-point separation, the camera-fixed ``delta_perp``;
    :mod:`polins.compass.skymodel`) on the pixel subsample;
-2. with the cloud detectors on: sky cells whose mean AoP residual is significant (a thin
+2. with ``clouds="auto"``: sky cells whose mean AoP residual is significant (a thin
    cloud turns the E-vector, :func:`polins.compass.clouds.rotated_cells`) and those whose
    DoP falls short of the fitted sky's (:func:`polins.compass.clouds.fitted_sky_depolarized`)
    are dropped and the subsample is solved again, up to :data:`CLOUD_ROUNDS` times;
@@ -28,7 +28,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.compass.clouds import CLOUD_CELLS, DopTest, fitted_sky_depolarized, rotated_cells
+from polins.compass.clouds import (
+    CLOUD_AOP_MIN,
+    CLOUD_AOP_Z,
+    CLOUD_CELLS,
+    DopTest,
+    fitted_sky_depolarized,
+    rotated_cells,
+)
 from polins.compass.jointml import MLSolution, epsilon_correlation, gauss_newton
 from polins.compass.measurement import MeasureOptions
 from polins.compass.prediction import PixelData
@@ -38,7 +45,12 @@ from polins.compass.skymodel import SkyModel, sky_model
 
 __all__ = [
     "CLOUD_ROUNDS",
+    "EPSILON_MAX",
+    "MAX_ITERATIONS",
+    "NEUTRAL_SEP",
+    "SEPARABILITY_MAX",
     "SEP_MIN",
+    "SEP_Z_MIN",
     "CompensatedSolution",
     "SolveSetup",
     "compensated_solution",
@@ -53,6 +65,26 @@ SEP_MIN = float(np.radians(5.0))
 """Smallest neutral-point separation that counts [rad]: the points are then within 2.5 deg
 of the sun, inside its exclusion radius (10 deg by default)."""
 
+
+NEUTRAL_SEP = float(np.radians(32.0))
+"""Start of the fitted separation of the Babinet and Brewster points [rad]."""
+
+SEP_Z_MIN = 10.0
+"""A fitted separation square below this many of its sigmas is not identified (its effect
+grows as its square: near zero the linearised sigma is optimistic); the image is then
+solved with the Rayleigh sky."""
+
+MAX_ITERATIONS = 10
+"""Gauss-Newton iterations on the subsample."""
+
+EPSILON_MAX = 0.1
+"""Largest accepted ``|epsilon|`` (physical: about 0 to 0.05); the iteration is bounded to
+it and a solution on the bound falls back to the eigen solution."""
+
+SEPARABILITY_MAX = 0.98
+"""Largest accepted correlation of epsilon with the sun parameters
+(:func:`polins.compass.jointml.epsilon_correlation`); above it the chain falls back to the
+eigen solution (docs/measurement.md §11)."""
 
 SCORE_MARGIN = 0.2
 """The Berry sky is solved when the one-step separation square of the score test reaches
@@ -116,19 +148,19 @@ class CompensatedSolution:
     fallback: str
 
 
-def ml_problem(ml: MLSolution, opt: MeasureOptions, converged: bool) -> str:
+def ml_problem(ml: MLSolution, converged: bool) -> str:
     """Why a joint ML solution cannot be used ("" if it can; docs/measurement.md §11):
     epsilon not separable from the sun, not converged (when ``converged`` is asked), or
     epsilon on its bound."""
     corr = epsilon_correlation(ml.covariance)
-    if corr > opt.separability_max:
+    if corr > SEPARABILITY_MAX:
         what = "zenith" if ml.sun_parameters == 2 else "sun azimuth"
         return f"epsilon and {what} not separable (corr {corr:.4f})"
     if converged and not ml.converged:
         return "joint ML did not converge"
     eps = float(ml.theta[-1])
-    if not abs(eps) < opt.epsilon_max:
-        return f"epsilon {eps:.3g} at its bound {opt.epsilon_max:g} (physical: about 0 to 0.05)"
+    if not abs(eps) < EPSILON_MAX:
+        return f"epsilon {eps:.3g} at its bound {EPSILON_MAX:g} (physical: about 0 to 0.05)"
     return ""
 
 
@@ -139,13 +171,12 @@ def run_fit(
     opt = setup.opt
     return gauss_newton(fit.data, theta0, setup.zenith, setup.mat_cl, loss=opt.loss,
                         max_iterations=fit.iterations, tol_sigma=fit.tol_sigma, select=select,
-                        epsilon_bound=opt.epsilon_max, sectors=fit.sectors, sky=fit.sky,
+                        epsilon_bound=EPSILON_MAX, sectors=fit.sectors, sky=fit.sky,
                         sector_h=fit.sector_h)  # fmt: skip
 
 
 def _sky(rays: NDArray, opt: MeasureOptions, berry: bool = True) -> SkyModel | None:
-    return sky_model(rays, berry and opt.sky_model == "berry", opt.neutral_sep,
-                     opt.fit_sep, opt.fit_delta)  # fmt: skip
+    return sky_model(rays, berry and opt.sky_model == "berry", NEUTRAL_SEP, True, opt.fit_delta)
 
 
 def _without(ml: MLSolution, k: int) -> MLSolution:
@@ -168,14 +199,14 @@ def _separation_variance(ml: MLSolution, k: int) -> float:
     return float(ml.covariance[k, k]) / min(rms**2, 1.0)
 
 
-def _separation_identified(ml: MLSolution, k: int, opt: MeasureOptions) -> bool:
+def _separation_identified(ml: MLSolution, k: int) -> bool:
     """The fitted square of the neutral-point separation ``theta[k]`` is significant (above
-    ``sep_z_min`` of its sigma, the sigma at least the pixel noise's) and the separation in
+    :data:`SEP_Z_MIN` of its sigma, the sigma at least the pixel noise's) and the separation in
     range (:data:`SEP_MIN` to 90 deg)."""
     tau = float(ml.theta[k])
     var = _separation_variance(ml, k)
     ok = SEP_MIN**2 < tau < (np.pi / 2) ** 2 and np.isfinite(var)
-    return ok and tau > opt.sep_z_min * np.sqrt(var)
+    return ok and tau > SEP_Z_MIN * np.sqrt(var)
 
 
 def _separation_possible(
@@ -191,13 +222,13 @@ def _separation_possible(
     start = np.array(theta, dtype=float)
     start[k] = 0.0
     step, _ = gauss_newton(data, start, setup.zenith, setup.mat_cl, loss=opt.loss,
-                           max_iterations=1, epsilon_bound=opt.epsilon_max, select=select,
+                           max_iterations=1, epsilon_bound=EPSILON_MAX, select=select,
                            sky=sky)  # fmt: skip
     tau = float(step.theta[k])
     var = _separation_variance(step, k)
     if not np.isfinite(tau) or not np.isfinite(var):
         return True
-    return tau > SCORE_MARGIN * max(SEP_MIN**2, opt.sep_z_min * np.sqrt(var))
+    return tau > SCORE_MARGIN * max(SEP_MIN**2, SEP_Z_MIN * np.sqrt(var))
 
 
 def _drop_clouds(
@@ -213,16 +244,13 @@ def _drop_clouds(
     the solution, its mask and the dropped cells ``(CLOUD_CELLS**2,)`` bool."""
     opt, zenith, sky = setup.opt, setup.zenith, fit.sky
     dropped = np.zeros(CLOUD_CELLS * CLOUD_CELLS, dtype=bool)
-    if opt.cloud_aop_z is None and dop_test is None:
+    if opt.clouds == "off":
         return ml, mask, dropped
     for _ in range(CLOUD_ROUNDS):
-        if ml_problem(ml, opt, True):
+        if ml_problem(ml, True):
             break
-        flagged = np.zeros_like(dropped)
-        if opt.cloud_aop_z is not None:
-            flagged = rotated_cells(dataclasses.replace(fit.data, mask=mask), ml.theta, zenith,
-                                    setup.mat_cl, sky, cells, opt.cloud_aop_z,
-                                    opt.cloud_aop_min)  # fmt: skip
+        flagged = rotated_cells(dataclasses.replace(fit.data, mask=mask), ml.theta, zenith,
+                                setup.mat_cl, sky, cells, CLOUD_AOP_Z, CLOUD_AOP_MIN)  # fmt: skip
         if dop_test is not None and sky is not None and sky.berry:  # its DoP shape fits
             sep = (
                 np.sqrt(max(float(ml.theta[setup.k_sep]), 0.0)) if sky.fit_sep else sky.neutral_sep
@@ -254,12 +282,12 @@ def _fit_sky(
     sky = _sky(rays, opt)
     berry = sky is not None and sky.fit_sep
     if sky is None or not berry or _separation_possible(setup, data, theta, select, sky):
-        fit = Fit(data, sectors, sky, opt.max_iterations, tol_sigma=0.1)
+        fit = Fit(data, sectors, sky, MAX_ITERATIONS, tol_sigma=0.1)
         ml, mask = run_fit(setup, fit, theta, select)
-        if not berry or _separation_identified(ml, setup.k_sep, opt):
+        if not berry or _separation_identified(ml, setup.k_sep):
             return ml, mask, fit
         theta = ml.theta
-    fit = Fit(data, sectors, _sky(rays, opt, berry=False), opt.max_iterations, tol_sigma=0.1)
+    fit = Fit(data, sectors, _sky(rays, opt, berry=False), MAX_ITERATIONS, tol_sigma=0.1)
     ml, mask = run_fit(setup, fit, np.delete(theta, setup.k_sep), select)
     return ml, mask, fit
 
@@ -278,7 +306,7 @@ def _full_step(
     theta, sector_h = ml.theta, ml.sector_h
     sky_full = _sky(rays_full, opt, berry=False)
     if sky_sub is not None and sky_sub.berry:  # the full step keeps the fitted separation
-        sep = opt.neutral_sep
+        sep = NEUTRAL_SEP
         if sky_sub.fit_sep:
             sep = float(np.sqrt(ml.theta[k_sep]))
             without = _without(ml, k_sep)
@@ -318,7 +346,7 @@ def compensated_solution(
     dop_test : DopTest, optional
         The fitted sky's DoP test of the cloud passes; None: none.
     """
-    opt, k_sep = setup.opt, setup.k_sep
+    k_sep = setup.k_sep
     if data[0] is data[1]:  # no subsample: the full set solved directly
         ml, mask, fit = _fit_sky(setup, data[1], sectors[1], rays[1], select[1], theta)
         ml, mask, dropped = _drop_clouds(setup, fit, ml, mask, select[1], cells[1], dop_test)
@@ -326,15 +354,15 @@ def compensated_solution(
             np.logical_and(select[1].valid, ~dropped.take(cells[1]), out=select[1].valid)
         if fit.sky is not None and fit.sky.fit_sep:
             ml = _without(ml, k_sep)
-        return CompensatedSolution(ml, mask, None, ml_problem(ml, opt, True))
+        return CompensatedSolution(ml, mask, None, ml_problem(ml, True))
 
     ml, mask_sub, fit = _fit_sky(setup, data[0], sectors[0], rays[0], select[0], theta)
     ml, mask_sub, dropped = _drop_clouds(setup, fit, ml, mask_sub, select[0], cells[0], dop_test)
-    fallback = ml_problem(ml, opt, True)
+    fallback = ml_problem(ml, True)
     if fallback:
         return CompensatedSolution(ml, None, mask_sub, fallback)
     if dropped.any():  # a gather over all pixels (0.4 ms at full resolution)
         np.logical_and(select[1].valid, ~dropped.take(cells[1]), out=select[1].valid)
     step, theta = _full_step(setup, ml, fit.sky, data[1], sectors[1], rays[1])
     full, mask_full = run_fit(setup, step, theta, select[1])
-    return CompensatedSolution(full, mask_full, mask_sub, ml_problem(full, opt, False))
+    return CompensatedSolution(full, mask_full, mask_sub, ml_problem(full, False))

@@ -1,4 +1,4 @@
-"""Model error of the heading: the camera-fixed (instrumental) polarization part of its sigma.
+"""The camera-fixed (instrumental) polarization: its part of the heading's sigma.
 
 A channel-gain or polarizer-angle residual of the calibration leaves a spurious
 polarization fixed to the camera, ``dL_i = S0_i delta`` with ``delta = (delta_1, delta_2)``
@@ -20,11 +20,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from polins.compass.jointml import ml_evaluate
-from polins.compass.measurement import MeasureOptions
 from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
 from polins.compass.skymodel import SkyModel
 
-__all__ = ["fitted_sensitivity", "instrumental_sensitivity", "model_weights"]
+__all__ = ["fitted_sensitivity", "instrumental_sensitivity"]
 
 
 def fitted_sensitivity(
@@ -38,36 +37,6 @@ def fitted_sensitivity(
     _, jac, _, _ = ml_evaluate(data, theta, zenith, mat_cl, True, None, sky)
     assert jac is not None
     return _yaw_per_delta(data, jac.astype(np.float64), theta, zenith, mat_cl)
-
-
-def model_weights(
-    inv_sigma_l2: NDArray | float,
-    rows: NDArray,
-    rays: NDArray,
-    sun_c: NDArray,
-    opt: MeasureOptions,
-) -> NDArray:
-    """Per-pixel ``1/var(r_i)`` ``(n,)`` with a model error of the AoP (docs/measurement.md
-    §4): ``var(r_i) = sigma_L,i^2 + (2 p_i sigma_zeta,i)^2``,
-    ``sigma_zeta = model_aop_std (1 + (theta / model_field_angle)^2 +
-    (model_neutral_angle / gamma)^2)``, theta the field angle, gamma the angle to the
-    nearer of the sun ``sun_c`` (3,) and the antisun (the neutral points lie within
-    about 20 deg of them).
-
-    Parameters
-    ----------
-    inv_sigma_l2 : (n,) or float
-        ``1/sigma_L^2`` [1/DN^2]. rows : (3, n) Stokes rows [DN]. rays : (3, n) camera rays.
-    opt : MeasureOptions
-    """
-    dt = rows.dtype
-    field = np.arccos(np.clip(rays[2], -1.0, 1.0)) * (1.0 / opt.model_field_angle)
-    cos_t = np.abs(rays[0] * sun_c[0] + rays[1] * sun_c[1] + rays[2] * sun_c[2])
-    gamma = np.arccos(np.clip(cos_t, 0.0, 1.0)) + dt.type(1e-3)
-    near = opt.model_neutral_angle / gamma
-    sigma_aop = opt.model_aop_std * (1.0 + field * field + near * near)
-    p2 = rows[1] * rows[1] + rows[2] * rows[2]
-    return np.asarray(1.0 / (1.0 / inv_sigma_l2 + 4.0 * p2 * sigma_aop**2), dtype=dt)
 
 
 def instrumental_sensitivity(
