@@ -42,7 +42,7 @@ def _level(yaw_deg):
 # ----------------------------------------------------------------------------- exactness
 @pytest.mark.parametrize("model", ["projection", "meridian"])
 def test_noise_free_heading_is_exact_for_any_attitude(model):
-    # Issue 3 / docs/model.md §12.2 and §12.8: noise-free, eps = 0, tilt up to 10 deg, both lens models:
+    # docs/model.md §12.2 and §12.8: noise-free, eps = 0, tilt up to 10 deg, both lens models:
     # heading error < 1e-6 deg for every method and for the paper's Algorithm 1 (here < 1e-9 deg
     # in float64).
     cam = CAM4.with_changes(polarization_model=model)
@@ -115,7 +115,7 @@ def test_noise_free_sunlight_is_compensated_exactly():
 
 
 def test_world_fixed_occluder_bias():
-    # Issue 3 / docs/model.md §12.6: occluder at compass azimuth 260-350 deg below 40 deg elevation,
+    # docs/model.md §12.6: occluder at compass azimuth 260-350 deg below 40 deg elevation,
     # eps = 0.0125, noise-free. The paper's (unweighted) traditional estimator shows the bias
     # of about -0.1 deg; the joint ML stays below 0.005 deg and recovers eps to 1e-3.
     for yaw_deg in (0.0, 73.0, 200.0):
@@ -133,7 +133,7 @@ def test_world_fixed_occluder_bias():
 
 
 def test_tilt_handled_in_the_camera_frame():
-    # docs/model.md §12.8 regression: E-vectors built with camera-frame ray angles and then rotated are
+    # docs/model.md §12.8: E-vectors built with camera-frame ray angles and then rotated are
     # exact; the paper's Eq. 28 (level-frame ray angles with the camera-frame AoP) is not.
     rot = Rotation.from_euler("ZYX", [0.4, np.radians(5.0), np.radians(-3.0)])
     raw = render(CAM4, SUN_N, rot)
@@ -233,7 +233,7 @@ def test_monte_carlo_covariance_and_crlb():
 
 @pytest.mark.slow
 def test_monte_carlo_full_resolution():
-    # 200 full-resolution uint16 images (quantised): the issue's Monte-Carlo criteria.
+    # 200 full-resolution uint16 images (quantised): the Monte-Carlo criteria of docs/model.md §12.
     rot = Rotation.from_euler("ZYX", [0.4, np.radians(5.0), np.radians(-3.0)])
     res = _monte_carlo(CAM, rot, 200, seed=14, dtype=np.uint16, epsilon=0.0125)
     crlb = yaw_crlb(CAM, SUN_N, rot, dop_max=0.75, radiance=220.0, noise_std=1.5, epsilon=0.0125)
@@ -391,10 +391,10 @@ def test_nan_pixels_are_masked_not_propagated():
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_tiny_region_with_a_free_zenith_falls_back_with_a_reason(seed):
-    # Found: a 2 deg region with the zenith free left the score test's or the separation
-    # test's Gauss-Newton step without a selected pixel (residual RMS 0), and measure raised
-    # ZeroDivisionError (and the eigen fallback's zero gap a RuntimeWarning). Now it returns
-    # a result: ok with a finite yaw, or a reason.
+    # A 2 deg region with the zenith free leaves the score test's or the separation test's
+    # Gauss-Newton step without a selected pixel (residual RMS 0), and the eigen fallback a
+    # zero gap: measure returns a result (ok with a finite yaw, or a reason), without a
+    # ZeroDivisionError or a RuntimeWarning.
     rng = np.random.default_rng(seed)
     rot = Rotation.from_euler(
         "ZYX", [rng.uniform(-3, 3), rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05)]
@@ -618,7 +618,7 @@ def test_public_sun_vector_functions(model):
                            epsilon0=0.3, sigma_l=2.0, max_iterations=40)  # fmt: skip
         assert far.converged and np.allclose(far.theta, sol.theta, atol=1e-6)
     # From random starts (any azimuth, zenith 0-87 deg, eps0 within +-0.1), zenith free and
-    # fixed: the coarse grid start and the bounded steps reach the same solution (before the
+    # fixed: the coarse grid start and the bounded steps reach the same solution (without the
     # grid: 49 of 80 such starts ended elsewhere, e.g. eps -0.3 with the sun 70 deg off).
     for _ in range(10):
         a0, z0 = rng.uniform(-np.pi, np.pi), np.arccos(rng.uniform(0.05, 1.0))

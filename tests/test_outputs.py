@@ -20,10 +20,10 @@ import pytest
 import polins.loop
 from polins.cli import main
 from polins.compass.measure import NoiseModelWarning
+from polins.evaluation import heading_plot_series, summarize
 from polins.io import read_log
 from polins.io.checks import run_verdict, time_base_hint
 from polins.io.outputs import clean_stale, output_set, read_stamp
-from polins.io.report import heading_plot_series, summarize
 from polins.io.schema import schema_markdown
 from polins.loop.offline import RunResult
 from polins.loop.tables import EVENT_COLUMNS, EventBuffer, measurement_frame
@@ -107,7 +107,7 @@ def test_ctrl_c_leaves_the_previous_set(log_dir, tmp_path, fake_loop, monkeypatc
     out = tmp_path / "run"
     assert _fuse(log_dir, out, "--no-plots") == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    import polins.io.report as report
+    import polins.evaluation.report as report
 
     real = report.plot_report
 
@@ -392,7 +392,7 @@ def test_implausible_camera_file_is_named(log_dir, tmp_path, capsys, line, new, 
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 
 
-# ----------------------------------------------------------------------------- issue 16.3
+# ----------------------------------------------------------------------------- [filter] table and --set
 def test_cli_overrides_the_manifest_filter_table(log_dir, tmp_path, fake_loop):
     dst = tmp_path / "log"
     shutil.copytree(log_dir, dst)

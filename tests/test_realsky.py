@@ -148,9 +148,8 @@ def test_sigma_is_honest_on_realistic_skies():
     _check_honest(err, std)
     _check_honest(err_b, std_b)
     assert np.sqrt(np.mean((err / std_noise) ** 2)) > 2.0  # 3.0
-    # compensated RMSE [deg]: 0.126 with the fitted-sky DoP test (0.111 with the Berry sky
-    # and the rotated-cloud cells, 0.114 before; 48 images: 0.179, 0.180 and 0.197, 0.208
-    # and 0.257 before): a new uncalibrated gain residual per image
+    # compensated RMSE [deg]: 0.126 with the fitted-sky DoP test (48 images: 0.179): a new
+    # uncalibrated gain residual per image
     assert np.sqrt(np.mean(np.degrees(err) ** 2)) < 0.13
 
 
@@ -188,13 +187,12 @@ def _check_tenth_of_a_degree(cam, n_images, seed):
 
 
 def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_realistic_skies():
-    # Issue 15: one camera (a fixed +-0.5 % channel-gain residual) calibrated by a sky
+    # One camera (a fixed +-0.5 % channel-gain residual) calibrated by a sky
     # rotation, 16 realistic skies (neutral points, thin clouds, CIE radiance, vignetting,
     # tilt up to 5 deg) at 1/4 resolution (the slow variant: 48 at 1/4 and 1/2): the
     # compensated RMSE is below 0.1 deg and the sigma covers the error, with and without
-    # sun_n. Measured 0.058 deg (sun-free 0.059 deg), RMS(err/sigma) 0.69 (0.75), max 1.47;
-    # before the fitted-sky DoP test of the cloud passes: 0.104 deg, 1.06, max 1.93. Other
-    # seeds and the 48-image sets: docs/measurement.md §12.
+    # sun_n. Measured 0.058 deg (sun-free 0.059 deg), RMS(err/sigma) 0.69 (0.75), max 1.47.
+    # Other seeds and the 48-image sets: docs/measurement.md §12.
     _check_tenth_of_a_degree(CAM4, 16, seed=2)
 
 
@@ -206,7 +204,7 @@ def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_many_realistic_skies()
 
 @pytest.mark.slow
 def test_calibrated_camera_reaches_a_tenth_of_a_degree_at_full_resolution():
-    # Issue 15 where the pixel noise does not decide it: at 1/2 resolution the noise-only
+    # The tenth of a degree where the pixel noise does not decide it: at 1/2 resolution the noise-only
     # sigma of suns within 40 deg of the zenith is 0.03-0.18 deg and 24-image sets at five
     # seeds reach 0.08-0.12 deg; at full resolution 16-image sets at seeds 4, 6, 8, 11, 12 gave
     # 0.018-0.061 deg with RMS(err/sigma) 0.81-1.19, max 3.5 (docs/measurement.md §12). Here:

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from polins.evaluation import solution_errors
 from polins.io import read_log
-from polins.io.report import solution_errors
 from polins.loop.offline import run_log
 from polins.sim.scenario import simulate_log
 

@@ -98,4 +98,14 @@ class Parser(argparse.ArgumentParser):
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """``--help`` with each option's default and the epilog's line breaks kept."""
+    """``--help`` with each option's default and the epilog's line breaks kept.
+
+    No "(default: ...)" for a required option, a default of None (the help says what
+    happens) or a help text that already names its default.
+    """
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if action.required or action.default is None or "default" in text:
+            return text
+        return super()._get_help_string(action)

@@ -71,11 +71,11 @@ def filter_changes(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_fuse(args: argparse.Namespace) -> int:
+    from polins.evaluation import format_summary, summarize, write_report
     from polins.fusion.config import FuseConfig
     from polins.io import read_log
     from polins.io.checks import preflight_warnings, run_verdict
     from polins.io.outputs import output_set
-    from polins.io.report import format_summary, summarize, write_report
     from polins.loop import LoopOptions, run_log
     from polins.models import load_imu
 
