@@ -403,7 +403,7 @@ def test_implausible_camera_file_is_named(log_dir, tmp_path, capsys, line, new, 
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 
 
-# ----------------------------------------------------------------------------- issue 16.3
+# ----------------------------------------------------------------------------- [filter] table and --set
 def test_cli_overrides_the_manifest_filter_table(log_dir, tmp_path, fake_loop):
     dst = tmp_path / "log"
     shutil.copytree(log_dir, dst)

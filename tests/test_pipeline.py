@@ -347,7 +347,7 @@ def test_a_bug_in_the_measurer_propagates_and_opencv_failures_are_events(sim_log
 
 def test_run_log_runs_the_filter_once(sim_log, batch, monkeypatch):
     """One ESKF for the whole run, and its estimates are what run_fusion gives on the
-    stream's own measurement table (the second pass that run_log no longer makes)."""
+    stream's own measurement table (no second pass over the log)."""
     import dataclasses
 
     from polins.fusion.eskf import ESKF

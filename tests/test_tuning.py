@@ -55,7 +55,7 @@ def static_fit(static_recording):
 def test_static_recording_recovers_the_noise_model(
     static_recording, static_fit, truth_model, tmp_path, capsys
 ):
-    """The issue's done-when: ``polins imu-model`` on a static recording, then load_imu."""
+    """``polins imu-model`` on a static recording, then load_imu, recovers the noise model."""
     from polins.cli import main
     from polins.io import write_imu
 

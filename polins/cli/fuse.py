@@ -170,7 +170,7 @@ def add_fuse(sub: Any) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help="image processes, >= 1 (None: all cores)")  # fmt: skip
     p.add_argument(
-        "--method", choices=["compensated", "traditional", "paper"], default="compensated",
+        "--method", choices=["compensated", "traditional"], default="compensated",
         help="heading estimator",
     )  # fmt: skip
     p.add_argument("--update", choices=["yaw", "sun"], default="yaw", help="filter update kind")

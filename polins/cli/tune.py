@@ -71,7 +71,7 @@ def add_tune(sub: Any) -> None:
     p.add_argument("--smooth", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--nhc", type=finite, default=None,
                    help="non-holonomic constraint sigma [m/s] (None: off)")  # fmt: skip
-    p.add_argument("--method", choices=["compensated", "traditional", "paper"],
+    p.add_argument("--method", choices=["compensated", "traditional"],
                    default="compensated", help="heading estimator")  # fmt: skip
     p.add_argument("--workers", type=int, default=None, help="image processes (None: all cores)")
     p.add_argument("--gyro-unit", choices=["rad/s", "deg/s"], default=None,

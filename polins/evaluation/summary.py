@@ -223,8 +223,10 @@ def sigma_cause(name: str, verdict: str) -> str:
                 "lacks)" if side == "optimistic" else "yaw_std is larger than the images' "
                 "errors")  # fmt: skip
     if side == "optimistic":
-        return ("the filter's sigma is too small: the IMU model's noise is below this "
-                "vehicle's (vibration, no velocity aiding) or the images' sigma is too small")
+        return (
+            "the filter's sigma is too small: the IMU model's noise is below this "
+            "vehicle's (vibration, no velocity aiding) or the images' sigma is too small"
+        )
     return "the filter's sigma is larger than its errors: IMU or image noise set too high"
 
 
