@@ -40,7 +40,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
     options = LoopOptions(method=args.method)
     first = run_log(log, options=options, config=config, workers=args.workers,
                     progress=not args.quiet)  # fmt: skip
-    result = tune(log.imu, first.measurements, options.filter_config(config), params)
+    result = tune(log.imu, first.measurements, options.filter_config(config), params,
+                  odometry=log.odometry)  # fmt: skip
     model = dataclasses.replace(result.config.imu, name=out.stem,
                                 description=f"{log.imu_model.name} tuned on {args.manifest}")  # fmt: skip
     write_text_atomic(out, imu_model_toml(model, comments=result.comment_lines()))

@@ -256,6 +256,7 @@ def tune(
     *,
     initial: Mapping[str, float] | None = None,
     rot_nb0: Any = None,
+    odometry: pd.DataFrame | None = None,
     max_log_sigma: float = math.log(2.0),
     search_factor: float = 100.0,
     hessian_step: float = 0.2,
@@ -276,6 +277,10 @@ def tune(
         0.05 deg for a floor.
     rot_nb0 : Rotation, optional
         Initial attitude (None: self-alignment), as in ``run_fusion``.
+    odometry : DataFrame, optional
+        The log's odometer (``t, speed``), as in ``run_fusion``: the tuned filter must be
+        the one that fuses, with every aiding the log has; without it the IMU noise absorbs
+        the velocity errors the odometer would have removed.
     max_log_sigma : float
         Largest Cramér-Rao sigma of ``log(parameter)`` of an identifiable parameter.
     search_factor : float
@@ -298,7 +303,7 @@ def tune(
     def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
         c, m = with_values(base, measurements, values)
         count[0] += 1
-        return run_fusion(imu, m, rot_nb0=rot_nb0, config=c)
+        return run_fusion(imu, m, rot_nb0=rot_nb0, config=c, odometry=odometry)
 
     def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
         values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}
