@@ -297,7 +297,7 @@ def tune(
     params = check_params(params)
     cfg = config or FuseConfig()
     start = _start_values(cfg, params, initial or {})
-    ungated = dataclasses.replace(cfg, gate_prob=None, smooth=False)
+    ungated = cfg.replace(gate_prob="off", smooth=False)
     count = [0]
 
     def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
