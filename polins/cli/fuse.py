@@ -104,7 +104,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
                          workers=args.workers, rot_nb0=rot_nb0, progress=not args.quiet)  # fmt: skip
         summary = summarize(result.solution, result.measurements, result.events,
                             truth=log.truth, timing=result.timing, settings=result.settings,
-                            settle_s=args.settle, gate_prob=config.gate_prob)  # fmt: skip
+                            settle_s=args.settle, gate_prob=config.gate_probability)  # fmt: skip
         verdict = run_verdict(summary, result.events, args.max_image_failures,
                               t_imu=log.imu["t"].to_numpy(dtype=float),
                               t_images=np.asarray(log.images.t, dtype=float))  # fmt: skip
