@@ -9,6 +9,9 @@ block tells this module how to run it, visibly in the page's source:
 ``<!-- doctest: fixture log -->``
     before the block, copy the fixture files into the working folder and (python) define the
     fixture names: a 4 s simulated UGV log at 1/8 resolution (:func:`docs_log`).
+``<!-- doctest: fixture camera -->``
+    a camera file and clear-sky images to calibrate, check and measure with
+    (:func:`docs_camera`).
 ``<!-- doctest: fixture broad -->``
     link ``tests/data/broad`` (the BROAD trials) into the working folder.
 ``<!-- doctest: replace `OLD` `NEW` -->``
@@ -192,13 +195,47 @@ def docs_log(tmp_path_factory) -> tuple[Path, dict[str, Any]]:
     return folder, names
 
 
-def _install_fixture(name: str, cwd: Path, namespace: dict[str, Any], docs_log) -> None:
+@pytest.fixture(scope="session")
+def docs_camera(tmp_path_factory) -> tuple[Path, dict[str, Any]]:
+    """The files of ``<!-- doctest: fixture camera -->``: ``mycam.toml`` (``paper-table1`` at
+    1/8), ``sky/`` (12 clear-sky images over a full turn about the vertical, with the IFOV
+    error), ``sky-test/`` (4 more) and ``sky.png`` (one more), all of the sun at Berlin
+    (52.5, 13.3) on 2026-06-01T10:15+02:00; ``flats/`` (3 frames of uniform unpolarized
+    light)."""
+    import polins
+    from polins.io import write_image
+    from polins.io.model_files import camera_model_toml
+
+    folder = tmp_path_factory.mktemp("docs-camera")
+    cam = polins.load_camera("paper-table1").downscaled(8)
+    (folder / "mycam.toml").write_text(camera_model_toml(cam))
+    sun = polins.sun_position("2026-06-01T10:15+02:00", 52.5, 13.3)
+    sun_n = polins.sun_vector_n(sun.azimuth, sun.zenith)
+    rng = np.random.default_rng(2)
+    for name, n in (("sky", 12), ("sky-test", 4)):
+        (folder / name).mkdir()
+        for i, turn_deg in enumerate(np.arange(n) * 360.0 / n + 10.0 * len(name)):
+            rot_nb = Rotation.from_euler("z", turn_deg, degrees=True)
+            raw = polins.sim.render_raw(cam, sun_n, rot_nb, rng=rng, ifov=True)
+            write_image(folder / name / f"{i:03d}.png", raw)
+    rot_nb = Rotation.from_euler("z", 40.0, degrees=True)
+    write_image(folder / "sky.png", polins.sim.render_raw(cam, sun_n, rot_nb, rng=rng, ifov=True))
+    (folder / "flats").mkdir()
+    for i in range(3):  # uniform unpolarized light
+        raw = polins.sim.render_raw(
+            cam, sun_n, rot_nb, dop_max=0.0, epsilon=0.0, radiance=1500.0, rng=rng
+        )
+        write_image(folder / "flats" / f"{i:03d}.png", raw)
+    return folder, {}
+
+
+def _install_fixture(name: str, cwd: Path, namespace: dict[str, Any], request) -> None:
     if name == "broad":  # the BROAD trials at the path the page gives, tests/data/broad
         (cwd / "tests" / "data").mkdir(parents=True, exist_ok=True)
         (cwd / "tests" / "data" / "broad").symlink_to(ROOT / "tests" / "data" / "broad")
         return
-    assert name == "log", f"unknown doctest fixture {name!r}"
-    folder, names = docs_log
+    assert name in ("log", "camera"), f"unknown doctest fixture {name!r}"
+    folder, names = request.getfixturevalue(f"docs_{name}")
     for path in folder.iterdir():
         target = cwd / path.name
         if path.is_dir():
@@ -209,16 +246,26 @@ def _install_fixture(name: str, cwd: Path, namespace: dict[str, Any], docs_log) 
 
 
 # ------------------------------------------------------------------------------ running
-def _commands(code: str) -> list[str]:
-    """The shell lines of a block, continuation lines joined."""
-    return [c for c in code.replace("\\\n", " ").splitlines() if c.strip()]
+def _commands(code: str) -> list[tuple[int, str]]:
+    """The shell commands of a block with the offset of their first line, continuation
+    lines joined."""
+    commands: list[tuple[int, str]] = []
+    start, parts = 0, []
+    for k, line in enumerate(code.splitlines()):
+        parts.append(line.removesuffix("\\"))
+        if not line.endswith("\\"):
+            if "".join(parts).strip():
+                commands.append((start, " ".join(parts)))
+            start, parts = k + 1, []
+    return commands
 
 
 def _run_shell(block: Block, code: str) -> None:
     from polins.cli import main
 
-    for line in _commands(code):
+    for offset, line in _commands(code):
         argv = shlex.split(line, comments=True)
+        where = f"{_shown(block.page)}:{block.line + offset}"
         if not argv:
             continue
         if argv[0] == "polins":
@@ -226,8 +273,8 @@ def _run_shell(block: Block, code: str) -> None:
         elif argv[0] == "python":
             status = subprocess.run([sys.executable, *argv[1:]], check=False).returncode
         else:
-            raise AssertionError(f"{block.where}: cannot run {argv[0]!r}: mark it doctest skip")
-        assert status == 0, f"{block.where}: `{line.strip()}` exited {status}"
+            raise AssertionError(f"{where}: cannot run {argv[0]!r}: mark the block doctest skip")
+        assert status == 0, f"{where}: `{line.strip()}` exited {status}"
 
 
 def _run_python(block: Block, code: str, namespace: dict[str, Any]) -> None:
@@ -237,7 +284,7 @@ def _run_python(block: Block, code: str, namespace: dict[str, Any]) -> None:
     exec(compiled, namespace)
 
 
-def run_page(page: Path, cwd: Path, docs_log) -> list[Block]:
+def run_page(page: Path, cwd: Path, request) -> list[Block]:
     """Run the page's runnable blocks in order in ``cwd``; return the blocks that ran."""
     namespace: dict[str, Any] = {"__name__": "__doc_page__"}
     ran = []
@@ -245,7 +292,7 @@ def run_page(page: Path, cwd: Path, docs_log) -> list[Block]:
         if block.lang not in RUN_LANGUAGES or block.skip:
             continue
         for name in block.fixtures:
-            _install_fixture(name, cwd, namespace, docs_log)
+            _install_fixture(name, cwd, namespace, request)
         try:
             code = block.source()
             if block.lang == "python":
@@ -280,10 +327,10 @@ RUNNABLE = [p for p in PAGES if any(b.lang in RUN_LANGUAGES for b in parse_block
 
 
 @pytest.mark.parametrize("page", RUNNABLE, ids=lambda p: str(p.relative_to(ROOT)))
-def test_page_blocks_run(page, tmp_path, monkeypatch, docs_log):
+def test_page_blocks_run(page, tmp_path, monkeypatch, request):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    ran = run_page(page, tmp_path, docs_log)
+    ran = run_page(page, tmp_path, request)
     assert ran or all(b.skip for b in parse_blocks(page) if b.lang in RUN_LANGUAGES)
 
 
@@ -321,6 +368,14 @@ def test_the_harness_reports_page_and_line(tmp_path):
     assert Path(frame.path) == page and frame.lineno + 1 == 6  # the page's line 6
     with pytest.raises(AssertionError, match="not in the block"):
         Block(page, 1, "python", "x = 2", replace=[("y", "z")]).source()
+    code = "# a comment\npolins sun --time 2023-09-05T07:06Z \\\n    --lat 45 --lon 126\n\npolins nope\n"
+    assert _commands(code) == [
+        (0, "# a comment"),
+        (1, "polins sun --time 2023-09-05T07:06Z      --lat 45 --lon 126"),
+        (4, "polins nope"),
+    ]
+    with pytest.raises(AssertionError, match=r"page.md:15: `polins nope` exited 2"):
+        _run_shell(Block(page, 11, "bash", code), code)
 
 
 if __name__ == "__main__":  # print the inventory: python tests/test_docs.py
@@ -338,3 +393,16 @@ def test_the_index_lists_the_pages_of_the_navigation():
     assert nav[0] == "index.md"
     assert table == nav[1:]
     assert sorted(nav) == sorted(p.name for p in (ROOT / "docs").glob("*.md"))
+
+
+def test_toml_blocks_parse():
+    """A documented manifest or model file is valid TOML."""
+    import tomllib
+
+    for page in PAGES:
+        for block in parse_blocks(page):
+            if block.lang == "toml":
+                try:
+                    tomllib.loads(block.code)
+                except tomllib.TOMLDecodeError as exc:
+                    pytest.fail(f"{block.where}: not valid TOML: {exc}", pytrace=False)

@@ -55,6 +55,36 @@ def heading_plot_series(
     return out
 
 
+def _compass(heading_deg: FloatArray) -> FloatArray:
+    """A continuous heading [deg] shown in 0..360: wrapped, NaN where it crosses North
+    (so no line runs across the axis)."""
+    wrapped = np.mod(np.asarray(heading_deg, dtype=float), 360.0)
+    jump = np.flatnonzero(np.abs(np.diff(wrapped)) > 180.0)
+    wrapped[jump] = np.nan
+    return wrapped
+
+
+def _residual_scale(ax: Any, t: FloatArray, sigma3: FloatArray, resid: FloatArray) -> None:
+    """The residual panel's y axis: the whole 3-sigma band and the residuals in view.
+
+    Linear within the settled 3-sigma (the median over the last 80 % of the run) and
+    logarithmic beyond it (``symlog``), so the wide band after the yaw acquisition and the
+    settled band of a tenth of a degree are both readable.
+    """
+    settled = sigma3[t >= t[0] + 0.2 * (t[-1] - t[0])]
+    settled = settled[np.isfinite(settled) & (settled > 0)]
+    finite = np.isfinite(sigma3)
+    span = [float(np.max(sigma3[finite]))] if finite.any() else []
+    if np.isfinite(resid).any():
+        span.append(1.2 * float(np.nanmax(np.abs(resid))))
+    if not span or max(span) <= 0:
+        return
+    top = 1.05 * max(span)
+    if settled.size and top > 3.0 * float(np.median(settled)):
+        ax.set_yscale("symlog", linthresh=float(np.median(settled)))
+    ax.set_ylim(-top, top)
+
+
 def _legend(ax: Any) -> None:
     """A legend if the axes have labelled artists (an empty run has none)."""
     if ax.get_legend_handles_labels()[0]:
@@ -99,29 +129,27 @@ def plot_report(
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(9, 7), sharex=True,
                                   gridspec_kw={"height_ratios": (3, 2)})  # fmt: skip
     if len(series["mt"]):
-        ax.plot(series["mt"], series["mh"], "o", ms=2.5, mew=0, alpha=0.6, color="C1",
-                zorder=2, label="polarization measurements")  # fmt: skip
+        ax.plot(series["mt"], _compass(series["mh"]), "o", ms=2.5, mew=0, alpha=0.6,
+                color="C1", zorder=2, label="polarization measurements")  # fmt: skip
         axr.plot(series["mt"], series["mh"] - series["mh_fused"], "o", ms=2.5, mew=0,
                  alpha=0.6, color="C1", zorder=2, label="measurement − fused")  # fmt: skip
     if "ref" in series:
-        ax.plot(t, series["ref"], "--", color="k", lw=1.0, zorder=3, label="reference")
+        ax.plot(t, _compass(series["ref"]), "--", color="k", lw=1.0, zorder=3,
+                label="reference")  # fmt: skip
         axr.plot(t, series["ref"] - series["fused"], "--", color="k", lw=1.0, zorder=3,
                  label="reference − fused")  # fmt: skip
-    ax.fill_between(t, series["fused"] - sigma3, series["fused"] + sigma3, color="C0",
-                    alpha=0.25, lw=0, zorder=1, label="fused ±3σ")  # fmt: skip
-    ax.plot(t, series["fused"], color="C0", lw=1.6, zorder=4, label="fused heading")
+    shown = _compass(series["fused"])
+    ax.fill_between(t, shown - sigma3, shown + sigma3, color="C0", alpha=0.25, lw=0, zorder=1,
+                    label="fused ±3σ")  # fmt: skip
+    ax.plot(t, shown, color="C0", lw=1.6, zorder=4, label="fused heading")
+    ax.set_ylim(0.0, 360.0)
+    ax.set_yticks(np.arange(0.0, 361.0, 45.0))
     axr.fill_between(t, -sigma3, sigma3, color="C0", alpha=0.25, lw=0, zorder=1,
                      label="fused ±3σ")  # fmt: skip
     axr.axhline(0.0, color="C0", lw=1.2, zorder=4)
     if len(t):
-        after = sigma3[t >= t[0] + 0.2 * (t[-1] - t[0])]
-        span = [3.0 * float(np.nanmax(after))] if after.size and np.isfinite(after).any() else []
-        resid = series["mh"] - series["mh_fused"]
-        if np.isfinite(resid).any():
-            span.append(1.2 * float(np.nanpercentile(np.abs(resid), 98)))
-        if span and max(span) > 0:
-            axr.set_ylim(-max(span), max(span))
-    ax.set_ylabel("heading [deg, clockwise from North]")
+        _residual_scale(axr, t, sigma3, series["mh"] - series["mh_fused"])
+    ax.set_ylabel("heading [deg, clockwise from North, 0..360]")
     ax.set_title(f"Heading vs time{suffix}")
     _legend(ax)
     ax.grid(alpha=0.3)

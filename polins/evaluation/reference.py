@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from polins.frames import rot_nb_from_euler, wrap_angle
 from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.fusion.items import item_model, items_from_table
+from polins.tuning.innovations import effective_samples
 
 FloatArray = NDArray[np.float64]
 
@@ -52,7 +56,7 @@ def measurement_residuals(measurements: pd.DataFrame, truth: pd.DataFrame) -> Fl
     return out
 
 
-def error_stats(err: FloatArray, std: FloatArray | None = None) -> dict[str, float | None]:
+def error_stats(err: FloatArray, std: FloatArray | None = None) -> dict[str, Any]:
     """RMS / max / final of an error [deg]; with sigmas also RMS(err/sigma) and 3-sigma share."""
     ok = np.isfinite(err)
     if std is not None:
@@ -60,7 +64,7 @@ def error_stats(err: FloatArray, std: FloatArray | None = None) -> dict[str, flo
     e = err[ok]
     if e.size == 0:
         return {"rms_deg": None, "max_abs_deg": None, "final_deg": None, "n": 0}
-    out: dict[str, float | None] = {
+    out: dict[str, Any] = {
         "rms_deg": float(np.sqrt(np.mean(e**2))),
         "mean_deg": float(np.mean(e)),
         "max_abs_deg": float(np.max(np.abs(e))),
@@ -70,9 +74,30 @@ def error_stats(err: FloatArray, std: FloatArray | None = None) -> dict[str, flo
     if std is not None:
         z = e / std[ok]
         out["final_sigma_deg"] = float(std[ok][-1])
-        out["rms_normalized"] = float(np.sqrt(np.mean(z**2)))
-        out["within_3sigma"] = float(np.mean(np.abs(z) <= 3.0))
+        out.update(normalized_error_stats(z))
     return out
+
+
+def normalized_error_stats(z: FloatArray, prob: float = 0.95) -> dict[str, Any]:
+    """RMS of normalized errors ``z = err / sigma`` with its band and verdict.
+
+    The band is that of the RMS of ``n_eff`` independent standard normal samples,
+    ``sqrt(chi2.ppf(q, n_eff) / n_eff)``, where ``n_eff`` is the effective number of
+    independent ``z^2`` (:func:`polins.tuning.innovations.effective_samples`): a filter's
+    errors drift slowly, so a run holds far fewer independent errors than samples.
+    Above the band the sigmas are optimistic, below it conservative.
+    """
+    rms = float(np.sqrt(np.mean(z**2)))
+    n_eff = effective_samples(z**2, prob=prob)
+    a = 1.0 - prob
+    lo, hi = np.sqrt(chi2.ppf([a / 2, 1 - a / 2], n_eff) / n_eff)
+    verdict = "consistent"
+    if rms > hi:
+        verdict = "optimistic: sigma too small"
+    elif rms < lo:
+        verdict = "conservative: sigma too large"
+    return {"rms_normalized": rms, "within_3sigma": float(np.mean(np.abs(z) <= 3.0)),
+            "n_eff": n_eff, "rms_normalized_band": [float(lo), float(hi)], "verdict": verdict}  # fmt: skip
 
 
 def solution_errors(solution: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
@@ -88,4 +113,10 @@ def solution_errors(solution: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame
     )
 
 
-__all__ = ["error_stats", "measurement_residuals", "solution_errors", "truth_at"]
+__all__ = [
+    "error_stats",
+    "measurement_residuals",
+    "normalized_error_stats",
+    "solution_errors",
+    "truth_at",
+]

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.stats import chi2
+from numpy.typing import NDArray
 
 from polins.evaluation.reference import (
     error_stats,
@@ -16,6 +16,69 @@ from polins.evaluation.reference import (
     truth_at,
 )
 from polins.frames import wrap_angle
+from polins.fusion.config import FuseConfig
+from polins.tuning.innovations import (
+    effective_samples,
+    innovation_stats,
+    likely_cause,
+    nis_mean_band,
+    nis_verdict,
+)
+
+GATE_PROB = FuseConfig().gate_probability  # the default gate of the filters
+_IMAGE_KINDS = {1: "yaw", 2: "sun"}  # nis_dof of an image's update
+
+
+def nis_summary(
+    measurements: pd.DataFrame,
+    accepted: NDArray[np.bool_],
+    *,
+    gate_prob: float | None = GATE_PROB,
+    updates: pd.DataFrame | None = None,
+    prob: float = 0.95,
+) -> dict[str, dict[str, Any]]:
+    """Mean NIS per measurement kind with its band and verdict (docs/outputs.md).
+
+    Each kind's band is that of its effective number of independent updates
+    (:func:`polins.tuning.innovations.effective_samples`) and of the gate's truncation
+    (:func:`polins.tuning.innovations.nis_mean_band`); the verdict is consistent,
+    conservative or optimistic, with the likely cause.
+    """
+    out: dict[str, dict[str, Any]] = {}
+    if updates is not None and "innovation" in updates.columns:
+        for kind, st in innovation_stats(updates, prob=prob, gate_prob=gate_prob).items():
+            out[kind] = _nis_entry(st.nis_mean, st.nis_expected, st.nis_band, st.n, st.n_eff,
+                                   st.verdict, st.cause)  # fmt: skip
+        return out
+    if "nis" not in measurements:
+        return out
+    m = measurements
+    ok = accepted & np.isfinite(m["nis"].to_numpy(dtype=float))  # the acquisition has none
+    dof = m["nis_dof"].to_numpy(dtype=float) if "nis_dof" in m else np.ones(len(m))
+    for d, kind in _IMAGE_KINDS.items():
+        rows = ok & (dof == d)
+        if not rows.any():
+            continue
+        nis = m.loc[rows, "nis"].to_numpy(dtype=float)
+        n_eff = effective_samples(nis, prob=prob)
+        expected, band = nis_mean_band(d, n_eff, prob=prob, gate_prob=gate_prob)
+        verdict = nis_verdict(float(np.mean(nis)), band)
+        out[kind] = _nis_entry(float(np.mean(nis)), expected, band, nis.size, n_eff, verdict,
+                               likely_cause(kind, verdict))  # fmt: skip
+    return out
+
+
+def _nis_entry(
+    mean: float,
+    expected: float,
+    band: tuple[float, float],
+    n: int,
+    n_eff: float,
+    verdict: str,
+    cause: str,
+) -> dict[str, Any]:
+    return {"mean": mean, "expected": expected, "band95_of_mean": list(band), "n": int(n),
+            "n_eff": n_eff, "verdict": verdict, "likely_cause": cause}  # fmt: skip
 
 
 def summarize(
@@ -27,11 +90,16 @@ def summarize(
     timing: Mapping[str, float] | None = None,
     settings: Mapping[str, Any] | None = None,
     settle_s: float = 0.0,
+    gate_prob: float | None = GATE_PROB,
+    updates: pd.DataFrame | None = None,
 ) -> dict[str, Any]:
     """The JSON summary (module docstring). Errors are in degrees.
 
     ``settle_s``: error statistics skip the first ``settle_s`` seconds of the solution
-    (alignment transient); the whole run is reported too.
+    (alignment transient); the whole run is reported too. ``gate_prob``: the run's
+    chi-square gate (None: none), which lowers the accepted updates' expected NIS.
+    ``updates``: the filter's update log (``FusionResult.updates``), for the NIS of every
+    measurement kind; without it, the images' NIS from ``measurements``.
     """
     m = measurements
     ok = m["ok"].to_numpy(dtype=bool) if len(m) else np.zeros(0, bool)
@@ -51,22 +119,9 @@ def summarize(
         if len(events)
         else {},
     }
-    nis_ok = accepted & np.isfinite(m["nis"].to_numpy(dtype=float)) if "nis" in m else accepted
-    if "nis" in m and nis_ok.any():  # the yaw alignment itself has no NIS
-        nis = m.loc[nis_ok, "nis"].to_numpy(dtype=float)
-        dof = (
-            m.loc[nis_ok, "nis_dof"].to_numpy(dtype=float) if "nis_dof" in m else np.ones_like(nis)
-        )
-        n = nis.size
-        summary["nis"] = {
-            "mean": float(np.mean(nis)),
-            "expected": float(np.mean(dof)),
-            "band95_of_mean": [
-                float(chi2.ppf(0.025, dof.sum()) / n),
-                float(chi2.ppf(0.975, dof.sum()) / n),
-            ],
-            "n": int(n),
-        }
+    nis = nis_summary(m, accepted, gate_prob=gate_prob, updates=updates)
+    if nis:
+        summary["nis"] = nis
     if timing:
         summary["timing"] = {k: float(v) for k, v in timing.items()}
         run = float(timing.get("run_s", 0.0))
@@ -93,7 +148,10 @@ def summarize(
             ref = truth_at(truth, m["t"].to_numpy(dtype=float))
             e = np.degrees(wrap_angle(m["yaw"].to_numpy(dtype=float) - ref["yaw"].to_numpy()))
             std = np.degrees(m["yaw_std"].to_numpy(dtype=float))
-            acc["measurement_heading"] = error_stats(np.where(ok, e, np.nan), std)
+            raw = error_stats(np.where(ok, e, np.nan), std)
+            for key in ("verdict", "rms_normalized_band", "n_eff"):  # yaw_std covers the
+                raw.pop(key, None)  # residual below, not the raw tilt-coupled error
+            acc["measurement_heading"] = raw
             res = np.degrees(measurement_residuals(m, truth))
             acc["measurement_residual"] = error_stats(np.where(ok, res, np.nan), std)
         summary["accuracy_vs_reference"] = acc
@@ -112,11 +170,13 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     if summary.get("events"):
         ev = ", ".join(f"{k} {v}" for k, v in summary["events"].items())
         lines.append(f"events            {ev}")
-    if "nis" in summary:
-        n = summary["nis"]
+    for kind, n in summary.get("nis", {}).items():
         lo, hi = n["band95_of_mean"]
-        lines.append(f"NIS mean          {n['mean']:.3f} (expected {n['expected']:.0f}, "
-                     f"95% band of the mean {lo:.2f}..{hi:.2f})")  # fmt: skip
+        lines.append(f"NIS {kind:<13} {n['mean']:.3g} (expected {n['expected']:.3g}, 95% band "
+                     f"{lo:.3g}..{hi:.3g} from {n['n_eff']:.0f} independent of {n['n']}): "
+                     f"{n['verdict']}")  # fmt: skip
+        if n.get("likely_cause"):
+            lines.append(f"  likely cause    {n['likely_cause']}")
     acc = summary.get("accuracy_vs_reference")
     if acc:
         lines.append(f"vs reference      after the first {acc['settle_s']:g} s "
@@ -131,7 +191,15 @@ def format_summary(summary: Mapping[str, Any]) -> str:
             if "rms_normalized" in st:
                 line += (f" ({st['final_sigma_deg']:.4f})   {st['rms_normalized']:.2f}"
                          f"   {100 * st['within_3sigma']:.1f}%")  # fmt: skip
+                if "verdict" in st:
+                    lo, hi = st["rms_normalized_band"]
+                    line += f"   {_word(st['verdict'])} (band {lo:.2f}..{hi:.2f})"
+                else:
+                    line += "   (tilt-coupled: yaw_std covers the residual below)"
             lines.append(line)
+            cause = sigma_cause(name, st.get("verdict", ""))
+            if cause:
+                lines.append(f"    likely cause  {cause}")
     tm = summary.get("timing")
     if tm:
         lines.append(
@@ -141,4 +209,25 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["format_summary", "summarize"]
+def _word(verdict: str) -> str:
+    return verdict.split(":")[0]
+
+
+def sigma_cause(name: str, verdict: str) -> str:
+    """The likely cause of an RMS(err/sigma) outside its band, for a row of the summary."""
+    side = _word(verdict)
+    if side not in ("optimistic", "conservative"):
+        return ""
+    if name.startswith("measurement"):
+        return ("yaw_std is smaller than the images' errors (a sky or camera the sigma model "
+                "lacks)" if side == "optimistic" else "yaw_std is larger than the images' "
+                "errors")  # fmt: skip
+    if side == "optimistic":
+        return (
+            "the filter's sigma is too small: the IMU model's noise is below this "
+            "vehicle's (vibration, no velocity aiding) or the images' sigma is too small"
+        )
+    return "the filter's sigma is larger than its errors: IMU or image noise set too high"
+
+
+__all__ = ["format_summary", "nis_summary", "sigma_cause", "summarize"]
