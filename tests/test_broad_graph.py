@@ -3,7 +3,7 @@
 Setup: the shipped ``broad-aktos-t`` model, a 1 Hz heading = truth + N(0, 0.5
 deg), zero-velocity updates at rest (0.01 m/s, 2 Hz), ``rot_nb0`` = truth, the site known
 (Berlin, the Earth rate mechanized), all other options at their defaults (batch solver;
-``scale_factors=None``: on for this MEMS model, graph variables, docs/filter.md §9). The trials reach pitch +-90 deg, where yaw and roll are undefined: the
+``scale_factors="auto"``: on for this MEMS model, graph variables, docs/filter.md §9). The trials reach pitch +-90 deg, where yaw and roll are undefined: the
 heading aid and the scoring keep to |pitch| < 70 deg (tests/data/broad/README.md).
 """
 

@@ -18,7 +18,7 @@ import polins
 import polins.fusion
 import polins.fusion.graph as G
 from polins.frames import wrap_angle, yaw_from_rot_nb
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import TIME_TOL_S, FuseConfig
 from polins.fusion.measurement import sun_measurement
 from polins.ins.state import NavState, solution_table
 from polins.sim.imu import ideal_imu, imu_errors
@@ -437,13 +437,13 @@ def test_result_is_the_shared_solution_table():
         np.testing.assert_allclose(at_k[c].to_numpy(), k[c].to_numpy(), rtol=1e-9, atol=1e-12)
 
 
-def test_measurement_times_within_time_tol_use_the_imu_sample():
-    """As the ESKF: a measurement within time_tol_s of an IMU sample is applied there."""
+def test_measurement_times_within_the_time_tolerance_use_the_imu_sample():
+    """As the ESKF: a measurement within TIME_TOL_S of an IMU sample is applied there."""
     imu, meas, traj, opts = static_case()
     late = meas.assign(t=meas["t"] + 2e-4)  # IMU at 100 Hz
     kw = {"graph_output": "keyframes", **opts}
     ref = graph(imu, meas, traj.rot_nb[0], **kw)
-    snapped = graph(imu, late, traj.rot_nb[0], time_tol_s=1e-3, **kw)
+    snapped = graph(imu, meas.assign(t=meas["t"] + 0.5 * TIME_TOL_S), traj.rot_nb[0], **kw)
     apart = graph(imu, late, traj.rot_nb[0], **kw)
     np.testing.assert_array_equal(snapped["t"], ref["t"])
     np.testing.assert_allclose(snapped["yaw"], ref["yaw"], rtol=0, atol=1e-12)
@@ -591,7 +591,7 @@ def test_rotation_proportional_gyro_noise():
     imu.loc[imu["t"] >= 5.0, "gz"] = 2.0
     meas = pd.DataFrame({"t": [2.0, 4.0, 6.0], "yaw": 0.0, "yaw_std": 0.01})
     spun = model.gyro_arw**2 + model.gyro_misalignment**2 * model.gyro_misalignment_corr_time * 4.0
-    for flag in (None, False, True):
+    for flag in ("auto", False, True):
         cfg = FuseConfig.from_options(imu_model=model, site=SITE, scale_factors=flag)
         items = polins.fusion.items.items_from_table(meas, use_sun=True)
         arr = imu[["gx", "gy", "gz"]].to_numpy(), imu[["ax", "ay", "az"]].to_numpy()

@@ -415,10 +415,11 @@ def test_cli_overrides_the_manifest_filter_table(log_dir, tmp_path, fake_loop):
     assert _fuse(dst, tmp_path / "b", "--set", "nhc_std=0.2", "--set", "align_s=2",
                  "--scale-factors", "--imu", str(model)) == 0  # fmt: skip
     manifest_only, overridden = fake_loop
-    assert (manifest_only.nhc_std, manifest_only.gate_prob) == (0.05, 0.99)
-    assert manifest_only.imu.name == "mems-typical" and not manifest_only.scale_factors
-    assert (overridden.nhc_std, overridden.gate_prob, overridden.align_s) == (0.2, 0.99, 2.0)
-    assert overridden.scale_factors and overridden.imu.name == "fins-paper"
+    assert (manifest_only.aiding.nhc_std, manifest_only.gating.gate_prob) == (0.05, 0.99)
+    assert manifest_only.imu.name == "mems-typical" and not manifest_only.noise.scale_factors
+    assert overridden.aiding.nhc_std == 0.2 and overridden.initial.align_s == 2.0
+    assert overridden.gating.gate_prob == 0.99
+    assert overridden.noise.scale_factors and overridden.imu.name == "fins-paper"
     stamp = read_stamp(tmp_path / "b")["settings"]["filter"]
     assert stamp["nhc_std"] == 0.2 and stamp["scale_factors"] is True
 

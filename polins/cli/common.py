@@ -100,12 +100,17 @@ class Parser(argparse.ArgumentParser):
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """``--help`` with each option's default and the epilog's line breaks kept.
 
-    No "(default: ...)" for a required option, a default of None (the help says what
-    happens) or a help text that already names its default.
+    No "(default: ...)" for a required argument, a flag, an option whose default is None (its
+    help says what happens without it) or a help text that already names its default.
     """
 
     def _get_help_string(self, action: argparse.Action) -> str | None:
         text = action.help or ""
-        if action.required or action.default is None or "default" in text:
-            return text
+        if (
+            action.required
+            or action.default in (None, False)
+            or not action.option_strings
+            or "default" in text
+        ):
+            return action.help
         return super()._get_help_string(action)

@@ -34,7 +34,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     imu = None if args.imu is None else load_imu(args.imu)
     log = read_log(args.manifest, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit,
                    imu_model=imu)  # fmt: skip
-    config = FuseConfig.from_options(log.config, **changes)
+    config = FuseConfig.from_log(log).replace(**changes)
     config.check_backend("eskf")
     # every image measured with the filter's prior (the loop), then the likelihood
     options = LoopOptions(method=args.method)

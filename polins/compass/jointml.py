@@ -147,14 +147,38 @@ def ml_evaluate(
         r *= weight
     if not jacobian:
         return r, None, u, mask
-    # Jacobian (docs/measurement.md §3). d r / d theta_sun = -d(2 zeta) r_hat . (L - eps u w)
-    # - eps u n . dw/dtheta, with n . dw/dtheta = 2 alpha_s' (r_hat . w) (alpha_s the sun's
-    # image-plane azimuth); only the O(eps^2) term through u is left out. dr/deps = -u (n . w).
+    rows = (c2, s2, inv_e, u, u_nw, n_dot_w)
+    jac = _jacobian(data, cols, xy, w, rows, eps, delta, k_par, delta_col is not None)
+    return r, jac, u, mask
+
+
+def _jacobian(
+    data: PixelData,
+    cols: NDArray,
+    xy: NDArray,
+    w: NDArray,
+    rows: tuple[NDArray, NDArray, NDArray, NDArray, NDArray, NDArray],
+    eps: float,
+    delta: float,
+    k_par: int,
+    fit_delta: bool,
+) -> NDArray:
+    """The residuals' Jacobian ``(k_par + 1, n)`` (docs/measurement.md §3) from the parameter
+    columns ``cols``, the image-plane E-vector rows ``xy`` and the residual's per-pixel rows
+    ``(cos 2zeta_R, sin 2zeta_R, 1/e2, u, u (n . w), n . w)`` (the last is only read with a
+    ``delta``). d r / d theta_sun = -d(2 zeta) r_hat . (L - eps u w) - eps u n . dw/dtheta,
+    with n . dw/dtheta = 2 alpha_s' (r_hat . w) (alpha_s the sun's image-plane azimuth); only
+    the O(eps^2) term through u is left out. dr/deps = -u (n . w)."""
+    c2, s2, inv_e, u, u_nw, n_dot_w = rows
+    n = data.s0.size
+    dt = data.s0.dtype
+    x, y = xy[0, :n], xy[0, n:]
+    sun_c = cols[:, 0]
     proj = c2 * data.s1
     proj += s2 * data.s2
     t_w = c2 * dt.type(w[0])  # eps u (r_hat . w) [- delta S0 (n . w)]
     t_w += s2 * dt.type(w[1])
-    r_w = t_w.copy() if delta_col is not None else None
+    r_w = t_w.copy() if fit_delta else None
     t_w *= u
     t_w *= dt.type(eps)
     if delta != 0.0:
@@ -176,9 +200,9 @@ def ml_evaluate(
         np.multiply(r_w, data.s0, out=jac[-2])
         jac[-2] *= -1.0
     np.negative(u_nw, out=jac[-1])
-    if weight is not None:
-        jac *= weight
-    return r, jac, u, mask
+    if isinstance(data.inv_sigma, np.ndarray):
+        jac *= data.inv_sigma
+    return jac
 
 
 def _predicted(
@@ -349,12 +373,7 @@ def gauss_newton(
             jtj, jtr, rss = sums_normal_equations(group_sums, theta.size)
             objective = rss
         else:
-            r, jac_opt, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, sky)
-            assert jac_opt is not None
-            jac = jac_opt
-            if r_scale != 1.0:
-                r = r * r.dtype.type(r_scale)  # a common 1/sigma_L, for the robust weights
-                jac = jac * jac.dtype.type(r_scale)
+            r, jac, mask = _scaled_rows(data, theta, zenith, mat_cl, select, sky, r_scale)
             objective = loss_objective(r, loss, scale) if np.isfinite(loss_prev) else np.inf
         if select is not None:
             data = dataclasses.replace(data, mask=mask)
@@ -365,22 +384,17 @@ def gauss_newton(
             and halvings < _HALVINGS_MAX
             and objective * post_scale**2 > loss_prev * (1.0 + 1e-6)
         ):
-            step *= 0.5  # line search: back towards the previous point
-            theta = theta_prev + step
-            theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
+            theta, step = _halved(theta_prev, step, epsilon_bound)
             halvings += 1
             continue
         if fused:
             accepted = (group_sums, None, None, theta)  # the linearization of jtj, jtr
             loss_prev = rss * post_scale**2
         else:
-            weights, scale = loss_weights(r, loss, n)
-            jtj, jtr, rss = normal_equations(r, jac, weights)
+            jtj, jtr, rss, weights, scale = _irls_normal_equations(r, jac, loss, n)
             accepted = (r, jac, weights, theta)
             loss_prev = loss_objective(r, loss, scale) * post_scale**2
-        jtj *= post_scale**2
-        jtr *= post_scale**2
-        rss *= post_scale**2
+        jtj, jtr, rss = jtj * post_scale**2, jtr * post_scale**2, rss * post_scale**2
         try:
             step = _bounded_step(-np.linalg.solve(jtj, jtr), k_sun)
             jtj_inv = np.linalg.inv(jtj)
@@ -406,6 +420,45 @@ def gauss_newton(
     solution = MLSolution(theta, np.asarray(cov, dtype=np.float64), sun_l, rms, it, converged, n,
                           jackknife, share, sector_h_out, k_sun)  # fmt: skip
     return solution, mask
+
+
+def _halved(theta_prev: NDArray, step: NDArray, epsilon_bound: float) -> tuple[NDArray, NDArray]:
+    """The line search's half step back towards the previous point: ``theta`` (epsilon
+    kept in its bound) and the halved step."""
+    step *= 0.5
+    theta = theta_prev + step
+    theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
+    return theta, step
+
+
+def _scaled_rows(
+    data: PixelData,
+    theta: NDArray,
+    zenith: float | None,
+    mat_cl: NDArray,
+    select: Selection | None,
+    sky: SkyModel | None,
+    r_scale: float,
+) -> tuple[NDArray, NDArray, NDArray | None]:
+    """:func:`ml_evaluate`'s residuals and Jacobian times a common ``1/sigma_L``
+    ``r_scale`` (for the robust weights), and the mask in force."""
+    r, jac_opt, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, sky)
+    assert jac_opt is not None
+    jac = jac_opt
+    if r_scale != 1.0:
+        r = r * r.dtype.type(r_scale)
+        jac = jac * jac.dtype.type(r_scale)
+    return r, jac, mask
+
+
+def _irls_normal_equations(
+    r: NDArray, jac: NDArray, loss: str, n: int
+) -> tuple[NDArray, NDArray, float, NDArray | None, float]:
+    """``J^T W J``, ``J^T W r``, ``r^T W r`` with the loss's IRLS weights, the weights and
+    the loss's scale."""
+    weights, scale = loss_weights(r, loss, n)
+    jtj, jtr, rss = normal_equations(r, jac, weights)
+    return jtj, jtr, rss, weights, scale
 
 
 def _common_scale(data: PixelData, loss: str) -> tuple[PixelData, float, float]:

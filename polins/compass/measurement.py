@@ -150,34 +150,8 @@ class MeasureOptions:
     epsilon0: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.loss not in LOSSES:
-            raise UserInputError(f"loss={self.loss!r}: expected one of {LOSSES}")
-        if self.sky_model not in SKY_MODELS:
-            raise UserInputError(f"sky_model={self.sky_model!r}: expected one of {SKY_MODELS}")
-        for name in ("fixed_zenith", "fit_delta"):
-            if not isinstance(getattr(self, name), bool | np.bool_):
-                raise UserInputError(f"{name}={getattr(self, name)!r}: expected True or False")
-        if self.clouds not in ("auto", "off"):
-            raise UserInputError(f"clouds={self.clouds!r}: expected 'auto' or 'off'")
-        for name in ("sun_exclusion", "tilt_std"):
-            if not getattr(self, name) >= 0:
-                raise UserInputError(f"{name}={getattr(self, name)} must be >= 0")
-        for name, word in (("instrumental_dop_std", "auto"), ("instrumental_mixing_std", "auto"),
-                           ("yaw_gate", "off"), ("residual_rms_max", "off"),
-                           ("max_field_angle", "off")):  # fmt: skip
-            value = getattr(self, name)
-            if isinstance(value, str) or value is None:
-                if value != word:
-                    raise UserInputError(f"{name}={value!r}: expected a number or {word!r}")
-            elif not value >= 0:
-                raise UserInputError(f"{name}={value} must be >= 0 (or {word!r})")
-        if not 0 <= self.dop_min < 1:
-            raise UserInputError(f"dop_min={self.dop_min} outside [0, 1)")
-        angle = self.max_field_angle
-        if angle != "off" and not 0 < float(angle) <= np.pi / 2:
-            raise UserInputError(f"max_field_angle={angle} outside (0, pi/2] rad")
-        if self.min_pixels < 3:
-            raise UserInputError(f"min_pixels={self.min_pixels}: at least 3 required")
+        _check_choices(self)
+        _check_ranges(self)
 
     @property
     def roi(self) -> float | None:
@@ -193,6 +167,50 @@ class MeasureOptions:
     def residual_limit(self) -> float | None:
         """``residual_rms_max``, None when off."""
         return None if self.residual_rms_max == "off" else float(self.residual_rms_max)
+
+
+def _check_choices(opt: MeasureOptions) -> None:
+    """The named choices: loss, sky model, clouds, the booleans, "off" and "auto"."""
+    if opt.loss not in LOSSES:
+        raise UserInputError(f"loss={opt.loss!r}: expected one of {LOSSES}")
+    if opt.sky_model not in SKY_MODELS:
+        raise UserInputError(f"sky_model={opt.sky_model!r}: expected one of {SKY_MODELS}")
+    if opt.clouds not in ("auto", "off"):
+        raise UserInputError(f"clouds={opt.clouds!r}: expected 'auto' or 'off'")
+    for name in ("fixed_zenith", "fit_delta"):
+        if not isinstance(getattr(opt, name), bool | np.bool_):
+            raise UserInputError(f"{name}={getattr(opt, name)!r}: expected True or False")
+    for name, word in _WORDS.items():
+        value = getattr(opt, name)
+        if isinstance(value, str) or value is None:
+            if value != word:
+                raise UserInputError(f"{name}={value!r}: expected a number or {word!r}")
+        elif not value >= 0:
+            raise UserInputError(f"{name}={value} must be >= 0 (or {word!r})")
+
+
+_WORDS = {
+    "instrumental_dop_std": "auto",
+    "instrumental_mixing_std": "auto",
+    "yaw_gate": "off",
+    "residual_rms_max": "off",
+    "max_field_angle": "off",
+}
+"""The options that take a number or a word, and the word."""
+
+
+def _check_ranges(opt: MeasureOptions) -> None:
+    """The numbers' ranges."""
+    for name in ("sun_exclusion", "tilt_std"):
+        if not getattr(opt, name) >= 0:
+            raise UserInputError(f"{name}={getattr(opt, name)} must be >= 0")
+    if not 0 <= opt.dop_min < 1:
+        raise UserInputError(f"dop_min={opt.dop_min} outside [0, 1)")
+    angle = opt.max_field_angle
+    if angle != "off" and not 0 < float(angle) <= np.pi / 2:
+        raise UserInputError(f"max_field_angle={angle} outside (0, pi/2] rad")
+    if opt.min_pixels < 3:
+        raise UserInputError(f"min_pixels={opt.min_pixels}: at least 3 required")
 
 
 _OPTION_NAMES = tuple(f.name for f in dataclasses.fields(MeasureOptions))

@@ -25,7 +25,7 @@ from polins.tuning.innovations import (
     nis_verdict,
 )
 
-GATE_PROB = FuseConfig().gate_prob  # the default gate of the filters
+GATE_PROB = FuseConfig().gate_probability  # the default gate of the filters
 _IMAGE_KINDS = {1: "yaw", 2: "sun"}  # nis_dof of an image's update
 
 

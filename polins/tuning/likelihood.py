@@ -322,7 +322,7 @@ def tune(
     params = check_params(params)
     cfg = config or FuseConfig()
     start = _start_values(cfg, params, initial or {})
-    ungated = dataclasses.replace(cfg, gate_prob=None, smooth=False)
+    ungated = cfg.replace(gate_prob="off", smooth=False)
     count = [0]
 
     def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
@@ -367,8 +367,8 @@ def tune(
         identifiable=ident,
         nll_before=nll(theta_start, params, {}),
         nll_after=nll(np.log([values[p] for p in params]), params, {}),
-        stats_before=innovation_stats(before.updates, prob=prob, gate_prob=cfg.gate_prob),
-        stats_after=innovation_stats(after.updates, prob=prob, gate_prob=cfg.gate_prob),
+        stats_before=innovation_stats(before.updates, prob=prob, gate_prob=cfg.gate_probability),
+        stats_after=innovation_stats(after.updates, prob=prob, gate_prob=cfg.gate_probability),
         config=tuned_config,
         measurements=tuned_meas,
         before=before,
