@@ -506,8 +506,8 @@ def robust_run(imu, meas, model, rot_nb0=None, **options):
 @pytest.mark.parametrize("solver", ["batch", "isam2"])
 @pytest.mark.parametrize("offset_deg", [30.0, 180.0])
 def test_bad_first_heading_does_not_lock_the_graph(offset_deg, solver):
-    # before: the first heading set the initial yaw (1 rad prior) and the graph converged
-    # near it; now the yaw is acquired by consensus of the headings (docs/filter.md 7.1)
+    # a first heading that set the initial yaw (1 rad prior) would hold the graph near it:
+    # the yaw is acquired by consensus of the headings (docs/filter.md 7.1)
     model, _, imu, truth, meas = drive(0)
     bad = meas.copy()
     bad.loc[0, "yaw"] = wrap_angle(bad.loc[0, "yaw"] + np.radians(offset_deg))
@@ -552,8 +552,8 @@ def test_graph_without_consensus_leaves_the_yaw_unknown():
 
 
 def test_graph_imu_gap_with_images_inside():
-    # before: the graph preintegrated across the 3 s gap with the rates interpolated, used
-    # the headings inside and reported no event
+    # the 3 s gap is not preintegrated with the rates interpolated: the headings inside are
+    # skipped with events
     model, _, imu, truth, meas = drive(5)
     gapped = imu[(imu["t"] < 7.0) | (imu["t"] > 10.0)]
     res = robust_run(gapped, meas, model)
@@ -769,9 +769,9 @@ def test_graph_consistent_on_mems_ugv_defaults():
 
 def test_graph_gates_the_standstill_detector_like_the_eskf():
     # vehicle="ground": the IMU-only standstill detector also fires at constant speed (253 of
-    # its 367 epochs on this drive, up to 5 m/s). Before, the graph took every detection as
-    # a zero-velocity factor: pitch/roll errors of 2.2/1.1 deg with RMS(err/sigma) 95/11.
-    # Now a causal pass gates them first, as the ESKF does: the same 114 at rest accepted.
+    # its 367 epochs on this drive, up to 5 m/s). Every detection as a zero-velocity factor
+    # gives pitch/roll errors of 2.2/1.1 deg with RMS(err/sigma) 95/11; a causal pass gates
+    # them first, as the ESKF does: the same 114 at rest accepted.
     model = polins.load_imu("mems-typical")
     traj = ugv_drive(duration_s=60.0, rng=np.random.default_rng(11))
     rng = np.random.default_rng([11, 1])

@@ -10,10 +10,10 @@ import pandas as pd
 import pytest
 
 from polins.cli import main
+from polins.evaluation import summarize, truth_at
 from polins.frames import euler_from_rot_nb, wrap_angle
 from polins.fusion.config import FuseConfig
 from polins.io import load_raw, read_log
-from polins.io.report import summarize, truth_at
 from polins.loop import LoopOptions, NavigationStream, run_log
 
 DURATION_S = 12.0
@@ -348,7 +348,7 @@ def test_a_bug_in_the_measurer_propagates_and_opencv_failures_are_events(sim_log
 
 def test_run_log_runs_the_filter_once(sim_log, batch, monkeypatch):
     """One ESKF for the whole run, and its estimates are what run_fusion gives on the
-    stream's own measurement table (the second pass that run_log no longer makes)."""
+    stream's own measurement table (no second pass over the log)."""
 
     from polins.fusion.eskf import ESKF
     from polins.loop.offline import fuse_measurements

@@ -5,9 +5,9 @@ heading honest (docs/filter.md §5.7)."""
 import numpy as np
 import pytest
 
+from polins.evaluation import solution_errors
 from polins.fusion.config import FuseConfig
 from polins.io import read_log
-from polins.io.report import solution_errors
 from polins.loop.offline import run_log
 from polins.sim.scenario import simulate_log
 

@@ -398,7 +398,7 @@ def test_per_sample_filter_matches_the_fast_path(drive: Drive):
 
 @pytest.mark.slow
 def test_smoothed_attitude_is_consistent_over_drives_not_on_each():
-    """Issue 13: one drive's smoothed RMS(err/sigma) is a statistic of few degrees of freedom.
+    """One drive's smoothed RMS(err/sigma) is a statistic of few degrees of freedom.
 
     The smoothed tilt error of a MEMS drive with the odometer is mostly one offset for the
     whole drive: the tilt and the accelerometer bias along it, which the turns of the whole

@@ -72,11 +72,11 @@ def filter_changes(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_fuse(args: argparse.Namespace) -> int:
+    from polins.evaluation import format_summary, summarize, write_report
     from polins.fusion.config import FuseConfig
     from polins.io import read_log
     from polins.io.checks import preflight_warnings, run_verdict
     from polins.io.outputs import output_set
-    from polins.io.report import format_summary, summarize, write_report
     from polins.loop import LoopOptions, run_log
     from polins.models import load_imu
 
@@ -104,7 +104,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
                          workers=args.workers, rot_nb0=rot_nb0, progress=not args.quiet)  # fmt: skip
         summary = summarize(result.solution, result.measurements, result.events,
                             truth=log.truth, timing=result.timing, settings=result.settings,
-                            settle_s=args.settle)  # fmt: skip
+                            settle_s=args.settle, gate_prob=config.gate_probability)  # fmt: skip
         verdict = run_verdict(summary, result.events, args.max_image_failures,
                               t_imu=log.imu["t"].to_numpy(dtype=float),
                               t_images=np.asarray(log.images.t, dtype=float))  # fmt: skip
@@ -175,7 +175,7 @@ def add_fuse(sub: Any) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help="image processes, >= 1 (default: all cores)")  # fmt: skip
     p.add_argument(
-        "--method", choices=["compensated", "traditional", "paper"], default="compensated",
+        "--method", choices=["compensated", "traditional"], default="compensated",
         help="heading estimator",
     )  # fmt: skip
     p.add_argument("--update", choices=["yaw", "sun"], default="yaw", help="filter update kind")

@@ -28,7 +28,7 @@ class LoopOptions:
     Attributes
     ----------
     method : str
-        ``polins.measure`` method ("compensated", "traditional", "paper").
+        ``polins.measure`` method ("compensated", "traditional").
     measure_options : mapping
         Keyword options of ``polins.measure`` (``polins.compass.MeasureOptions`` fields).
     update : {"yaw", "sun"}
