@@ -23,6 +23,7 @@ from polins.compass.measure import (
 )
 from polins.compass.pixels import mosaic_channels
 from polins.compass.polarimetry import stokes_from_channels
+from polins.errors import UserInputError
 from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.sim.algorithm1 import measure_algorithm1, measure_baseline
 
@@ -318,6 +319,19 @@ def test_refusals_and_input_errors():
     )
     overhead = polins.sun_vector_n(1.0, np.radians(3.0))
     assert "zenith" in measure(raw, CAM4, sun_n=overhead, rot_nb_prior=rot).reason
+    # The paper's baselines and Algorithm 1 refuse the same suns as the chain.
+    for sun in (below, overhead):
+        for m in (
+            measure_baseline(raw, CAM4, sun_n=sun, rot_nb_prior=rot, weighted=False),
+            measure_algorithm1(raw, CAM4, sun_n=sun, rot_nb_prior=rot)[0],
+        ):
+            assert not m.ok
+            assert m.reason == measure(raw, CAM4, sun_n=sun, rot_nb_prior=rot).reason
+    for f in (measure_baseline, measure_algorithm1):
+        with pytest.raises(UserInputError, match=f"^{f.__name__} needs sun_n and rot_nb_prior$"):
+            f(raw, CAM4, sun_n=None, rot_nb_prior=rot)
+        with pytest.raises(UserInputError, match=f"^{f.__name__} needs sun_n and rot_nb_prior$"):
+            f(raw, CAM4, sun_n=SUN_N, rot_nb_prior=None)
     dark = np.zeros(CAM4.shape, dtype=np.uint16)
     assert "too few valid pixels" in measure(dark, CAM4, sun_n=SUN_N, rot_nb_prior=rot).reason
     gated = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=_level(40.0), yaw_gate=np.radians(5.0))
