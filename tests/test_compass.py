@@ -719,6 +719,22 @@ def test_stages_compose_to_measure():
             assert dataclasses.is_dataclass(stage)
             with pytest.raises(dataclasses.FrozenInstanceError):
                 stage.__setattr__(dataclasses.fields(stage)[0].name, None)
+    # A stage leaves its inputs alone: a second run on the same stages gives the same result.
+    opt = MeasureOptions(max_field_angle=0.5)
+    geo = image_geometry(CAM4, SUN_N, rot)
+    img = image_stokes(check_raw(raw, CAM4), CAM4, opt)
+    img_copy = {f.name: np.copy(getattr(img, f.name)) for f in dataclasses.fields(img)
+                if isinstance(getattr(img, f.name), np.ndarray)}  # fmt: skip
+    px = sky_pixels(img, CAM4, geo, opt)
+    valid_full = px.select_full.valid.copy()
+    sol = solve_image(img, CAM4, px, geo, opt, "compensated")
+    for name, value in img_copy.items():
+        np.testing.assert_array_equal(getattr(img, name), value, err_msg=name)
+    np.testing.assert_array_equal(px.select_full.valid, valid_full)
+    assert np.count_nonzero(px.valid) < np.count_nonzero(img.valid)
+    px2 = sky_pixels(img, CAM4, geo, opt)
+    np.testing.assert_array_equal(px2.valid, px.valid)
+    assert solve_image(img, CAM4, px2, geo, opt, "compensated").var_yaw == sol.var_yaw
     dark = np.zeros_like(raw)
     refused = measure(dark, CAM4, sun_n=SUN_N, rot_nb_prior=rot)
     assert not refused.ok and refused.reason.startswith("too few valid pixels")

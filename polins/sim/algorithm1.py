@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.compass.chain import check_sun, measure_stokes
 from polins.compass.heading import Geometry, image_geometry
-from polins.compass.image import image_stokes
+from polins.compass.image import fill_invalid, image_stokes
 from polins.compass.measurement import Measurement, MeasurementMaps, Refusal, measure_options
 from polins.compass.pixels import check_raw
 from polins.errors import UserInputError
@@ -215,12 +215,11 @@ def measure_algorithm1(
     assert img.channels is not None
     rows, k_m = algorithm1_rows(img.channels, cam, geo.mat_cn @ geo.sun_n, eq22=eq22, kc=kc,
                                 gain_final=gain_final, eq14=eq14)  # fmt: skip
-    img = dataclasses.replace(
-        img,
-        estimate=rows.astype(img.dtype),
-        valid=img.valid & np.isfinite(rows).all(axis=0),
-        epsilon_px=k_m / 4.0,  # k_m = 4 epsilon (the paper's Eq. 12)
-    )
+    estimate: NDArray = rows.astype(img.dtype)
+    valid = img.valid & np.isfinite(rows).all(axis=0)
+    fill_invalid(estimate, 1.0, valid)
+    # k_m = 4 epsilon (the paper's Eq. 12)
+    img = dataclasses.replace(img, estimate=estimate, valid=valid, epsilon_px=k_m / 4.0)
     m, mapped = measure_stokes(img, cam, geo, opt, method="traditional", maps=maps,
                                weighted=weighted)  # fmt: skip
     return dataclasses.replace(m, method="paper"), mapped
