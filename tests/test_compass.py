@@ -1,6 +1,7 @@
 """Polarization compass: raw image -> sun vector -> heading, covariance and refusals
 (docs/model.md §9-10, 12), on images from the independent renderer tests/render_simple.py."""
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -389,6 +390,27 @@ def test_refusals_and_input_errors():
         MeasureOptions(loss="l1")
     d = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot).as_dict()
     assert d["ok"] is True and len(d["sun_b"]) == 3 and d["epsilon"] is not None
+
+
+def test_options_are_checked_however_constructed():
+    # A replaced option is named with its replacement also when MeasureOptions is built
+    # directly or replaced; a boolean is not a number (False is not "off", True no 1 rad gate).
+    for old, new in [("kappa", "yaw_std_model"), ("sun_exclusion_deg", r"sun_exclusion \[rad\]")]:
+        with pytest.raises(TypeError, match=f"^unknown measure option.*{old} -> [^;]*{new}"):
+            MeasureOptions(**{old: 1})
+        with pytest.raises(TypeError, match=f"{old} -> [^;]*{new}"):
+            dataclasses.replace(MeasureOptions(), **{old: 1})
+    rot = _level(10.0)
+    raw = render(CAM4, SUN_N, rot)
+    for flag in (False, True):
+        with pytest.raises(ValueError, match=f"^yaw_gate={flag}: expected a number or 'off'$"):
+            measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, yaw_gate=flag)
+        with pytest.raises(ValueError, match=f"^dop_min={flag}: expected a number$"):
+            MeasureOptions(dop_min=flag)
+    assert (
+        MeasureOptions(yaw_gate=0.1).gate == 0.1
+        and MeasureOptions(min_pixels=600).min_pixels == 600
+    )
 
 
 def test_nan_pixels_are_masked_not_propagated():
