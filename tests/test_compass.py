@@ -552,6 +552,11 @@ def test_cli_heading_user_errors(tmp_path, capsys):
     assert main(["heading", str(text), *site]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "notes.png" in err and "Traceback" not in err
+    # The paper's Algorithm 1 is no method of any command: the same one line as in Python.
+    for command in ("heading", "fuse", "tune"):
+        assert main([command, "--method", "paper"]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "polins.sim.algorithm1" in err
 
 
 # ----------------------------------------------------------------------------- cross-check
