@@ -1,6 +1,6 @@
 """The Stokes stage of one image: calibrated Stokes rows of the field-of-view pixels and their noise.
 
-The first stage of :mod:`polins.compass.chain` (docs/model.md §7, docs/measurement.md §1):
+The second stage of :mod:`polins.compass.chain` (docs/model.md §7, docs/measurement.md §1):
 the least-squares Stokes rows and the redundancy of every field-of-view pixel, the
 sun-independent quality masks, the channel noise variance and the measured / declared
 noise ratio. Integer mosaics are processed in float32 (whose rounding is 4 orders below

@@ -1,6 +1,6 @@
 """The pixel-selection stage of one image: region of interest, masks, clouds, starting sun.
 
-The second stage of :mod:`polins.compass.chain` (docs/measurement.md §4, §5 step 1): the
+The third stage of :mod:`polins.compass.chain` (docs/measurement.md §4, §5 step 1): the
 region of interest, harmless data for the invalid pixels, the starting sun (the eigen
 solution on the fixed subsample, the sun circle taken from the prior or, without an
 ephemeris, from a first eigen solution), the thin-cloud cells by their DoP deficit, and the selection rules (:class:`polins.compass.selection.Selection`) of the
