@@ -16,7 +16,7 @@ contract in pyproject.toml lets each stage import only the stages before it)::
               -> sun vector: eigen / joint ML             compass.eigen, compass.jointml
               -> heading, 180 deg resolved, sigma         compass.heading, compass.measure
     ins/      Earth model, strapdown, static alignment
-    fusion/   IMU + headings -> attitude: ESKF or graph   polins.fuse (fusion.config.FuseConfig)
+    fusion/   IMU + headings -> attitude: ESKF or graph   polins.fuse, polins.FuseConfig
     loop/     the INS attitude back into the next image   polins.NavigationStream, loop.run_log
     io/, tuning/, calibration/, sim/, cli: files, noise models, camera calibration,
               the simulator and the ``polins`` command
@@ -74,7 +74,17 @@ _LAZY = {
     "measure": "polins.compass.measure",
     "Measurement": "polins.compass.measure",
     "fuse": "polins.fusion",
+    "run_fusion": "polins.fusion",
+    "FuseConfig": "polins.fusion.config",
+    "Aiding": "polins.fusion.config",
+    "Initial": "polins.fusion.config",
+    "Noise": "polins.fusion.config",
+    "Gating": "polins.fusion.config",
+    "SkyStates": "polins.fusion.config",
+    "GraphSolver": "polins.fusion.config",
+    "Output": "polins.fusion.config",
     "NavigationStream": "polins.loop",
+    "LoopOptions": "polins.loop",
     "sim": "polins.sim",
 }
 
@@ -88,11 +98,20 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
+    "Aiding",
     "CameraModel",
+    "FuseConfig",
+    "Gating",
+    "GraphSolver",
     "ImuModel",
+    "Initial",
+    "LoopOptions",
     "Measurement",
     "NavigationStream",
+    "Noise",
+    "Output",
     "Site",
+    "SkyStates",
     "SunPosition",
     "fuse",
     "heading_deg_from_yaw",
@@ -100,6 +119,7 @@ __all__ = [
     "load_imu",
     "measure",
     "rot_nb_from_euler",
+    "run_fusion",
     "sim",
     "sun_position",
     "sun_vector_n",

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from typing import Any
 
@@ -12,7 +11,12 @@ from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
 from polins.fusion.acquisition import gap_variance, skip_in_gaps
-from polins.fusion.config import ODOMETER_STD, FuseConfig, config_with_site
+from polins.fusion.config import (
+    TIME_TOL_S,
+    FuseConfig,
+    config_with_site,
+    scaled_measurement_noise,
+)
 from polins.fusion.eskf.filter import ESKF
 from polins.fusion.eskf.propagate import advance, interpolate
 from polins.fusion.eskf.smoother import rts_smooth
@@ -79,54 +83,50 @@ def run_fusion(
     backend (``polins.fusion.graph.fuse_graph``) is imported only when asked for.
     """
     cfg = config or FuseConfig()
-    if odometry is not None and cfg.odometer_std is None:
-        cfg = dataclasses.replace(cfg, odometer_std=ODOMETER_STD)
     cfg.check_backend(backend)
-    meas = validate_measurements(measurements)
+    meas = scaled_measurement_noise(validate_measurements(measurements), cfg)
     check_gyro_against_headings(imu, meas)
-    if cfg.tilt_coupling is None:
-        priors = all(c in meas.columns for c in PRIOR_COLUMNS)
-        cfg = dataclasses.replace(cfg, tilt_coupling=priors)
     cfg = config_with_site(cfg, stacklevel=4)
     if no_clock_table(meas):
         cfg = announce_no_clock(cfg)
+    cfg = cfg.resolve(priors=all(c in meas.columns for c in PRIOR_COLUMNS),
+                      odometry=odometry is not None)  # fmt: skip
     if backend == "graph":
         from polins.fusion.graph import fuse_graph  # gtsam: only when asked for
 
         return fuse_graph(imu, meas, rot_nb0, cfg, odometry)
-    arrays = validate_imu(imu, max_gap_s=cfg.max_gap_s, model=cfg.imu)
+    arrays = validate_imu(imu, max_gap_s=cfg.gap_s, model=cfg.imu)
     t, W, A = arrays.t, arrays.gyro_b, arrays.accel_b
     filt = ESKF(cfg, float(t[0]), arrays.dt, rot_nb0)
-    items = items_from_table(meas, use_sun=cfg.use_sun, heading_bias=cfg.heading_bias)
-    if odometry is not None:
-        assert cfg.odometer_std is not None
-        items += odometer_items(odometry, cfg.odometer_std)
-    if cfg.zupt_std is not None:
-        items += [MeasurementItem(ts, "zupt", cfg.zupt_std) for ts in cfg.stationary]
+    items = items_from_table(meas, use_sun=cfg.gating.use_sun, heading_bias=cfg.heading_bias)
+    if odometry is not None and cfg.odometer_sigma is not None:  # "off": ignored
+        items += odometer_items(odometry, cfg.odometer_sigma)
+    if cfg.aiding.zupt_std != "off":
+        zupt_std = float(cfg.aiding.zupt_std)
+        items += [MeasurementItem(ts, "zupt", zupt_std) for ts in cfg.aiding.stationary]
     items, events = bridge_gaps(arrays, items)
     filt.add_items(items)
     if not filt.ready:
-        tol = cfg.time_tol_s
-        k_end = int(np.searchsorted(t - t[0], cfg.align_s - tol, side="left"))
+        k_end = int(np.searchsorted(t - t[0], cfg.initial.align_s - TIME_TOL_S, side="left"))
         if k_end >= len(t):
             raise UserInputError(
                 f"the IMU log ({t[-1] - t[0]:.3f} s) is shorter than the alignment window "
-                f"align_s={cfg.align_s} s; give rot_nb0 or a longer log"
+                f"align_s={cfg.initial.align_s} s; give rot_nb0 or a longer log"
             )
         filt.level([(float(t[k]), W[k], A[k]) for k in range(k_end + 1)])
-    run = advance(filt, t, W, A, output_mask(t, cfg.output_rate_hz), full=cfg.smooth)
+    run = advance(filt, t, W, A, output_mask(t, cfg.output_rate), full=cfg.output.smooth)
     assert run is not None
     nodes, rows = run
     slices = filt.layout.index
     filtered = solution_table(interpolate(nodes, rows, slices))
     solution = filtered
-    if cfg.smooth:
+    if cfg.output.smooth:
         assert nodes.P_pre is not None and nodes.P_post is not None and nodes.Phi is not None
         delta, P_s = rts_smooth(nodes.P_pre, nodes.P_post, nodes.Phi, nodes.dx, nodes.linked)
         solution = solution_table(interpolate(nodes, rows, slices, delta, P_s))
     info = {"imu_model": cfg.imu.name, "n_resets": filt.n_resets, "options": cfg.changes()}
     return FusionResult(
-        solution, records_table(filt.records), filtered if cfg.smooth else None, "eskf", info,
+        solution, records_table(filt.records), filtered if cfg.output.smooth else None, "eskf", info,
         events_table([*arrays.events, *events, *filt.events]),
     )  # fmt: skip
 
@@ -134,10 +134,7 @@ def run_fusion(
 def announce_no_clock(config: FuseConfig) -> FuseConfig:
     """The config of a measurements table in the no-clock mode (sun_azimuth_b without yaw
     or sun_n), with the one warning that says so (both backends)."""
-    if config.no_clock is False:
-        raise UserInputError(
-            "no_clock=False but the measurements carry only sun_azimuth_b (no yaw, no sun_n)"
-        )
+    config = config.resolve(sun_azimuth_only=True)  # no_clock=off: a one-line error
     warnings.warn(
         "no-clock mode: the measurements carry sun_azimuth_b without yaw or sun_n; the sun's "
         "ENU azimuth is a filter state and the heading is relative to the initial yaw "
@@ -145,7 +142,7 @@ def announce_no_clock(config: FuseConfig) -> FuseConfig:
         UserWarning,
         stacklevel=4,
     )
-    return dataclasses.replace(config, no_clock=True)
+    return config
 
 
 def bridge_gaps(

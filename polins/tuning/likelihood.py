@@ -158,6 +158,29 @@ class TuneResult:
     after: FusionResult
     n_evaluations: int
 
+    def moved(self, p: str, n_sigma: float = 3.0) -> bool:
+        """Whether an identified IMU term left its start by more than ``n_sigma`` Cramér-Rao
+        sigmas: the innovations ask for another value than the model file's."""
+        if p in _TABLE_PARAMS or not self.identifiable[p]:
+            return False
+        return abs(math.log(self.values[p] / self.initial[p])) > n_sigma * self.cr_sigma_log[p]
+
+    def notes(self) -> list[str]:
+        """What an identified value means when it moved far from the model file's."""
+        out = []
+        for p in self.params:
+            if self.moved(p):
+                ratio = self.values[p] / self.initial[p]
+                out.append(
+                    f"{p} moved x{ratio:.3g} from the start, beyond its Cramér-Rao interval: "
+                    "the interval is the log's precision under the filter's model, not the "
+                    "sensor's truth. Either the start (the model file) is wrong (compare with "
+                    "polins imu-model on a static record), or the filter lacks an error source "
+                    "(vibration, an unfused aiding, mounting, scale factors) that this term now "
+                    "absorbs: the tuned value is then an effective one for this vehicle"
+                )
+        return out
+
     @property
     def unidentifiable(self) -> list[str]:
         """The parameters the log cannot identify (kept at their start values)."""
@@ -172,6 +195,7 @@ class TuneResult:
             lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state})")
             if p in _TABLE_PARAMS:
                 lines.append(f"    applies to every {_TABLE_PARAMS[p]} (not an IMU term)")
+        lines += [f"  note: {n}" for n in self.notes()]
         for kind, st in self.stats_after.items():
             lines.append(f"  {kind}: mean NIS {st.nis_mean:.3g} in {st.nis_band[0]:.3g} .. "
                          f"{st.nis_band[1]:.3g} ({st.verdict})")  # fmt: skip
@@ -187,16 +211,20 @@ class TuneResult:
                 f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} "
                 f"{factor:<15} {'yes' if self.identifiable[p] else 'no: kept at start'}"
             )
+        lines += [f"note: {n}" for n in self.notes()]
         lines.append(f"negative log-likelihood {self.nll_before:.1f} -> {self.nll_after:.1f}")
         for kind, after in self.stats_after.items():
             b = self.stats_before.get(kind)
             start = f"{b.nis_mean:.3g} ({b.verdict})" if b else "-"
             lines.append(
                 f"{kind} NIS mean {start} -> {after.nis_mean:.3g} ({after.verdict}); "
-                f"band {after.nis_band[0]:.3g} .. {after.nis_band[1]:.3g}; lag-1 autocorr "
+                f"band {after.nis_band[0]:.3g} .. {after.nis_band[1]:.3g} from "
+                f"{after.n_eff:.0f} independent of {after.n}; lag-1 autocorr "
                 f"{after.autocorr[0] if after.autocorr.size else math.nan:.3f} "
                 f"(white within ±{after.autocorr_band:.3f})"
             )
+            if after.cause:
+                lines.append(f"  likely cause: {after.cause}")
         return "\n".join(lines)
 
 
@@ -253,6 +281,7 @@ def tune(
     *,
     initial: Mapping[str, float] | None = None,
     rot_nb0: Any = None,
+    odometry: pd.DataFrame | None = None,
     max_log_sigma: float = math.log(2.0),
     search_factor: float = 100.0,
     hessian_step: float = 0.2,
@@ -273,6 +302,10 @@ def tune(
         0.05 deg for a floor.
     rot_nb0 : Rotation, optional
         Initial attitude (None: self-alignment), as in ``run_fusion``.
+    odometry : DataFrame, optional
+        The log's odometer (``t, speed``), as in ``run_fusion``: the tuned filter must be
+        the one that fuses, with every aiding the log has; without it the IMU noise absorbs
+        the velocity errors the odometer would have removed.
     max_log_sigma : float
         Largest Cramér-Rao sigma of ``log(parameter)`` of an identifiable parameter.
     search_factor : float
@@ -289,13 +322,13 @@ def tune(
     params = check_params(params)
     cfg = config or FuseConfig()
     start = _start_values(cfg, params, initial or {})
-    ungated = dataclasses.replace(cfg, gate_prob=None, smooth=False)
+    ungated = cfg.replace(gate_prob="off", smooth=False)
     count = [0]
 
     def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
         c, m = with_values(base, measurements, values)
         count[0] += 1
-        return run_fusion(imu, m, rot_nb0=rot_nb0, config=c)
+        return run_fusion(imu, m, rot_nb0=rot_nb0, config=c, odometry=odometry)
 
     def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
         values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}
@@ -334,8 +367,8 @@ def tune(
         identifiable=ident,
         nll_before=nll(theta_start, params, {}),
         nll_after=nll(np.log([values[p] for p in params]), params, {}),
-        stats_before=innovation_stats(before.updates, prob=prob),
-        stats_after=innovation_stats(after.updates, prob=prob),
+        stats_before=innovation_stats(before.updates, prob=prob, gate_prob=cfg.gate_probability),
+        stats_after=innovation_stats(after.updates, prob=prob, gate_prob=cfg.gate_probability),
         config=tuned_config,
         measurements=tuned_meas,
         before=before,

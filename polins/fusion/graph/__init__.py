@@ -110,7 +110,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
 from polins.fusion.acquisition import skip_in_gaps
-from polins.fusion.config import ODOMETER_STD, FuseConfig, config_with_site
+from polins.fusion.config import FuseConfig, config_with_site, scaled_measurement_noise
 from polins.fusion.graph.factors import (
     bias_from_polins,
     gyro_noise_density,
@@ -187,14 +187,14 @@ def fuse_graph(
     if rot_nb0 is not None and (not isinstance(rot_nb0, Rotation) or not rot_nb0.single):
         raise UserInputError("rot_nb0 must be a single scipy Rotation (body FLU -> ENU) or None")
     config = config_with_site(config, stacklevel=3)
-    arrays = validate_imu(imu, max_gap_s=config.max_gap_s, model=config.imu)
-    meas = validate_measurements(measurements)
+    arrays = validate_imu(imu, max_gap_s=config.gap_s, model=config.imu)
+    meas = scaled_measurement_noise(validate_measurements(measurements), config)
+    config = config.resolve(priors=all(c in meas.columns for c in PRIOR_COLUMNS),
+                            odometry=odometry is not None)  # fmt: skip
     tilt = config.tilt_coupling
-    if tilt is None:
-        tilt = all(c in meas.columns for c in PRIOR_COLUMNS)
-    items = items_from_table(meas, use_sun=config.use_sun, heading_bias=config.heading_bias)
-    if odometry is not None:
-        items += odometer_items(odometry, config.odometer_std or ODOMETER_STD)
+    items = items_from_table(meas, use_sun=config.gating.use_sun, heading_bias=config.heading_bias)
+    if odometry is not None and config.odometer_sigma is not None:  # "off": ignored
+        items += odometer_items(odometry, config.odometer_sigma)
     items, events = skip_in_gaps(arrays.t, arrays.gaps, items)
     for i in arrays.gaps.tolist():
         t_a, t_b = float(arrays.t[i]), float(arrays.t[i + 1])
@@ -217,17 +217,17 @@ def fuse_graph(
     ]
     info: dict[str, Any] = {}
     t_built = time.perf_counter()
-    solve = solve_batch if config.solver == "batch" else solve_incremental
+    solve = solve_batch if config.graph.solver == "batch" else solve_incremental
     est = solve(prob, records, info)
     t_solved = time.perf_counter()
-    if config.graph_output == "keyframes":
+    if config.graph.graph_output == "keyframes":
         state = keyframe_output(prob, est)
     else:
-        state = interpolate(prob, est, arrays.t[output_mask(arrays.t, config.output_rate_hz)])
+        state = interpolate(prob, est, arrays.t[output_mask(arrays.t, config.output_rate)])
     sol = solution_table(state)
     info.update(
         imu_model=config.imu.name,
-        solver=config.solver,
+        solver=config.graph.solver,
         options=config.changes(),
         n_keyframes=len(prob.t_key),
         n_measurement_factors=len(prob.meas),
@@ -237,7 +237,11 @@ def fuse_graph(
     )
     updates = records_table(sorted(records, key=lambda r: r.t))
     sol.attrs.update(
-        updates=updates, backend="graph", solver=config.solver, imu_model=config.imu.name, info=info
+        updates=updates,
+        backend="graph",
+        solver=config.graph.solver,
+        imu_model=config.imu.name,
+        info=info,
     )
     ev = events_table([*arrays.events, *events, *prob.events])
     sol.attrs["events"] = ev
