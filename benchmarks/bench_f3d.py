@@ -20,8 +20,8 @@ plus the sun's azimuth change; an offset and a drift linear in the frames' own c
 (the hexadecimal number in each file name) are fitted and the RMSE of what remains is
 reported, with RMS(err/sigma) of the measurement's sigma, modulo 180 deg. Rows:
 
-* the mean angle of polarization of the central disc (radius 100 px, main.m), as a
-  reference;
+* for each camera, the mean angle of polarization of the central disc (radius 100 px, as
+  main.m, and the largest disc inside the image, 360 px), as a reference;
 * uncalibrated: all 19 frames;
 * calibrated from all 19 frames without their angles, scored on the odd frames;
 * calibrated from the even frames with their turntable angles, scored on the odd frames.
@@ -71,6 +71,7 @@ polygons_superpixel = []
 
 STEP_DEG = 10.0  # the turntable's step
 DISC_RADIUS_PX = 100.0  # main.m's central disc
+INSCRIBED_RADIUS_PX = 360.0  # the largest disc about the centre inside a 1280 x 720 image
 
 
 def frames_dir() -> Path | None:
@@ -82,8 +83,9 @@ def frames_dir() -> Path | None:
     return path if path.is_dir() and any(path.glob("*.tif*")) else None
 
 
-def disc_headings(raws, cam):  # type: ignore[no-untyped-def]
-    """Relative heading [rad] from the central disc's mean angle of polarization."""
+def disc_headings(raws, cam, radius_px=DISC_RADIUS_PX):  # type: ignore[no-untyped-def]
+    """Relative heading [rad] from the mean angle of polarization of the central disc of
+    ``radius_px`` (full-resolution pixels)."""
     import numpy as np
 
     from polins.calibration.images import channel_stack
@@ -91,7 +93,7 @@ def disc_headings(raws, cam):  # type: ignore[no-untyped-def]
 
     hs, ws = cam.superpixel_shape
     v, u = np.mgrid[0:hs, 0:ws].astype(float)
-    disc = np.hypot(u - cam.camera_matrix[0, 2], v - cam.camera_matrix[1, 2]) < DISC_RADIUS_PX / 2
+    disc = np.hypot(u - cam.camera_matrix[0, 2], v - cam.camera_matrix[1, 2]) < radius_px / 2
     stokes = base_stokes(channel_stack(raws, cam).channels[:, disc], cam).mean(axis=1)
     return -0.5 * np.arctan2(stokes[:, 2], stokes[:, 1])  # the pattern turns by -phi
 
@@ -123,10 +125,12 @@ def main() -> int:
         f"{len(files)} frames from {folder}; turns 0:{STEP_DEG:g}:{STEP_DEG * (len(files) - 1):g} deg"
     )
 
-    err = relative_heading_errors(disc_headings(raws, cam), turns, counter)
-    print(f"central-disc mean AoP          : RMSE {np.degrees(np.sqrt(np.mean(err**2))):.3f} deg")
-
     def row(label, camera, idx):  # type: ignore[no-untyped-def]
+        for radius in (DISC_RADIUS_PX, INSCRIBED_RADIUS_PX):
+            err = relative_heading_errors(disc_headings(raws[idx], camera, radius), turns[idx],
+                                          counter[idx])  # fmt: skip
+            print(f"{label:31s}: mean AoP of the central disc of {radius:.0f} px: RMSE "
+                  f"{np.degrees(np.sqrt(np.mean(err**2))):.3f} deg")  # fmt: skip
         for method in ("traditional", "compensated"):
             s = score_turntable(raws[idx], camera, turns[idx], counter[idx], method=method)
             print(f"{label:31s}: {method:11s} {s.summary()}")

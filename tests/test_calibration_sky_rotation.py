@@ -308,7 +308,7 @@ def test_no_degenerate_calibration_from_bad_starts(scene, monkeypatch):
         try:
             res = fit_sky_rotation(raws[::2], base, tilt_terms=False)
         except UserInputError as exc:
-            assert "physical" in str(exc) or "span" in str(exc)
+            assert any(w in str(exc) for w in ("physical", "span", "cannot be fitted"))
             continue
         assert sky_rotation.degeneracy(res.gain, res.transmission_angle, res.efficiency, base) == ""
         gain_err, angle_err = _channel_errors(res, true)

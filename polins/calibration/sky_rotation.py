@@ -468,10 +468,11 @@ def _fit_unknown_turns(
 ) -> tuple[TurnFit, bool, list[str]]:  # fmt: skip
     """Fit with the turns unknown, alternating from the ring-mean AoP ``hint``: the channels
     fitted with the turns held, then the turns re-read from the ring-mean AoP under the
-    fitted channels, until the turns settle. A free joint fit can wander into a degenerate
-    polarizer array (channels pairing up) that explains a sequence with unmodelled content
-    better than the true one; each step of the alternation stays with physical channels. A
-    degenerate result is refused."""
+    fitted channels, until the turns settle; then the joint fit with the turns free from
+    there. Where the rings' polarization points nearly one way (a narrow field about the
+    zenith), turn errors trade against channel errors: the joint fit wanders, into a
+    degenerate polarizer array (channels pairing up) or without settling, and the fit is
+    refused with the reason (give the turns). A degenerate result is never returned."""
     theta = hint
     for _ in range(ALTERNATION_STEPS):
         fit = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
@@ -493,16 +494,17 @@ def _fit_unknown_turns(
                                      source_factors=factors,
                                      max_iterations=JOINT_ITERATIONS)  # fmt: skip
     why = degeneracy(joint.gain, joint.angle, joint.efficiency, cam)
-    if joint.converged and not why:
-        fit, theta = joint, joint.turn
-    else:
-        fit = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
-        notes.append(
-            "the joint fit with the turns free "
-            + (f"went to a degenerate array ({why})" if why else "did not settle")
-            + "; the channels are those fitted with the turns read from the ring-mean AoP, "
-            "and their standard errors leave out the turns' uncertainty"
+    if not (joint.converged and not why):
+        src = fit.sources  # the alternation's ring sources (S0, S1, S2)
+        spread = np.degrees(0.5 * np.ptp(np.unwrap(np.arctan2(src[:, 2], src[:, 1]))))
+        raise UserInputError(
+            "sky-rotation: the turns cannot be fitted from these images: with them free the fit "
+            + (f"goes to a degenerate array ({why})" if why else "does not settle")
+            + f"; the rings' angles of polarization span only {spread:.1f} deg, so turn errors "
+            "trade against channel errors. Give the turns (turns=..., polins calibrate "
+            "sky-rotation --turns-deg), or record a wider field"
         )
+    fit, theta = joint, joint.turn
     if not tilt_terms:
         return fit, False, notes
     # The tilt terms start from the fit without them, its turns on the right branch.
