@@ -469,10 +469,10 @@ def _fit_unknown_turns(
     """Fit with the turns unknown, alternating from the ring-mean AoP ``hint``: the channels
     fitted with the turns held, then the turns re-read from the ring-mean AoP under the
     fitted channels, until the turns settle; then the joint fit with the turns free from
-    there. Where the rings' polarization points nearly one way (a narrow field about the
-    zenith), turn errors trade against channel errors: the joint fit wanders, into a
-    degenerate polarizer array (channels pairing up) or without settling, and the fit is
-    refused with the reason (give the turns). A degenerate result is never returned."""
+    there. Where turn errors trade against channel errors (seen on a narrow field about the
+    zenith), the joint fit wanders, into a degenerate polarizer array (channels pairing up)
+    or without settling, and the fit is refused with the reason (give the turns). A
+    degenerate result is never returned."""
     theta = hint
     for _ in range(ALTERNATION_STEPS):
         fit = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
@@ -495,14 +495,11 @@ def _fit_unknown_turns(
                                      max_iterations=JOINT_ITERATIONS)  # fmt: skip
     why = degeneracy(joint.gain, joint.angle, joint.efficiency, cam)
     if not (joint.converged and not why):
-        src = fit.sources  # the alternation's ring sources (S0, S1, S2)
-        spread = np.degrees(0.5 * np.ptp(np.unwrap(np.arctan2(src[:, 2], src[:, 1]))))
         raise UserInputError(
             "sky-rotation: the turns cannot be fitted from these images: with them free the fit "
             + (f"goes to a degenerate array ({why})" if why else "does not settle")
-            + f"; the rings' angles of polarization span only {spread:.1f} deg, so turn errors "
-            "trade against channel errors. Give the turns (turns=..., polins calibrate "
-            "sky-rotation --turns-deg), or record a wider field"
+            + ", so turn errors trade against channel errors. Give the turns (turns=..., "
+            "polins calibrate sky-rotation --turns-deg)"
         )
     fit, theta = joint, joint.turn
     if not tilt_terms:
