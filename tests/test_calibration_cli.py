@@ -63,6 +63,7 @@ def sky(tmp_path_factory):
         for a, r in zip(turns, radiance, strict=True)
     ])  # fmt: skip
     _write_images(tmp / "fit", raws[::2])
+    (tmp / "fit_turns_deg.txt").write_text(",".join(f"{a:.6f}" for a in turns[::2]))
     _write_images(tmp / "held_out", raws[1::2])
     return tmp, true, turns[1::2], raws[1::2]
 
@@ -359,3 +360,23 @@ def test_check_scores_a_turntable_sequence(sky, capsys):
     out = capsys.readouterr().out
     assert "relative heading over 12 images: RMSE" in out
     assert float(out.split("RMSE ")[1].split(" deg")[0]) > 10.0
+
+
+def test_sky_rotation_with_the_turntable_angles(sky, capsys):
+    """``sky-rotation --turns-deg``: the turntable's angles go into the fit; the wrong sign
+    is one line naming it."""
+    tmp, true, _, _ = sky
+    turns_arg = (tmp / "fit_turns_deg.txt").read_text()
+    assert main(["calibrate", "dark", str(tmp / "dark"), "--camera", str(tmp / "base.toml"),
+                 "--out", str(tmp / "dark2.toml")]) == 0  # fmt: skip
+    assert main(["calibrate", "sky-rotation", str(tmp / "fit"), "--camera", str(tmp / "dark2.toml"),
+                 "--out", str(tmp / "known.toml"), f"--turns-deg={turns_arg}"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "with the turns known" in out and "wrote" in out
+    cam = polins.load_camera(tmp / "known.toml")
+    np.testing.assert_allclose(cam.gain / cam.gain.mean(), true.gain / true.gain.mean(), atol=3e-3)
+    flipped = ",".join(f"{-float(a):.6f}" for a in turns_arg.split(","))
+    assert main(["calibrate", "sky-rotation", str(tmp / "fit"), "--camera", str(tmp / "dark2.toml"),
+                 "--out", str(tmp / "flipped.toml"), f"--turns-deg={flipped}"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "negate them" in err and len(err.strip().splitlines()) == 1
