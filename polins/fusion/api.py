@@ -101,9 +101,6 @@ def run_fusion(
     items = items_from_table(meas, use_sun=cfg.gating.use_sun, heading_bias=cfg.heading_bias)
     if odometry is not None and cfg.odometer_sigma is not None:  # "off": ignored
         items += odometer_items(odometry, cfg.odometer_sigma)
-    if cfg.aiding.zupt_std != "off":
-        zupt_std = float(cfg.aiding.zupt_std)
-        items += [MeasurementItem(ts, "zupt", zupt_std) for ts in cfg.aiding.stationary]
     items, events = bridge_gaps(arrays, items)
     filt.add_items(items)
     if not filt.ready:

@@ -1,7 +1,8 @@
 """Options of the navigation loop: how images are measured and when, what the loop keeps in memory.
 
-The filter itself is configured by one :class:`polins.fusion.config.FuseConfig`; the loop's
-``update`` choice sets its ``use_sun`` (and, unless given, ``tilt_coupling``) through
+The filter itself is configured by one :class:`polins.fusion.config.FuseConfig` (its
+``max_gap_s`` is also the loop's IMU gap length); the loop's ``update`` choice sets its
+``use_sun`` (and, with ``tilt_coupling="auto"``, the tilt coupling) through
 :meth:`LoopOptions.filter_config`.
 """
 
@@ -11,10 +12,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from polins.errors import UserInputError
+from polins.errors import UnknownOptionError, UserInputError
 from polins.fusion.config import FuseConfig
 
 UPDATES = ("yaw", "sun")
+_NOT_LOOP_OPTIONS = {
+    "max_imu_gap_s": "is FuseConfig's max_gap_s (one IMU gap length for the loop and the filter)"
+}
 
 
 @dataclass(frozen=True)
@@ -41,8 +45,6 @@ class LoopOptions:
     max_image_delay_s : float
         How long the filter waits for an image that is older than the newest IMU sample [s]
         (streaming: the camera's delivery latency).
-    max_imu_gap_s : float
-        IMU intervals longer than this are reported as gaps [s].
     max_in_flight : int or None
         Images being measured at once; default ``2 * workers + 1``.
     record_solution : bool
@@ -57,10 +59,15 @@ class LoopOptions:
     prior_lag_s: float = 1.0
     snapshot_every_s: float = 0.1
     max_image_delay_s: float = 0.5
-    max_imu_gap_s: float = 0.1
     max_in_flight: int | None = None
     record_solution: bool = False
     max_table_rows: int = 1_000_000
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> LoopOptions:
+        for name in kwargs:
+            if name in _NOT_LOOP_OPTIONS:
+                raise UnknownOptionError(f"LoopOptions: {name!r} {_NOT_LOOP_OPTIONS[name]}")
+        return super().__new__(cls)
 
     def __post_init__(self) -> None:
         if self.update not in UPDATES:
@@ -68,9 +75,8 @@ class LoopOptions:
         for name in ("prior_lag_s", "max_image_delay_s"):
             if not getattr(self, name) >= 0.0:
                 raise UserInputError(f"{name}={getattr(self, name)} must be >= 0 [s]")
-        for name in ("snapshot_every_s", "max_imu_gap_s"):
-            if not getattr(self, name) > 0.0:
-                raise UserInputError(f"{name}={getattr(self, name)} must be > 0 [s]")
+        if not self.snapshot_every_s > 0.0:
+            raise UserInputError(f"snapshot_every_s={self.snapshot_every_s} must be > 0 [s]")
         if self.max_in_flight is not None and self.max_in_flight < 1:
             raise UserInputError(f"max_in_flight={self.max_in_flight} must be >= 1")
         if self.max_table_rows < 1:

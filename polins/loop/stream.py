@@ -109,7 +109,7 @@ class NavigationStream:
     epoch_utc : timezone-aware time
         UTC time of ``t = 0`` (for the sun position).
     rot_nb0 : Rotation, optional
-        Initial attitude; None: self-alignment (static start for ``config.align_s``, yaw from
+        Initial attitude; None: self-alignment (static start for ``align_s``, yaw from
         the first measurement). Images during the levelling window are skipped.
     options : LoopOptions
         Options of the loop (image stage, lags, buffers).
@@ -184,7 +184,7 @@ class NavigationStream:
         self._rows: deque[dict[str, Any]] = deque(maxlen=self.options.max_table_rows)
         self._events = EventBuffer(self.options.max_table_rows)
         self._gate = ImuGate(self._events, imu_model.full_scale(), self.config.initial.align_s,
-                             self.options.max_imu_gap_s)  # fmt: skip
+                             self.config.gap_s or 5.0 * self.imu_dt)  # fmt: skip
         self.n_images = 0  # images added (including skipped ones)
         self._t_last_image = -math.inf
         self._head: ESKF | None = None

@@ -8,7 +8,7 @@ and a detail text, so a user can count and filter them. The data faults of the l
 * IMU sample not after the previous accepted one (duplicate or out of order): dropped
   (``imu-out-of-order``).
 * IMU sample beyond the IMU model's full scale: dropped (``imu-out-of-range``).
-* IMU gap longer than ``max_imu_gap_s``: reported (``imu-gap``) and propagated across with
+* IMU gap longer than ``max_gap_s`` (FuseConfig; auto: 5 sample intervals): reported (``imu-gap``) and propagated across with
   the rates interpolated linearly (the covariance grows with the gap).
 * Image not after the previous image: skipped (``image-out-of-order``).
 * Image older than the filter can still take (more than ``max_image_delay_s`` behind the IMU,

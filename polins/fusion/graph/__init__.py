@@ -166,7 +166,7 @@ def fuse_graph(
         (``FuseConfig.check_backend``). Without ``config.site`` the run assumes
         ``polins.site.PAPER_SITE`` and warns.
     odometry : DataFrame, optional
-        Wheel-odometer speeds (``t`` [s], ``speed`` [m/s]) with ``config.odometer_std``
+        Wheel-odometer speeds (``t`` [s], ``speed`` [m/s]) with ``config.odometer_sigma``
         (:func:`polins.fusion.vehicle.odometer_items`; an odometer-scale variable, module
         :mod:`~polins.fusion.graph.states`).
 

@@ -153,11 +153,6 @@ class Problem:
         aiding = [it for it in items if it.valid and it.kind in HEADING_KINDS]
         zupts = [it for it in items if it.valid and it.kind == "zupt"]
         odos = [it for it in items if it.valid and it.kind == "odo"]  # (graph/states.py)
-        if config.aiding.zupt_std != "off":
-            stationary = np.asarray(config.aiding.stationary, dtype=float)
-            stationary = stationary[(stationary >= t0) & (stationary <= t1)]
-            zupts += [MeasurementItem(float(ts), "zupt", float(config.aiding.zupt_std))
-                      for ts in stationary]  # fmt: skip
         # The vehicle's NHC and standstill pseudo-measurements, at the ESKF's epochs.
         ground = vehicle_items(config, t_imu, gyro, accel)
         n_given = len(zupts)
