@@ -74,6 +74,11 @@ _LAZY = {
     "measure": "polins.compass.measure",
     "Measurement": "polins.compass.measure",
     "fuse": "polins.fusion",
+    "run_fusion": "polins.fusion",
+    "FusionResult": "polins.fusion",
+    "ImuUnitsError": "polins.fusion",
+    "ImplausibleRunError": "polins.fusion",
+    "measurement_table": "polins.fusion.inputs",
     "NavigationStream": "polins.loop",
     "sim": "polins.sim",
 }
@@ -89,7 +94,10 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "CameraModel",
+    "FusionResult",
+    "ImplausibleRunError",
     "ImuModel",
+    "ImuUnitsError",
     "Measurement",
     "NavigationStream",
     "Site",
@@ -99,7 +107,9 @@ __all__ = [
     "load_camera",
     "load_imu",
     "measure",
+    "measurement_table",
     "rot_nb_from_euler",
+    "run_fusion",
     "sim",
     "sun_position",
     "sun_vector_n",

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from polins.frames import rot_nb_from_euler, wrap_angle
+from polins.fusion.faults import reason_group
 from polins.fusion.inputs import PRIOR_COLUMNS
 from polins.fusion.items import item_model, items_from_table
 from polins.io.atomic import atomic_path, write_text_atomic
@@ -129,8 +130,10 @@ def summarize(
     m = measurements
     ok = m["ok"].to_numpy(dtype=bool) if len(m) else np.zeros(0, bool)
     accepted = m["accepted"].to_numpy(dtype=bool) if "accepted" in m else ok
-    reasons = m.loc[~ok, "reason"].value_counts().to_dict() if len(m) else {}
-    gate = m.loc[ok & ~accepted, "update_reason"].value_counts().to_dict() if len(m) else {}
+    # grouped by reason (polins.fusion.faults.reason_group); each row's in measurements.csv
+    reasons = m.loc[~ok, "reason"].map(reason_group).value_counts().to_dict() if len(m) else {}
+    gate = (m.loc[ok & ~accepted, "update_reason"].map(reason_group).value_counts().to_dict()
+            if len(m) else {})  # fmt: skip
     summary: dict[str, Any] = {
         "images": {
             "total": len(m),
@@ -439,8 +442,14 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         f"images            {im['total']} total, {im['measured_ok']} measured, "
         f"{im['accepted_by_filter']} used by the filter",
     ]
-    for k, v in {**im["rejected_by_measurement"], **im["rejected_by_filter"]}.items():
+    rejected = sorted({**im["rejected_by_measurement"], **im["rejected_by_filter"]}.items(),
+                      key=lambda kv: -kv[1])  # fmt: skip
+    for k, v in rejected[:8]:
         lines.append(f"  rejected        {v:5d}  {k}")
+    if len(rejected) > 8:
+        rest = sum(v for _, v in rejected[8:])
+        lines.append(f"  rejected        {rest:5d}  for {len(rejected) - 8} other reasons "
+                     "(measurements.csv, events.csv)")  # fmt: skip
     if summary.get("events"):
         ev = ", ".join(f"{k} {v}" for k, v in summary["events"].items())
         lines.append(f"events            {ev}")

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from polins.errors import UserInputError
+from polins.errors import UnknownOptionError, UserInputError
 from polins.fusion.config import FuseConfig
 
 UPDATES = ("yaw", "sun")
@@ -42,8 +42,6 @@ class LoopOptions:
     max_image_delay_s : float
         How long the filter waits for an image that is older than the newest IMU sample [s]
         (streaming: the camera's delivery latency).
-    max_imu_gap_s : float
-        IMU intervals longer than this are reported as gaps [s].
     max_in_flight : int or None
         Images being measured at once; default ``2 * workers + 1``.
     record_solution : bool
@@ -58,10 +56,17 @@ class LoopOptions:
     prior_lag_s: float = 1.0
     snapshot_every_s: float = 0.1
     max_image_delay_s: float = 0.5
-    max_imu_gap_s: float = 0.1
     max_in_flight: int | None = None
     record_solution: bool = False
     max_table_rows: int = 1_000_000
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> LoopOptions:
+        if "max_imu_gap_s" in kwargs:  # one IMU-gap option for every path
+            raise UnknownOptionError(
+                "LoopOptions has no max_imu_gap_s: the IMU gap is FuseConfig.max_gap_s "
+                "(config=FuseConfig(max_gap_s=...), [filter] max_gap_s)"
+            )
+        return super().__new__(cls)
 
     def __post_init__(self) -> None:
         if self.update not in UPDATES:
@@ -69,9 +74,8 @@ class LoopOptions:
         for name in ("prior_lag_s", "max_image_delay_s"):
             if not getattr(self, name) >= 0.0:
                 raise UserInputError(f"{name}={getattr(self, name)} must be >= 0 [s]")
-        for name in ("snapshot_every_s", "max_imu_gap_s"):
-            if not getattr(self, name) > 0.0:
-                raise UserInputError(f"{name}={getattr(self, name)} must be > 0 [s]")
+        if not self.snapshot_every_s > 0.0:
+            raise UserInputError(f"snapshot_every_s={self.snapshot_every_s} must be > 0 [s]")
         if self.max_in_flight is not None and self.max_in_flight < 1:
             raise UserInputError(f"max_in_flight={self.max_in_flight} must be >= 1")
         if self.max_table_rows < 1:
