@@ -3,9 +3,9 @@
 Prints IMU samples per second of, in the same run and over the same IMU samples:
 
 * GTSAM's ``gtsam.NavStateImuEKF.predict`` (9-state navigation EKF in C++, propagation
-  only) driven sample by sample from Python: the issue's reference;
+  only) driven sample by sample from Python: the reference;
 * ``polins.fuse`` (batch path, vectorised between resets) with output at the update rate
-  (``output_rate_hz=10``): the issue's target is at least 0.5x the reference;
+  (``output_rate_hz=10``): the target is at least 0.5x the reference;
 * for a solution row per IMU sample (``polins.fuse``'s default): GTSAM's predict with its
   state and covariance read after every sample, beside ``polins.fuse`` with every row
   (each row also carries the sigmas of all states, Euler angles and a quaternion);

@@ -62,7 +62,7 @@ def main() -> None:
 
     rows = [("bare numpy superpixel Stokes", *timed(bare_stokes))]
     results = {}
-    for method in ("traditional", "compensated", "paper"):
+    for method in ("traditional", "compensated"):
 
         def run(method: str = method) -> None:
             results[method] = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, method=method)

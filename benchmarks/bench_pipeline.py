@@ -101,7 +101,7 @@ def main() -> None:
             diff = np.nanmax(np.abs(single.solution["yaw"] - pool.solution["yaw"]))
             print(f"largest yaw difference (1 vs {args.workers} workers): {diff:.1e} rad")
         smooth = run_log(log, workers=args.workers, progress=False,
-                         config=FuseConfig.from_options(log.config, smooth=True))  # fmt: skip
+                         config=FuseConfig.from_log(log).replace(smooth=True))  # fmt: skip
         print(_row("pool + RTS smoother", smooth))
 
         print("\nstreaming API (images 50 ms late, state() at 10 Hz), per-call wall time [ms]:")

@@ -1,10 +1,10 @@
-"""02 - One raw polarization image -> heading, with the three methods of polins.measure.
+"""02 - One raw polarization image -> heading, with the two methods of polins.measure.
 
 Renders one raw DoFP mosaic of a clear Rayleigh sky (paper Table 1 camera and sun, a tilted
 vehicle, direct-sunlight coefficient eps = 0.0125, a world-fixed occluder at compass azimuth
-260-350 deg below 40 deg, 1.5 DN noise), measures the heading with the "traditional",
-"paper" and "compensated" methods, prints a table, and plots the angle of polarization, the
-valid-pixel mask and the per-pixel normalised residual.
+260-350 deg below 40 deg, 1.5 DN noise), measures the heading with the "traditional" and
+"compensated" methods, prints a table, and plots the angle of polarization, the valid-pixel
+mask and the per-pixel normalised residual.
 
     python examples/02_heading_from_image.py [--quick] [--out out/02_heading_from_image]
 """
@@ -54,7 +54,7 @@ def main() -> None:
         occluders=[occluder],
         rng=np.random.default_rng(args.seed),
     )
-    # The INS prior: good roll/pitch, a yaw 2 deg off (used only near the horizon / "paper").
+    # The INS prior: good roll/pitch, a yaw 2 deg off (used only near the horizon).
     rot_prior = polins.rot_nb_from_euler(
         polins.yaw_from_heading_deg(heading_true + 2.0), pitch, roll
     )
@@ -73,7 +73,7 @@ def main() -> None:
     print(header)
     print(f"{'':12s} {'[deg]':>10s} {'[deg]':>9s} {'[deg]':>10s} {'[deg]':>9s}")
     maps = {}
-    for method in ("traditional", "paper", "compensated"):
+    for method in ("traditional", "compensated"):
         t0 = time.perf_counter()
         m, maps[method] = measure_with_maps(
             raw, cam, sun_n=sun_n, rot_nb_prior=rot_prior, method=method
@@ -89,8 +89,8 @@ def main() -> None:
             f" {m.residual_rms:6.2f} {ms:6.0f}"
         )
     print(
-        "\nsigma_KF = the inflated sigma for a filter (model floor 0.1 deg by default);"
-        " ms includes the per-pixel maps."
+        "\nsigma_KF = the sigma for a filter (pixel noise and the model error measured in the"
+        " image); ms includes the per-pixel maps."
     )
 
     comp = maps["compensated"]

@@ -23,8 +23,8 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+from polins.evaluation import format_summary, summarize, write_report
 from polins.io import read_log
-from polins.io.report import format_summary, summarize, write_report
 from polins.loop import run_log
 from polins.sim.scenario import simulate_log
 

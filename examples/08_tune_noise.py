@@ -162,7 +162,7 @@ def main() -> None:
     # 2. mistuned filters
     imu, meas, truth = drive(true_model, drive_s, rate_hz, args.seed)
     # no gate: a gate hides a too-small S by dropping the largest innovations (docs/tuning.md)
-    config = FuseConfig(imu_model=true_model, site=PAPER_SITE, output_rate_hz=10.0, gate_prob=None)
+    config = FuseConfig(imu_model=true_model, site=PAPER_SITE, output_rate_hz=10.0, gate_prob="off")
     right_meas = with_values(config, meas, {"yaw_floor_deg": FLOOR_DEG})[1]
     cases = [
         ("Q too small (ARW / 10)", dataclasses.replace(true_model, gyro_arw=base.gyro_arw),

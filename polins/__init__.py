@@ -16,7 +16,7 @@ contract in pyproject.toml lets each stage import only the stages before it)::
               -> sun vector: eigen / joint ML             compass.eigen, compass.jointml
               -> heading, 180 deg resolved, sigma         compass.heading, compass.measure
     ins/      Earth model, strapdown, static alignment
-    fusion/   IMU + headings -> attitude: ESKF or graph   polins.fuse (fusion.config.FuseConfig)
+    fusion/   IMU + headings -> attitude: ESKF or graph   polins.fuse, polins.FuseConfig
     loop/     the INS attitude back into the next image   polins.NavigationStream, loop.run_log
     io/, tuning/, calibration/, sim/, cli: files, noise models, camera calibration,
               the simulator and the ``polins`` command
@@ -79,7 +79,16 @@ _LAZY = {
     "ImuUnitsError": "polins.fusion",
     "ImplausibleRunError": "polins.fusion",
     "measurement_table": "polins.fusion.inputs",
+    "FuseConfig": "polins.fusion.config",
+    "Aiding": "polins.fusion.config",
+    "Initial": "polins.fusion.config",
+    "Noise": "polins.fusion.config",
+    "Gating": "polins.fusion.config",
+    "SkyStates": "polins.fusion.config",
+    "GraphSolver": "polins.fusion.config",
+    "Output": "polins.fusion.config",
     "NavigationStream": "polins.loop",
+    "LoopOptions": "polins.loop",
     "sim": "polins.sim",
 }
 
@@ -93,14 +102,23 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
+    "Aiding",
     "CameraModel",
+    "FuseConfig",
     "FusionResult",
+    "Gating",
+    "GraphSolver",
     "ImplausibleRunError",
     "ImuModel",
     "ImuUnitsError",
+    "Initial",
+    "LoopOptions",
     "Measurement",
     "NavigationStream",
+    "Noise",
+    "Output",
     "Site",
+    "SkyStates",
     "SunPosition",
     "fuse",
     "heading_deg_from_yaw",

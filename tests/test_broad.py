@@ -1,8 +1,8 @@
 """Real consumer-MEMS data (BROAD trials, CC BY 4.0, tests/data/broad/README.md) through the ESKF.
 
 The IMU model ``broad-aktos-t`` was built from the trials' rest segments and the sensor's
-published cross-axis figure before any scored run (docs/imu-model.md). The aiding is the
-issue's: a 1 Hz heading (truth + N(0, 0.5 deg)), zero-velocity updates at 10 Hz while
+published cross-axis figure before any scored run (docs/imu-model.md). The aiding: a 1 Hz
+heading (truth + N(0, 0.5 deg)), zero-velocity updates at 10 Hz while
 the IMU rests, the initial attitude from the truth. The options are the defaults: for a
 MEMS model scale-factor states, the rotation-proportional attitude noise of the model's
 misalignment, and the Earth rate mechanized at the given site (TU Berlin).

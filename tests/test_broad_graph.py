@@ -1,9 +1,9 @@
 """The graph backend on real consumer-MEMS data: the two BROAD trials of tests/data/broad.
 
-Setup of issue 13: the shipped ``broad-aktos-t`` model, a 1 Hz heading = truth + N(0, 0.5
+Setup: the shipped ``broad-aktos-t`` model, a 1 Hz heading = truth + N(0, 0.5
 deg), zero-velocity updates at rest (0.01 m/s, 2 Hz), ``rot_nb0`` = truth, the site known
 (Berlin, the Earth rate mechanized), all other options at their defaults (batch solver;
-``scale_factors=None``: on for this MEMS model, graph variables, docs/filter.md §9). The trials reach pitch +-90 deg, where yaw and roll are undefined: the
+``scale_factors="auto"``: on for this MEMS model, graph variables, docs/filter.md §9). The trials reach pitch +-90 deg, where yaw and roll are undefined: the
 heading aid and the scoring keep to |pitch| < 70 deg (tests/data/broad/README.md).
 """
 
@@ -95,10 +95,10 @@ def test_without_rotation_noise_the_graph_is_overconfident_on_real_data():
 
 @pytest.mark.parametrize("solver", ["isam2", "fixed_lag"])
 def test_incremental_solvers_are_consistent_on_the_fast_trial(solver):
-    # ISAM2 with the velocity never relinearized (before): after the fast hand-held motion
-    # of trial 15 the tilt at rest was 1 deg off with a 0.14 deg sigma (pitch RMS(err/sigma)
-    # 2.97, 80 % within 3 sigma, heading seed 0). Now: pitch 0.35 (isam2) / 0.39 (fixed
-    # lag), all angles within 3 sigma >= 99.9 %, errors 0.24-0.68 deg.
+    # ISAM2 with the velocity never relinearized leaves the tilt at rest 1 deg off with a
+    # 0.14 deg sigma after the fast hand-held motion of trial 15 (pitch RMS(err/sigma) 2.97,
+    # 80 % within 3 sigma, heading seed 0). Measured: pitch 0.35 (isam2) / 0.39 (fixed lag),
+    # all angles within 3 sigma >= 99.9 %, errors 0.24-0.68 deg.
     _, score = run("trial_15", solver=solver)
     for c, (rms_deg, rms_z, within) in score.items():
         assert rms_deg < 1.0, (c, score)

@@ -1,4 +1,4 @@
-"""``polins calibrate``: the issue's round trip (rendered images -> new camera file -> better headings), maps, check, one-line errors."""
+"""``polins calibrate``: the round trip (rendered images -> new camera file -> better headings), maps, check, one-line errors."""
 
 import json
 import warnings

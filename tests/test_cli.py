@@ -68,8 +68,8 @@ def test_console_script_help():
         (["fuse", "nope.toml", "--out", "run", "--set", "nhc_stdd=0.1"],
          "unknown filter option 'nhc_stdd' (did you mean 'nhc_std'?)"),
         (["fuse", "nope.toml", "--out", "run", "--set", "nhc_std=fast"], "nhc_std='fast'"),
-        (["fuse", "nope.toml", "--out", "run", "--set", "vel_n0=1,x,0"], "--set vel_n0=1,x,0"),
-        (["fuse", "nope.toml", "--out", "run", "--set", "gate_prob=2"], "gate_prob must be in"),
+        (["fuse", "nope.toml", "--out", "run", "--set", "vel_n0=1,x,0"], "--set vel_n0='1,x,0': expected 3 numbers"),
+        (["fuse", "nope.toml", "--out", "run", "--set", "gate_prob=2"], "expected a probability in (0, 1)"),
         (["fuse", "nope.toml", "--out", "run", "--set", "solver=isam2"], "graph backend only"),
         (["fuse", "nope.toml", "--out", "run", "--set", "imu_model=x"], "with --imu"),
         (["fuse", "nope.toml", "--out", "run", "--imu", "no-such-imu"], "no-such-imu"),
@@ -141,12 +141,17 @@ def test_help_shows_every_default_and_the_filter_options(capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "300")  # no line breaks inside the names
     for command, expected in (("simulate", ["(default: fins-paper)", "(default: 8)"]),
                               ("heading", ["(default: paper-table1)"]),
-                              ("fuse", ["(default: 0.5)", "nhc_std = None", "--set KEY=VALUE",
-                                        "scale_factors = None", "smooth = False [eskf only]"])):  # fmt: skip
+                              ("fuse", ["(default: 0.5)", "nhc_std = auto", "--set KEY=VALUE",
+                                        "scale_factors = auto", "smooth = False [eskf only]",
+                                        "--nhc SIGMA|off|auto", "default auto: on (0.05 m/s) "
+                                        "for a ground vehicle"])):  # fmt: skip
         assert main([command, "--help"]) == 0
         out = " ".join(capsys.readouterr().out.split())
         for text in expected:
             assert text in out, (command, text)
+        # a required argument or one without a value by default shows no "default: None"
+        assert "(default: None)" not in out, command
+    assert "None:" not in out  # fuse's help says what happens without an option
 
 
 def test_list_options(capsys):

@@ -24,6 +24,7 @@ from polins.compass.measure import (
 from polins.compass.pixels import mosaic_channels
 from polins.compass.polarimetry import stokes_from_channels
 from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.sim.algorithm1 import measure_algorithm1, measure_baseline
 
 CAM = polins.load_camera("paper-table1")
 CAM4 = CAM.downscaled(4)
@@ -41,8 +42,9 @@ def _level(yaw_deg):
 # ----------------------------------------------------------------------------- exactness
 @pytest.mark.parametrize("model", ["projection", "meridian"])
 def test_noise_free_heading_is_exact_for_any_attitude(model):
-    # Issue 3 / docs/model.md §12.2 and §12.8: noise-free, eps = 0, tilt up to 10 deg, both lens models:
-    # heading error < 1e-6 deg for every method but "paper" (here < 1e-9 deg in float64).
+    # docs/model.md §12.2 and §12.8: noise-free, eps = 0, tilt up to 10 deg, both lens models:
+    # heading error < 1e-6 deg for every method and for the paper's Algorithm 1 (here < 1e-9 deg
+    # in float64).
     cam = CAM4.with_changes(polarization_model=model)
     rng = np.random.default_rng(10)
     for _ in range(3):
@@ -51,11 +53,14 @@ def test_noise_free_heading_is_exact_for_any_attitude(model):
         raw = render(cam, sun_n, rot)
         for method, opts in [
             ("traditional", {}),
-            ("traditional", {"weighted": False}),
+            ("equal weights", {}),
             ("compensated", {}),
             ("compensated", {"fixed_zenith": False, "loss": "huber"}),
         ]:
-            m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, method=method, **opts)
+            if method == "equal weights":  # the paper's Eq. 31
+                m = measure_baseline(raw, cam, sun_n=sun_n, rot_nb_prior=rot, weighted=False)
+            else:
+                m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, method=method, **opts)
             assert m.ok, m.reason
             assert abs(_err_deg(m, rot)) < 1e-9
             np.testing.assert_allclose(m.sun_b, rot.inv().apply(sun_n), atol=1e-10)
@@ -64,8 +69,8 @@ def test_noise_free_heading_is_exact_for_any_attitude(model):
             )
             assert m.eigen_gap > 0.99 and m.n_pixels > 15_000
         # docs/model.md §8.2: with the scale-consistent Eq. 22 the paper's k_m is exactly 0 without
-        # noise, so "paper" is exact here too (it only adds noise).
-        m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, method="paper")
+        # noise, so Algorithm 1 is exact here too (it only adds noise).
+        m, _ = measure_algorithm1(raw, cam, sun_n=sun_n, rot_nb_prior=rot)
         assert abs(_err_deg(m, rot)) < 1e-9 and m.epsilon == 0.0
 
 
@@ -110,15 +115,13 @@ def test_noise_free_sunlight_is_compensated_exactly():
 
 
 def test_world_fixed_occluder_bias():
-    # Issue 3 / docs/model.md §12.6: occluder at compass azimuth 260-350 deg below 40 deg elevation,
+    # docs/model.md §12.6: occluder at compass azimuth 260-350 deg below 40 deg elevation,
     # eps = 0.0125, noise-free. The paper's (unweighted) traditional estimator shows the bias
     # of about -0.1 deg; the joint ML stays below 0.005 deg and recovers eps to 1e-3.
     for yaw_deg in (0.0, 73.0, 200.0):
         rot = _level(yaw_deg)
         raw = render(CAM4, SUN_N, rot, epsilon=0.0125, occluder_az_deg=(260.0, 350.0))
-        trad = measure(
-            raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="traditional", weighted=False
-        )
+        trad = measure_baseline(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, weighted=False)
         assert -0.15 < _err_deg(trad, rot) < -0.05
         # p^2 weights alone shrink it (the biased pixels have a low DoP) but do not remove it.
         trad_w = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="traditional")
@@ -130,7 +133,7 @@ def test_world_fixed_occluder_bias():
 
 
 def test_tilt_handled_in_the_camera_frame():
-    # docs/model.md §12.8 regression: E-vectors built with camera-frame ray angles and then rotated are
+    # docs/model.md §12.8: E-vectors built with camera-frame ray angles and then rotated are
     # exact; the paper's Eq. 28 (level-frame ray angles with the camera-frame AoP) is not.
     rot = Rotation.from_euler("ZYX", [0.4, np.radians(5.0), np.radians(-3.0)])
     raw = render(CAM4, SUN_N, rot)
@@ -156,7 +159,7 @@ def test_flipped_stokes_sign_is_90_degrees_off():
     # lie in the scattering plane and the heading is ~90 deg wrong.
     rot = Rotation.from_euler("ZYX", [1.0, np.radians(3.0), 0.0])
     raw = render(CAM4, SUN_N, rot)
-    m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper", eq14="printed")
+    m, _ = measure_algorithm1(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, eq14="printed")
     assert abs(abs(_err_deg(m, rot)) - 90.0) < 5.0
     # Same with the library's own eigen solution on sign-flipped Stokes vectors.
     stokes, _ = stokes_from_channels(mosaic_channels(raw, CAM4), CAM4)
@@ -230,7 +233,7 @@ def test_monte_carlo_covariance_and_crlb():
 
 @pytest.mark.slow
 def test_monte_carlo_full_resolution():
-    # 200 full-resolution uint16 images (quantised): the issue's Monte-Carlo criteria.
+    # 200 full-resolution uint16 images (quantised): the Monte-Carlo criteria of docs/model.md §12.
     rot = Rotation.from_euler("ZYX", [0.4, np.radians(5.0), np.radians(-3.0)])
     res = _monte_carlo(CAM, rot, 200, seed=14, dtype=np.uint16, epsilon=0.0125)
     crlb = yaw_crlb(CAM, SUN_N, rot, dop_max=0.75, radiance=220.0, noise_std=1.5, epsilon=0.0125)
@@ -247,9 +250,7 @@ def test_full_resolution_occluder_and_exactness():
     for yaw_deg in (0.0, 120.0):
         rot = _level(yaw_deg)
         raw = render(CAM, SUN_N, rot, epsilon=0.0125, occluder_az_deg=(260.0, 350.0))
-        trad = measure(
-            raw, CAM, sun_n=SUN_N, rot_nb_prior=rot, method="traditional", weighted=False
-        )
+        trad = measure_baseline(raw, CAM, sun_n=SUN_N, rot_nb_prior=rot, weighted=False)
         comp = measure(raw, CAM, sun_n=SUN_N, rot_nb_prior=rot)
         print(
             f"yaw {yaw_deg}: traditional {_err_deg(trad, rot):+.4f} deg, compensated "
@@ -282,22 +283,20 @@ def test_crlb_reference_value_and_scaling():
 # ----------------------------------------------------------------------------- covariance
 def test_inflation_terms():
     # docs/measurement.md §12: yaw_std = sqrt(noise^2 + model^2 + (cot Z tilt)^2), with the
-    # model part sqrt((model_scale sky)^2 + instrumental^2 + floor^2), the sky part the
-    # jackknife variance beyond the noise.
+    # model part sqrt((2 sky)^2 + instrumental^2), the sky part the jackknife variance
+    # beyond the noise.
     rot = _level(40.0)
     raw = render(CAM4, SUN_N, rot, noise_std=1.5, rng=np.random.default_rng(15))
-    base = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, model_scale=0.0,
-                   instrumental_dop_std=0.0)  # fmt: skip
-    assert base.yaw_std == pytest.approx(base.yaw_std_meas, rel=1e-12)
-    assert base.yaw_std_noise == base.yaw_std_meas and base.yaw_std_model == 0.0
-    assert base.yaw_std_correlated == 0.0
-    kw = {"kappa": 20.0, "sigma_floor": np.radians(0.2), "tilt_std": np.radians(0.1)}
-    m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, **kw)
+    base = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, instrumental_dop_std=0.0)
+    sky = 2.0 * np.sqrt(max(base.yaw_std_jackknife**2 - base.yaw_std_meas**2, 0.0))
+    assert base.yaw_std_correlated == 0.0 and base.yaw_std_model == pytest.approx(sky, rel=1e-12)
+    assert base.yaw_std_noise == base.yaw_std_meas
+    assert base.yaw_std == pytest.approx(np.hypot(base.yaw_std_meas, sky), rel=1e-12)
+    m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, tilt_std=np.radians(0.1))
     zen = np.arccos(SUN_N[2])
-    sky2 = 2.0**2 * max(m.yaw_std_jackknife**2 - m.yaw_std_meas**2, 0.0)
-    model = np.sqrt(sky2 + m.yaw_std_correlated**2 + np.radians(0.2) ** 2)
+    model = np.hypot(sky, m.yaw_std_correlated)
     assert m.yaw_std_correlated > 0 and m.yaw_std_model == pytest.approx(model, rel=1e-12)
-    assert m.yaw_std_noise == pytest.approx(20.0 * m.yaw_std_meas, rel=1e-12)
+    assert m.yaw_std_noise == m.yaw_std_meas
     expected = np.sqrt(
         m.yaw_std_noise**2 + m.yaw_std_model**2 + (np.radians(0.1) / np.tan(zen)) ** 2
     )
@@ -328,23 +327,44 @@ def test_refusals_and_input_errors():
         measure(raw[:100], CAM4, sun_n=SUN_N, rot_nb_prior=rot)
     with pytest.raises(ValueError, match="dtype"):
         measure(raw.astype(np.int16), CAM4, sun_n=SUN_N, rot_nb_prior=rot)
-    with pytest.raises(TypeError, match="valid options: gain_correction"):
-        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, weigthed=False)
-    with pytest.raises(TypeError, match=r"sigma_floor_deg -> sigma_floor \[rad\]"):
-        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, sigma_floor_deg=0.1)
+    with pytest.raises(TypeError, match="valid options: fixed_zenith"):
+        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, fixed_zenit=False)
+    # A replaced option fails with one line naming what replaces it.
+    for old, new in [
+        ("sun_exclusion_deg", r"sun_exclusion \[rad\]"),
+        ("cloud_dop_ratio", r"clouds \('auto' or 'off'\)"),
+        ("cloud_aop_z", "clouds"),
+        ("sigma_floor", "yaw_std_model"),
+        ("kappa", "yaw_std_model"),
+        ("gain_correction", r"polins\.sim\.algorithm1\.measure_baseline"),
+        ("gn_pixels", "a constant"),
+    ]:
+        with pytest.raises(TypeError, match=f"{old} -> [^;]*{new}") as info:
+            measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, **{old: 0.1})
+        assert "\n" not in str(info.value)
+    # "off" is off, "auto" is automatic, None is neither.
+    off = {"yaw_gate": "off", "residual_rms_max": "off", "max_field_angle": "off"}
+    assert MeasureOptions(**off) == MeasureOptions()
+    for name in ("yaw_gate", "residual_rms_max", "max_field_angle", "instrumental_dop_std"):
+        with pytest.raises(ValueError, match=name):
+            MeasureOptions(**{name: None})
+    with pytest.raises(ValueError, match="clouds"):
+        MeasureOptions(clouds="sometimes")
+    with pytest.raises(ValueError, match="instrumental_mixing_std"):
+        MeasureOptions(instrumental_mixing_std="off")
     with pytest.raises(TypeError, match="eq22"):  # a paper-only switch
         measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="traditional", eq22="printed")
     with pytest.raises(ValueError, match="eq22"):
-        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper", eq22="as printed")
+        measure_algorithm1(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, eq22="as printed")
     assert measure_options(sun_exclusion=0.3) == MeasureOptions(sun_exclusion=0.3)
-    # The one-time check of a stream: the paper's switches only with method="paper".
-    paper_opts = {"eq22": "printed", "weighted": False}
-    assert check_measure_options("paper", paper_opts) == MeasureOptions(weighted=False)
-    assert paper_opts == {"eq22": "printed", "weighted": False}  # not modified
+    # The one-time check of a stream; the paper's Algorithm 1 is a reproduction, not a method.
+    assert check_measure_options("traditional", {"dop_min": 0.05}) == MeasureOptions(dop_min=0.05)
     with pytest.raises(TypeError, match="eq22"):
-        check_measure_options("compensated", paper_opts)
-    with pytest.raises(ValueError, match="eq14"):
-        check_measure_options("paper", {"eq14": "flipped"})
+        check_measure_options("compensated", {"eq22": "printed"})
+    with pytest.raises(ValueError, match=r"polins\.sim\.algorithm1"):
+        check_measure_options("paper", {})
+    with pytest.raises(ValueError, match=r"polins\.sim\.algorithm1"):
+        measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method="paper")
     with pytest.raises(ValueError, match="method"):
         check_measure_options("svd", {})
     with pytest.raises(ValueError, match="method"):
@@ -371,10 +391,10 @@ def test_nan_pixels_are_masked_not_propagated():
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_tiny_region_with_a_free_zenith_falls_back_with_a_reason(seed):
-    # Found: a 2 deg region with the zenith free left the score test's or the separation
-    # test's Gauss-Newton step without a selected pixel (residual RMS 0), and measure raised
-    # ZeroDivisionError (and the eigen fallback's zero gap a RuntimeWarning). Now it returns
-    # a result: ok with a finite yaw, or a reason.
+    # A 2 deg region with the zenith free leaves the score test's or the separation test's
+    # Gauss-Newton step without a selected pixel (residual RMS 0), and the eigen fallback a
+    # zero gap: measure returns a result (ok with a finite yaw, or a reason), without a
+    # ZeroDivisionError or a RuntimeWarning.
     rng = np.random.default_rng(seed)
     rot = Rotation.from_euler(
         "ZYX", [rng.uniform(-3, 3), rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05)]
@@ -598,7 +618,7 @@ def test_public_sun_vector_functions(model):
                            epsilon0=0.3, sigma_l=2.0, max_iterations=40)  # fmt: skip
         assert far.converged and np.allclose(far.theta, sol.theta, atol=1e-6)
     # From random starts (any azimuth, zenith 0-87 deg, eps0 within +-0.1), zenith free and
-    # fixed: the coarse grid start and the bounded steps reach the same solution (before the
+    # fixed: the coarse grid start and the bounded steps reach the same solution (without the
     # grid: 49 of 80 such starts ended elsewhere, e.g. eps -0.3 with the sun 70 deg off).
     for _ in range(10):
         a0, z0 = rng.uniform(-np.pi, np.pi), np.arccos(rng.uniform(0.05, 1.0))
@@ -647,3 +667,44 @@ def test_the_camera_file_states_its_calibration_residual(tmp_path):
     assert back.instrumental_dop_std == 0.0
     assert back.roi_max_field_angle == pytest.approx(np.radians(50.0))
     np.testing.assert_allclose(back.roi_polygons[0], roi.roi_polygons[0], atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- stages
+def test_stages_compose_to_measure():
+    # The chain is its stages (docs/measurement.md §0): composing them by hand gives the
+    # same measurement to the last bit, each stage's result is a frozen dataclass, and a
+    # stage that refuses says why.
+    import dataclasses
+
+    from polins.compass.chain import heading_measurement, instrumental_std, sun_branch
+    from polins.compass.heading import image_geometry
+    from polins.compass.image import image_stokes
+    from polins.compass.pixels import check_raw
+    from polins.compass.skypixels import sky_pixels
+    from polins.compass.solution import solve_image
+
+    rng = np.random.default_rng(21)
+    rot = random_attitude(rng, 5.0)
+    raw = render(CAM4, SUN_N, rot, epsilon=0.01, noise_std=1.5, rng=rng, dtype=np.uint16)
+    opt = MeasureOptions(tilt_std=np.radians(0.1))
+    for method in ("compensated", "traditional"):
+        geo = image_geometry(CAM4, SUN_N, rot)
+        img = image_stokes(check_raw(raw, CAM4), CAM4, opt)
+        px = sky_pixels(img, CAM4, geo, opt)
+        sol = solve_image(img, CAM4, px, geo, opt, method)
+        n_pixels = int(np.count_nonzero(sol.mask))
+        branch = sun_branch(img, px, sol, geo, opt, n_pixels)
+        std_instr = instrumental_std(img, CAM4, px, sol, geo, opt)
+        fixed = method == "compensated"
+        by_hand = heading_measurement(sol, branch, geo, opt, n_pixels, fixed, std_instr)
+        m = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, method=method, tilt_std=opt.tilt_std)
+        assert m.ok and m.method == method and by_hand.method == method
+        for f in ("yaw", "yaw_std", "sun_std", "epsilon", "residual_rms", "yaw_std_correlated"):
+            assert getattr(by_hand, f) == getattr(m, f) or np.isnan(getattr(m, f)), f
+        for stage in (geo, img, px, sol, branch):
+            assert dataclasses.is_dataclass(stage)
+            with pytest.raises(dataclasses.FrozenInstanceError):
+                stage.__setattr__(dataclasses.fields(stage)[0].name, None)
+    dark = np.zeros_like(raw)
+    refused = measure(dark, CAM4, sun_n=SUN_N, rot_nb_prior=rot)
+    assert not refused.ok and refused.reason.startswith("too few valid pixels")

@@ -4,7 +4,6 @@ against a fine-step reference, consistency Monte-Carlo."""
 import dataclasses
 import functools
 import logging
-import math
 import subprocess
 import sys
 
@@ -19,7 +18,7 @@ import polins
 from polins.errors import UserInputError
 from polins.frames import rot_nb_from_euler, wrap_angle, yaw_from_rot_nb
 from polins.fusion import build_filter, run_fusion
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import FuseConfig, config_with_site
 from polins.fusion.eskf import ESKF, Block, Layout, discretize, error_blocks, rts_smooth
 from polins.fusion.eskf.dynamics import StepNominal, step_nominal
 from polins.fusion.eskf.propagate import advance, interpolate
@@ -42,9 +41,7 @@ from polins.site import Site
 SITE = {"lat_deg": 45.6234, "lon_deg": 126.7264, "alt_m": 148.74}
 # the 15-state layout in a world that does not rotate (structural tests)
 # the paper's 15-state filter: no scale factors, no Earth rate, no heading-bias state
-CFG = FuseConfig(
-    site=Site(**SITE), scale_factors=False, earth_rate=False, heading_bias_std=math.inf
-)
+CFG = FuseConfig(site=Site(**SITE), scale_factors=False, earth_rate=False, heading_bias_std="off")
 YAW_STD = np.radians(0.3)
 
 
@@ -344,9 +341,14 @@ def _rich_case(model_name, scale_factors, seed=7, gap=True):
         t = imu["t"].to_numpy()
         imu = imu[(t < 6.0) | (t >= 6.1)].reset_index(drop=True)
     site = Site(np.degrees(traj.lat[0]), np.degrees(traj.lon[0]), float(traj.alt_m[0]))
-    config = FuseConfig(imu_model=model, site=site, scale_factors=scale_factors, nhc_std=0.05,
-                        reset_interval_s=2.0)  # fmt: skip
+    config = FuseConfig(imu_model=model, site=site, scale_factors=scale_factors, nhc_std=0.05)
     return imu, items, config
+
+
+# The internal hooks of the ESKF: resets every 2 s (several in a case); the fine-step
+# reference takes one covariance step per IMU interval.
+HOOKS = {"reset_interval_s": 2.0}
+FINE = {**HOOKS, "cov_step_s": 0.005}
 
 
 def _arrays(imu):
@@ -357,21 +359,21 @@ def _arrays(imu):
     )
 
 
-def _fast(config, imu, items, rot_nb0=None):
+def _fast(config, imu, items, rot_nb0=None, hooks=HOOKS):
     """The fast path over a log: the filter and its rows (NavState), one per sample."""
     t, W, A = _arrays(imu)
-    filt = ESKF(config, t[0], 0.005, rot_nb0)
+    filt = ESKF(config, t[0], 0.005, rot_nb0, **hooks)
     filt.add_items(items)
     if not filt.ready:
-        filt.level([(t[k], W[k], A[k]) for k in range(int(config.align_s / 0.005) + 1)])
+        filt.level([(t[k], W[k], A[k]) for k in range(int(config.initial.align_s / 0.005) + 1)])
     nodes, rows = advance(filt, t, W, A, np.ones(len(t), dtype=bool))
     return filt, interpolate(nodes, rows, filt.layout.index)
 
 
-def _streaming(config, imu, items, rot_nb0=None):
+def _streaming(config, imu, items, rot_nb0=None, hooks=HOOKS):
     """One propagate() per sample: the filter and its state after every sample."""
     t, W, A = _arrays(imu)
-    filt = ESKF(config, t[0], 0.005, rot_nb0)
+    filt = ESKF(config, t[0], 0.005, rot_nb0, **hooks)
     filt.add_items(items)
     states = []
     for k in range(len(t)):
@@ -400,11 +402,10 @@ def test_fast_path_and_streaming_agree_with_a_fine_step_reference(model_name, sc
     # streaming filter (one propagate per sample) against the exact filter of the model:
     # one covariance step per IMU interval. They differ by the discretisation error only.
     imu, items, config = _rich_case(model_name, scale_factors)
-    fine = FuseConfig.from_options(config, cov_step_s=0.005)
-    f_ref, ref = _fast(fine, imu, items)
+    f_ref, ref = _fast(config, imu, items, hooks=FINE)
     f_fast, fast = _fast(config, imu, items)
     f_str, stream = _streaming(config, imu, items)
-    s_ref, stream_ref = _streaming(fine, imu, items)
+    s_ref, stream_ref = _streaming(config, imu, items, hooks=FINE)
     assert len(fast) == len(ref) == len(imu) and len(stream) == len(stream_ref)
     # the fine-step fast path is the fine-step streaming filter (same steps, exact rows)
     k0 = len(ref) - len(stream_ref)  # samples of the levelling window
@@ -518,8 +519,8 @@ def test_fuse_options_site_and_result():
         build_filter(0.0, 0.005)
     assert len(warned) == 1
     # the paper site is the stand-in, without the Earth rate
-    assumed = FuseConfig.from_options(imu_model=model, site=polins.site.PAPER_SITE,
-                                      site_assumed=True)  # fmt: skip
+    with pytest.warns(UserWarning, match="no site given"):
+        assumed = config_with_site(FuseConfig(imu_model=model))
     assert not assumed.mechanize_earth_rate and assumed.uncovered_earth_rate
     pd.testing.assert_frame_equal(polins.fusion.run_fusion(imu, meas, config=assumed).solution, sol)
     cfg = FuseConfig.from_options(imu_model=model, **SITE)
@@ -549,7 +550,7 @@ def test_gating_logs_rejections(caplog):
     assert "gate" in caplog.text and "rejected" in caplog.text
     assert {"t", "name", "dim", "nis", "accepted", "reason"} <= set(upd.columns)
     # without a gate the outlier is used
-    upd = fused(imu, meas, imu_model=model, **SITE, output_rate_hz=1.0, gate_prob=None).updates
+    upd = fused(imu, meas, imu_model=model, **SITE, output_rate_hz=1.0, gate_prob="off").updates
     assert upd["accepted"].all()
 
 

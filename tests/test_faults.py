@@ -74,7 +74,7 @@ def inside_gap(t):
 
 def stream_of(log, **kwargs):
     return NavigationStream(log.camera, log.imu_model, site=log.site, epoch_utc=log.epoch_utc,
-                            config=log.config, **kwargs)  # fmt: skip
+                            config=FuseConfig.from_log(log), **kwargs)  # fmt: skip
 
 
 def feed(nav, log, rows=None):
@@ -126,7 +126,7 @@ def test_imu_gap_in_every_path(logs, tmp_path, capsys, backend):
     assert np.isfinite(after[["yaw", "yaw_std", "roll", "pitch"]].to_numpy()).all()
     # polins.fuse: the same IMU table with heading rows at the image times
     rows = headings(read_log(logs["clean"]), np.random.default_rng(1))
-    res = run_fusion(log.imu, rows, backend, config=log.config, odometry=log.odometry)
+    res = run_fusion(log.imu, rows, backend, config=FuseConfig.from_log(log), odometry=log.odometry)
     assert check_gap_events(res.events, rows["t"]) == n_odo
     assert res.updates.loc[inside_gap(res.updates["t"]), "reason"].str.startswith(
         "inside an IMU gap").all()  # fmt: skip
@@ -165,7 +165,7 @@ def test_undeclared_deg_per_s_gyro_in_every_path(logs, tmp_path, capsys):
         with pytest.raises(
             ImuUnitsError, match=r"turns 5\d(\.\d)? times as much .* looks like deg/s"
         ):
-            run_fusion(log.imu, rows, backend, config=log.config)
+            run_fusion(log.imu, rows, backend, config=FuseConfig.from_log(log))
     # the stream: once the headings turn (from 20 s), the call that hands one over raises
     nav = stream_of(log)
     with pytest.raises(ImuUnitsError, match="looks like deg/s") as caught:
@@ -173,7 +173,9 @@ def test_undeclared_deg_per_s_gyro_in_every_path(logs, tmp_path, capsys):
     assert nav.t_latest > 20.0 and isinstance(caught.value, ValueError)
     # the right units pass the same checks in every path
     clean = read_log(logs["clean"])
-    assert np.isfinite(run_fusion(clean.imu, rows, config=clean.config).solution["yaw"]).any()
+    assert np.isfinite(
+        run_fusion(clean.imu, rows, config=FuseConfig.from_log(clean)).solution["yaw"]
+    ).any()
     nav = stream_of(clean)
     feed(nav, clean, rows)
     assert nav.state().heading_known
@@ -220,7 +222,7 @@ def test_implausible_run_raises_with_its_result(logs):
     log = read_log(logs["clean"])
     rows = headings(log, np.random.default_rng(3))
     rows["yaw_std"] = YAW_STD / 100.0
-    config = FuseConfig.from_options(log.config, acquire_k=1, acquire_n=1)
+    config = FuseConfig.from_options(FuseConfig.from_log(log), acquire_k=1, acquire_n=1)
     with pytest.raises(ImplausibleRunError, match="implausible run") as caught:
         run_fusion(log.imu, rows, config=config)
     assert len(caught.value.result.solution) == len(log.imu)
@@ -244,7 +246,7 @@ def test_missing_image_folder_is_refused_before_any_work(logs, tmp_path, capsys)
 
 
 def test_rejections_are_printed_grouped_by_reason():
-    from polins.io.report import format_summary, summarize
+    from polins.evaluation.summary import format_summary, summarize
     from polins.loop.tables import measurement_frame
 
     rows = [{"t": 0.1 * i, "ok": False, "reason": f"unreadable image: img_{i}.png not found"}
@@ -262,3 +264,9 @@ def test_rejections_are_printed_grouped_by_reason():
     assert [ln.split(None, 2)[1:] for ln in lines] == [
         ["60", "unreadable image"], ["50", "NIS above the gate"],
         ["40", "too few valid pixels (# < #)"]]  # fmt: skip
+
+
+def test_the_imu_gap_has_one_option():
+    with pytest.raises(TypeError, match=r"no max_imu_gap_s: the IMU gap is FuseConfig.max_gap_s"):
+        LoopOptions(max_imu_gap_s=0.2)
+    assert FuseConfig(max_gap_s=0.5).gap_s == 0.5

@@ -162,7 +162,9 @@ def test_fuse_reports_input_errors():
     imu.loc[3, "t"] = np.nan
     with pytest.raises(ValueError, match="t is NaN"):
         polins.fuse(imu, None, rot_nb0=polins.rot_nb_from_euler(0, 0, 0), lat_deg=45.0, lon_deg=0)
-    with pytest.raises(UserInputError, match=r"unknown fuse option.*nhc_sdt"):
+    with pytest.raises(
+        UserInputError, match=r"unknown filter option .nhc_sdt. \(did you mean .nhc_std.\?\)"
+    ):
         polins.fuse(_imu(), None, lat_deg=45.0, lon_deg=0.0, nhc_sdt=0.1)
     with pytest.raises(ValueError, match="backend='kalman'"):
         polins.fuse(_imu(), None, backend="kalman")

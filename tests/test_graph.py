@@ -18,7 +18,7 @@ import polins
 import polins.fusion
 import polins.fusion.graph as G
 from polins.frames import wrap_angle, yaw_from_rot_nb
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import TIME_TOL_S, FuseConfig
 from polins.fusion.measurement import sun_measurement
 from polins.ins.state import NavState, solution_table
 from polins.sim.imu import ideal_imu, imu_errors
@@ -445,13 +445,13 @@ def test_result_is_the_shared_solution_table():
         np.testing.assert_allclose(at_k[c].to_numpy(), k[c].to_numpy(), rtol=1e-9, atol=1e-12)
 
 
-def test_measurement_times_within_time_tol_use_the_imu_sample():
-    """As the ESKF: a measurement within time_tol_s of an IMU sample is applied there."""
+def test_measurement_times_within_the_time_tolerance_use_the_imu_sample():
+    """As the ESKF: a measurement within TIME_TOL_S of an IMU sample is applied there."""
     imu, meas, traj, opts = static_case()
     late = meas.assign(t=meas["t"] + 2e-4)  # IMU at 100 Hz
     kw = {"graph_output": "keyframes", **opts}
     ref = graph(imu, meas, traj.rot_nb[0], **kw)
-    snapped_run = graph_run(imu, late, traj.rot_nb[0], time_tol_s=1e-3, **kw)
+    snapped_run = graph_run(imu, meas.assign(t=meas["t"] + 0.5 * TIME_TOL_S), traj.rot_nb[0], **kw)
     apart_run = graph_run(imu, late, traj.rot_nb[0], **kw)
     snapped, apart = snapped_run.solution, apart_run.solution
     np.testing.assert_array_equal(snapped["t"], ref["t"])
@@ -515,8 +515,8 @@ def robust_run(imu, meas, model, rot_nb0=None, **options):
 @pytest.mark.parametrize("solver", ["batch", "isam2"])
 @pytest.mark.parametrize("offset_deg", [30.0, 180.0])
 def test_bad_first_heading_does_not_lock_the_graph(offset_deg, solver):
-    # before: the first heading set the initial yaw (1 rad prior) and the graph converged
-    # near it; now the yaw is acquired by consensus of the headings (docs/filter.md 7.1)
+    # a first heading that set the initial yaw (1 rad prior) would hold the graph near it:
+    # the yaw is acquired by consensus of the headings (docs/filter.md 7.1)
     model, _, imu, truth, meas = drive(0)
     bad = meas.copy()
     bad.loc[0, "yaw"] = wrap_angle(bad.loc[0, "yaw"] + np.radians(offset_deg))
@@ -561,8 +561,8 @@ def test_graph_without_consensus_leaves_the_yaw_unknown():
 
 
 def test_graph_imu_gap_with_images_inside():
-    # before: the graph preintegrated across the 3 s gap with the rates interpolated, used
-    # the headings inside and reported no event
+    # the 3 s gap is not preintegrated with the rates interpolated: the headings inside are
+    # skipped with events
     model, _, imu, truth, meas = drive(5)
     gapped = imu[(imu["t"] < 7.0) | (imu["t"] > 10.0)]
     res = robust_run(gapped, meas, model)
@@ -601,7 +601,7 @@ def test_rotation_proportional_gyro_noise():
     imu.loc[imu["t"] >= 5.0, "gz"] = 2.0
     meas = pd.DataFrame({"t": [2.0, 4.0, 6.0], "yaw": 0.0, "yaw_std": 0.01})
     spun = model.gyro_arw**2 + model.gyro_misalignment**2 * model.gyro_misalignment_corr_time * 4.0
-    for flag in (None, False, True):
+    for flag in ("auto", False, True):
         cfg = FuseConfig.from_options(imu_model=model, site=SITE, scale_factors=flag)
         items = polins.fusion.items.items_from_table(meas, use_sun=True)
         arr = imu[["gx", "gy", "gz"]].to_numpy(), imu[["ax", "ay", "az"]].to_numpy()
@@ -779,9 +779,9 @@ def test_graph_consistent_on_mems_ugv_defaults():
 
 def test_graph_gates_the_standstill_detector_like_the_eskf():
     # vehicle="ground": the IMU-only standstill detector also fires at constant speed (253 of
-    # its 367 epochs on this drive, up to 5 m/s). Before, the graph took every detection as
-    # a zero-velocity factor: pitch/roll errors of 2.2/1.1 deg with RMS(err/sigma) 95/11.
-    # Now a causal pass gates them first, as the ESKF does: the same 114 at rest accepted.
+    # its 367 epochs on this drive, up to 5 m/s). Every detection as a zero-velocity factor
+    # gives pitch/roll errors of 2.2/1.1 deg with RMS(err/sigma) 95/11; a causal pass gates
+    # them first, as the ESKF does: the same 114 at rest accepted.
     model = polins.load_imu("mems-typical")
     traj = ugv_drive(duration_s=60.0, rng=np.random.default_rng(11))
     rng = np.random.default_rng([11, 1])

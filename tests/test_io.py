@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 
 import polins
+from polins.fusion.config import FuseConfig
 from polins.io import (
     ImageReadError,
     ManifestError,
@@ -423,17 +424,24 @@ def test_manifest_filter_table_and_site(tmp_path, cam):
                          imu=_imu(), images=_images(cam.shape, n=1), **SITE)  # fmt: skip
     text = manifest.read_text()
     log = read_log(manifest)
-    assert log.site == Site(**SITE) and log.config.site == log.site
-    assert log.config.imu.name == "fins-paper" and log.config.nhc_std is None  # defaults
+    assert log.site == Site(**SITE) and FuseConfig.from_log(log).site == log.site
+    assert (
+        FuseConfig.from_log(log).imu.name == "fins-paper"
+        and FuseConfig.from_log(log).aiding.nhc_std == "auto"
+    )  # defaults
     manifest.write_text(text + "\n[filter]\nnhc_std = 0.05\ngate_prob = 0.99\nsmooth = true\n")
     log = read_log(manifest)
-    assert (log.config.nhc_std, log.config.gate_prob, log.config.smooth) == (0.05, 0.99, True)
-    assert log.config.site == Site(**SITE) and log.config.imu.name == "fins-paper"
+    c = FuseConfig.from_log(log)
+    assert (c.aiding.nhc_std, c.gating.gate_prob, c.output.smooth) == (0.05, 0.99, True)
+    assert (
+        FuseConfig.from_log(log).site == Site(**SITE)
+        and FuseConfig.from_log(log).imu.name == "fins-paper"
+    )
     for table, message in [
         ("nhc_sdt = 0.05", r"unknown key 'filter.nhc_sdt'; did you mean 'filter.nhc_std'"),
         ("lat_deg = 10.0", r"unknown key 'filter.lat_deg'"),  # the site is [log]'s
-        ("gate_prob = 2.0", r"table \[filter\]: gate_prob must be in \(0, 1\)"),
-        ('att_std0 = "big"', r"table \[filter\]: att_std0 must be 3 numbers"),
+        ("gate_prob = 2.0", r"table \[filter\]: gate_prob=2.0: expected a probability in \(0, 1\)"),
+        ('att_std0 = "big"', r"table \[filter\]: att_std0='big': expected 1 or 3 sigmas"),
     ]:
         manifest.write_text(text + f"\n[filter]\n{table}\n")
         with pytest.raises(ManifestError, match=message) as info:

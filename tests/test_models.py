@@ -258,10 +258,10 @@ def test_pixel_pitch_is_optional(tmp_path):
     assert polins.load_camera("paper-table1").pixel_pitch_um > 0
 
 
-def test_an_old_earth_rate_key_is_ignored_with_a_warning(tmp_path):
+def test_an_earth_rate_key_is_refused_with_the_option_to_use(tmp_path):
     text = (polins.models.shipped_folder("imus") / "mems-typical.toml").read_text()
-    old = tmp_path / "old.toml"
-    old.write_text(text.replace('grade = "mems"\n', 'grade = "mems"\nearth_rate = false\n'))
-    with pytest.warns(UserWarning, match="'earth_rate' is no longer used"):
-        model = polins.load_imu(old)
-    assert model.gyro_arw == polins.load_imu("mems-typical").gyro_arw
+    path = tmp_path / "with-earth-rate.toml"
+    path.write_text(text.replace('grade = "mems"\n', 'grade = "mems"\nearth_rate = false\n'))
+    with pytest.raises(ModelFileError, match="'earth_rate' is not an IMU property") as info:
+        polins.load_imu(path)
+    assert "filter option earth_rate" in str(info.value) and "\n" not in str(info.value)

@@ -43,12 +43,12 @@ TRUTH = Rotation.from_matrix(
 ).as_rotvec()[1:3]
 
 
-def fuse(drive: Drive, backend: str, mount_std: float | None):
+def fuse(drive: Drive, backend: str, mount_std: float | str):
     return drive.fuse(backend=backend, vehicle="ground", mount_rpy=CONFIGURED,
                       lever_arm_b=UGV_LEVER_ARM_B, mount_std=mount_std)  # fmt: skip
 
 
-def fuse_lever(drive: Drive, backend: str, lever_std: float | None):
+def fuse_lever(drive: Drive, backend: str, lever_std: float | str):
     """The true mounting, the lever arm configured as zero (truth UGV_LEVER_ARM_B), the
     odometer."""
     return drive.fuse(odometry=True, backend=backend, vehicle="ground", mount_rpy=MOUNT,
@@ -132,7 +132,7 @@ def test_lever_columns_match_differences():
 
 def test_graph_nhc_factor_with_the_mounting_matches_differences():
     cfg = FuseConfig.from_options(None, **SITE, mount_std=MOUNT_STD, lever_std=0.3,
-                                  heading_bias_std=math.inf)  # fmt: skip
+                                  heading_bias_std="off")  # fmt: skip
     states = GraphStates(cfg, np.array([0.0, 1.0]))
     rot = gtsam.Rot3.RzRyRx(0.02, -0.03, 0.7)
     values = gtsam.Values()
@@ -178,9 +178,10 @@ def test_eskf_estimates_the_mounting_and_stays_consistent(drive: Drive):
     assert np.all(std < math.radians(0.3)), np.degrees(std)
     # without the states the NHC pulls the tilt off and the sigmas do not cover it
     # (measured: pitch / roll 3.4 / 2.1, 80 / 82 % within 3 sigma)
-    check_needed(drive, sol, fuse(drive, "eskf", None).solution)
-    # mount_std = 0 is off: no columns
-    assert "mount_pitch" not in fuse(drive, "eskf", 0.0).solution
+    check_needed(drive, sol, fuse(drive, "eskf", "off").solution)
+    # off is spelled "off": a zero sigma is refused, not read as off
+    with pytest.raises(UserInputError, match=r"mount_std=0\.0: expected a number > 0, 'off'"):
+        FuseConfig(mount_std=0.0)
 
 
 def test_eskf_estimates_the_lever_arm_and_stays_consistent(drive: Drive):
@@ -193,7 +194,7 @@ def test_eskf_estimates_the_lever_arm_and_stays_consistent(drive: Drive):
     assert np.all(np.abs(est - UGV_LEVER_ARM_B) < 3 * std), (est, std)
     assert np.all(std[:2] < 0.03) and 0.1 < std[2] < 0.4, std
     # without the states (measured: pitch / roll 9.9 / 4.8, 12 / 47 % within 3 sigma)
-    check_needed(drive, sol, fuse_lever(drive, "eskf", None).solution)
+    check_needed(drive, sol, fuse_lever(drive, "eskf", "off").solution)
 
 
 def test_per_sample_filter_estimates_the_mounting_as_the_fast_path(drive: Drive):
@@ -252,10 +253,10 @@ def test_mounting_states_are_consistent_over_drives(backend: str, state: str):
     drives = [Drive(seed=s, duration_s=200.0) for s in range(3)]
     if state == "mount":
         on = [(d, fuse(d, backend, MOUNT_STD).solution) for d in drives]
-        off = pooled([(d, fuse(d, backend, None).solution) for d in drives])
+        off = pooled([(d, fuse(d, backend, "off").solution) for d in drives])
     else:
         on = [(d, fuse_lever(d, backend, 0.5).solution) for d in drives]
-        off = pooled([(d, fuse_lever(d, backend, None).solution) for d in drives])
+        off = pooled([(d, fuse_lever(d, backend, "off").solution) for d in drives])
     for _, sol in on:
         if state == "mount":
             est, std = mount_estimate(sol)
@@ -281,14 +282,14 @@ def test_manifest_mount_std_deg_and_lever_std(tmp_path: Path):
                              vehicle=vehicle)  # fmt: skip
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            return Path(manifest), read_log(manifest).config
+            return Path(manifest), FuseConfig.from_log(read_log(manifest))
 
     manifest, cfg = written(
         "log", {"kind": "ground", "mount_rpy_deg": [0.5, -1.0, 2.0], "mount_std_deg": 2.0}
     )
-    assert cfg.mount_std == pytest.approx(math.radians(2.0), rel=1e-15)
-    assert cfg.mount_sigma == cfg.mount_std
-    assert FuseConfig(mount_std=0.0).mount_sigma is None and FuseConfig().mount_sigma is None
+    assert cfg.aiding.mount_std == pytest.approx(math.radians(2.0), rel=1e-15)
+    assert cfg.mount_sigma == cfg.aiding.mount_std
+    assert FuseConfig(mount_std="off").mount_sigma is None and FuseConfig().mount_sigma is None
     with pytest.raises(UserInputError, match="mount_std"):
         FuseConfig(mount_std=-0.01)
     text = manifest.read_text().replace("mount_std_deg = 2.0", "mount_std_deg = -1.0")
@@ -296,7 +297,7 @@ def test_manifest_mount_std_deg_and_lever_std(tmp_path: Path):
     with pytest.raises(ManifestError, match=r"vehicle\.mount_std_deg"):
         read_log(manifest)
     _, cfg = written("log2", {"kind": "ground", "lever_arm_b": [-0.6, 0.1, -0.3], "lever_std": 0.3})
-    assert cfg.lever_std == 0.3 and cfg.lever_sigma == 0.3 and cfg.mount_sigma is None
-    assert FuseConfig(lever_std=0.0).lever_sigma is None
+    assert cfg.aiding.lever_std == 0.3 and cfg.lever_sigma == 0.3 and cfg.mount_sigma is None
+    assert FuseConfig(lever_std="off").lever_sigma is None
     with pytest.raises(UserInputError, match="lever_std"):
         FuseConfig(lever_std=math.nan)

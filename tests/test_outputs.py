@@ -20,10 +20,10 @@ import pytest
 import polins.loop
 from polins.cli import main
 from polins.compass.measure import NoiseModelWarning
+from polins.evaluation import heading_plot_series, summarize
 from polins.io import read_log
 from polins.io.checks import run_verdict, time_base_hint
 from polins.io.outputs import clean_stale, output_set, read_stamp
-from polins.io.report import heading_plot_series, summarize
 from polins.io.schema import schema_markdown
 from polins.loop.offline import RunResult
 from polins.loop.tables import EVENT_COLUMNS, EventBuffer, measurement_frame
@@ -107,7 +107,7 @@ def test_ctrl_c_leaves_the_previous_set(log_dir, tmp_path, fake_loop, monkeypatc
     out = tmp_path / "run"
     assert _fuse(log_dir, out, "--no-plots") == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    import polins.io.report as report
+    import polins.evaluation.report as report
 
     real = report.plot_report
 
@@ -288,8 +288,19 @@ def test_report_plots_are_written_and_readable(log_dir, tmp_path, fake_loop, mon
     fused = next(line for line in top.lines if line.get_label() == "fused heading")
     meas = next(line for line in top.lines if line.get_label() == "polarization measurements")
     assert fused.get_zorder() > meas.get_zorder() and meas.get_markersize() <= 3
-    lo, hi = resid.get_ylim()  # the 3-sigma band (0.3 deg) fills a visible part of the panel
-    assert 0.3 / (hi - lo) > 0.1
+    # the settled 3-sigma band (0.3 deg) fills a visible part of the panel, and the whole
+    # band is inside it (symlog beyond the settled band)
+    y0, y1 = (resid.transData.transform([(0.0, v)])[0, 1] for v in (-0.3, 0.3))
+    p0, p1 = (resid.transData.transform([(0.0, v)])[0, 1] for v in resid.get_ylim())
+    assert (y1 - y0) / (p1 - p0) > 0.1
+    band = resid.collections[0].get_paths()[0].vertices[:, 1]
+    lo, hi = resid.get_ylim()
+    assert lo <= band.min() and band.max() <= hi
+    # the heading axis is a compass: 0..360 deg, every line inside it
+    assert top.get_ylim() == (0.0, 360.0) and "0..360" in top.get_ylabel()
+    for line in top.lines:
+        y = np.asarray(line.get_ydata(), dtype=float)
+        assert np.all((y[np.isfinite(y)] >= 0.0) & (y[np.isfinite(y)] < 360.0)), line.get_label()
 
 
 def test_demo_colours_are_fixed_per_method(tmp_path, monkeypatch):
@@ -392,7 +403,7 @@ def test_implausible_camera_file_is_named(log_dir, tmp_path, capsys, line, new, 
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 
 
-# ----------------------------------------------------------------------------- issue 16.3
+# ----------------------------------------------------------------------------- [filter] table and --set
 def test_cli_overrides_the_manifest_filter_table(log_dir, tmp_path, fake_loop):
     dst = tmp_path / "log"
     shutil.copytree(log_dir, dst)
@@ -404,10 +415,11 @@ def test_cli_overrides_the_manifest_filter_table(log_dir, tmp_path, fake_loop):
     assert _fuse(dst, tmp_path / "b", "--set", "nhc_std=0.2", "--set", "align_s=2",
                  "--scale-factors", "--imu", str(model)) == 0  # fmt: skip
     manifest_only, overridden = fake_loop
-    assert (manifest_only.nhc_std, manifest_only.gate_prob) == (0.05, 0.99)
-    assert manifest_only.imu.name == "mems-typical" and not manifest_only.scale_factors
-    assert (overridden.nhc_std, overridden.gate_prob, overridden.align_s) == (0.2, 0.99, 2.0)
-    assert overridden.scale_factors and overridden.imu.name == "fins-paper"
+    assert (manifest_only.aiding.nhc_std, manifest_only.gating.gate_prob) == (0.05, 0.99)
+    assert manifest_only.imu.name == "mems-typical" and not manifest_only.noise.scale_factors
+    assert overridden.aiding.nhc_std == 0.2 and overridden.initial.align_s == 2.0
+    assert overridden.gating.gate_prob == 0.99
+    assert overridden.noise.scale_factors and overridden.imu.name == "fins-paper"
     stamp = read_stamp(tmp_path / "b")["settings"]["filter"]
     assert stamp["nhc_std"] == 0.2 and stamp["scale_factors"] is True
 

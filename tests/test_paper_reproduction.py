@@ -117,13 +117,13 @@ def test_explain_quotes_and_follows_the_numbers(paper_run):
     assert f"Cramer-Rao bound of {r.crlb_deg:.4f} deg" in text
     assert "measures the gain calibration, not the sunlight compensation" in text
     # Changed numbers change the verdicts: an Algorithm 1 better than the gain-corrected
-    # traditional is no longer "inert", and the conclusion no longer blames the gains.
+    # traditional is not "inert", and the conclusion does not blame the gains.
     better = explain(_with_summary(r, paper={"rmse_deg": 0.5 * _rmse(r, "trad")}))
     assert "inert" not in better and "reduces the error: " in better
     assert "not explained by the gain calibration alone" in better
     assert "inert" in text and "reduces the error" not in text
     # A traditional baseline that reproduces the paper's 0.5928 with the gains corrected:
-    # the baseline no longer matches the uncorrected row.
+    # the baseline does not match the uncorrected row.
     matched = explain(_with_summary(r, trad={"rmse_deg": 0.5928}, trad_nogain={"rmse_deg": 2.0}))
     assert "does not match traditional without" in matched
     assert "WITHOUT the beta_k" not in matched

@@ -10,9 +10,10 @@ import pandas as pd
 import pytest
 
 from polins.cli import main
+from polins.evaluation import summarize, truth_at
 from polins.frames import euler_from_rot_nb, wrap_angle
+from polins.fusion.config import FuseConfig
 from polins.io import load_raw, read_log
-from polins.io.report import summarize, truth_at
 from polins.loop import LoopOptions, NavigationStream, run_log
 
 DURATION_S = 12.0
@@ -37,7 +38,7 @@ def batch(sim_log):
 def _stream(log, *, options=None, delay_s=0.05, state_every=25, **kwargs):
     """Feed a log to a NavigationStream the way a vehicle would: IMU samples as they come,
     each image ``delay_s`` after it was taken; ``state()`` every ``state_every`` samples."""
-    kwargs.setdefault("config", log.config)  # the manifest's [filter] and [vehicle], as run_log
+    kwargs.setdefault("config", FuseConfig.from_log(log))  # [filter], [vehicle]: as run_log
     nav = NavigationStream(log.camera, log.imu_model, site=log.site, epoch_utc=log.epoch_utc,
                            options=options, **kwargs)  # fmt: skip
     imu = log.imu.to_numpy()
@@ -347,8 +348,7 @@ def test_a_bug_in_the_measurer_propagates_and_opencv_failures_are_events(sim_log
 
 def test_run_log_runs_the_filter_once(sim_log, batch, monkeypatch):
     """One ESKF for the whole run, and its estimates are what run_fusion gives on the
-    stream's own measurement table (the second pass that run_log no longer makes)."""
-    import dataclasses
+    stream's own measurement table (no second pass over the log)."""
 
     from polins.fusion.eskf import ESKF
     from polins.loop.offline import fuse_measurements
@@ -365,7 +365,7 @@ def test_run_log_runs_the_filter_once(sim_log, batch, monkeypatch):
     result = run_log(log, workers=1, progress=False)
     assert len(built) == 1
     assert len(result.solution) == len(log.imu) and result.timing["fuse_s"] < 1.0
-    config = LoopOptions().filter_config(dataclasses.replace(log.config, site=log.site))
+    config = LoopOptions().filter_config(FuseConfig.from_log(log))
     ref = fuse_measurements(result.imu, result.measurements, config,
                             odometry=log.odometry).solution  # fmt: skip
     assert len(built) == 2  # (the reference itself)

@@ -7,7 +7,6 @@ from render_simple import render
 from scipy.spatial.transform import Rotation
 
 import polins
-from polins.compass.paper import paper_algorithm1
 from polins.compass.pixels import check_raw, gather_channels, mosaic_channels, pixel_set
 from polins.compass.polarimetry import (
     aop,
@@ -24,6 +23,7 @@ from polins.compass.polarimetry import (
     validity_rows,
 )
 from polins.compass.sunlight import stokes_compensated, stokes_with_sunlight, sunlight_direction
+from polins.sim.algorithm1 import paper_algorithm1
 
 CAM = polins.load_camera("paper-table1")
 SMALL = CAM.downscaled(8)

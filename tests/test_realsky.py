@@ -148,9 +148,8 @@ def test_sigma_is_honest_on_realistic_skies():
     _check_honest(err, std)
     _check_honest(err_b, std_b)
     assert np.sqrt(np.mean((err / std_noise) ** 2)) > 2.0  # 3.0
-    # compensated RMSE [deg]: 0.126 with the fitted-sky DoP test (0.111 with the Berry sky
-    # and the rotated-cloud cells, 0.114 before; 48 images: 0.179, 0.180 and 0.197, 0.208
-    # and 0.257 before): a new uncalibrated gain residual per image
+    # compensated RMSE [deg]: 0.126 with the fitted-sky DoP test (48 images: 0.179): a new
+    # uncalibrated gain residual per image
     assert np.sqrt(np.mean(np.degrees(err) ** 2)) < 0.13
 
 
@@ -188,13 +187,12 @@ def _check_tenth_of_a_degree(cam, n_images, seed):
 
 
 def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_realistic_skies():
-    # Issue 15: one camera (a fixed +-0.5 % channel-gain residual) calibrated by a sky
+    # One camera (a fixed +-0.5 % channel-gain residual) calibrated by a sky
     # rotation, 16 realistic skies (neutral points, thin clouds, CIE radiance, vignetting,
     # tilt up to 5 deg) at 1/4 resolution (the slow variant: 48 at 1/4 and 1/2): the
     # compensated RMSE is below 0.1 deg and the sigma covers the error, with and without
-    # sun_n. Measured 0.058 deg (sun-free 0.059 deg), RMS(err/sigma) 0.69 (0.75), max 1.47;
-    # before the fitted-sky DoP test of the cloud passes: 0.104 deg, 1.06, max 1.93. Other
-    # seeds and the 48-image sets: docs/measurement.md §12.
+    # sun_n. Measured 0.058 deg (sun-free 0.059 deg), RMS(err/sigma) 0.69 (0.75), max 1.47.
+    # Other seeds and the 48-image sets: docs/measurement.md §12.
     _check_tenth_of_a_degree(CAM4, 16, seed=2)
 
 
@@ -206,7 +204,7 @@ def test_calibrated_camera_reaches_a_tenth_of_a_degree_on_many_realistic_skies()
 
 @pytest.mark.slow
 def test_calibrated_camera_reaches_a_tenth_of_a_degree_at_full_resolution():
-    # Issue 15 where the pixel noise does not decide it: at 1/2 resolution the noise-only
+    # The tenth of a degree where the pixel noise does not decide it: at 1/2 resolution the noise-only
     # sigma of suns within 40 deg of the zenith is 0.03-0.18 deg and 24-image sets at five
     # seeds reach 0.08-0.12 deg; at full resolution 16-image sets at seeds 4, 6, 8, 11, 12 gave
     # 0.018-0.061 deg with RMS(err/sigma) 0.81-1.19, max 3.5 (docs/measurement.md §12). Here:
@@ -268,9 +266,9 @@ def test_gain_residual_is_the_correlated_part():
 
 
 def test_cloud_mask_removes_most_of_the_cloud_error():
-    # Thin clouds only (AoP rotated by up to 3 deg): the default DoP-deficit mask of sky
-    # cells (cloud_dop_ratio=0.95), the rotated-cell test (cloud_aop_z=4) and the fitted
-    # sky's DoP test (cloud_fit_ratio=0.97) cut the heading
+    # Thin clouds only (AoP rotated by up to 3 deg): the cloud detectors of clouds="auto"
+    # (the DoP-deficit mask of sky cells, the rotated-cell test and the fitted sky's DoP
+    # test) cut the heading
     # error, and the sigma (with the default camera-fixed part) stays honest; on a clean sky
     # they drop almost no pixel.
     rng = np.random.default_rng(8)
@@ -282,7 +280,7 @@ def test_cloud_mask_removes_most_of_the_cloud_error():
                       clouds=clouds)  # fmt: skip
         raw = render_real_raw(CAM4, sun_n, rot, sky, rng)
         kw = {"sun_n": sun_n, "rot_nb_prior": rot}
-        m = measure(raw, CAM4, cloud_dop_ratio=None, cloud_aop_z=None, cloud_fit_ratio=None, **kw)
+        m = measure(raw, CAM4, clouds="off", **kw)
         masked = measure(raw, CAM4, **kw)
         assert masked.ok and masked.n_pixels < m.n_pixels
         err.append(float(wrap_angle(m.yaw - yaw_from_rot_nb(rot))))
@@ -291,12 +289,11 @@ def test_cloud_mask_removes_most_of_the_cloud_error():
     rmse, rmse_mask = (float(np.sqrt(np.mean(np.square(e)))) for e in (err, err_mask))
     assert rmse_mask < 0.75 * rmse, (np.degrees(rmse), np.degrees(rmse_mask))
     _check_honest(np.array(err_mask), np.array(std_mask))
-    with pytest.raises(ValueError, match="cloud_dop_ratio"):
-        measure(raw, CAM4, cloud_dop_ratio=1.5)
+    with pytest.raises(ValueError, match="clouds"):
+        measure(raw, CAM4, clouds=None)
     clean = RealSky(neutral_sep=0.0, vignetting=0.0, horizon_depolarization=0.0)
     raw = render_real_raw(CAM4, sun_n, rot, clean, rng)
-    off = {"cloud_dop_ratio": None, "cloud_aop_z": None, "cloud_fit_ratio": None}
-    n_clean = measure(raw, CAM4, **off, **kw).n_pixels
+    n_clean = measure(raw, CAM4, clouds="off", **kw).n_pixels
     assert measure(raw, CAM4, **kw).n_pixels >= 0.99 * n_clean
 
 
@@ -377,8 +374,7 @@ def test_camera_fixed_polarization_fitted_per_image():
 
 def test_sky_model_options_are_checked():
     raw = np.zeros(CAM4.shape, dtype=np.uint16)
-    for bad in ({"sky_model": "mie"}, {"neutral_sep": 2.0}, {"cloud_aop_z": 0.0},
-                {"cloud_aop_min": -1.0}):  # fmt: skip
+    for bad in ({"sky_model": "mie"}, {"clouds": "thin"}, {"fit_delta": None}):
         with pytest.raises(ValueError):
             measure(raw, CAM4, rot_nb_prior=Rotation.identity(), **bad)
 

@@ -89,8 +89,8 @@ def test_acquired_yaw_keeps_the_tilt_part_of_its_error():
 
 @pytest.mark.parametrize("offset_deg", [30.0, 180.0])
 def test_bad_first_heading_does_not_lock_the_filter(offset_deg):
-    # before: the first heading set the yaw with its 0.3 deg sigma, the gate rejected every
-    # later one and the run ended 22-28 (30 deg off) or 172-178 deg off
+    # a first heading that set the yaw with its 0.3 deg sigma would make the gate reject every
+    # later one, ending 22-28 (30 deg off) or 172-178 deg off: the yaw is acquired by consensus
     model, _, imu, truth, meas = drive(0)
     bad = meas.copy()
     bad.loc[0, "yaw"] = wrap_angle(bad.loc[0, "yaw"] + np.radians(offset_deg))
@@ -168,8 +168,8 @@ def test_acquisition_options_are_checked():
 
 # ----------------------------------------------------------------------------- faults
 def test_unusable_sigma_rejects_its_row():
-    # before: yaw_std = inf made the solution NaN to the end, every later update
-    # "accepted" with NIS NaN
+    # an update with yaw_std = inf, if applied, would make the solution NaN to the end, every
+    # later update "accepted" with NIS NaN
     model, _, imu, truth, meas = drive(4)
     bad = meas.copy()
     bad.loc[20, "yaw_std"] = np.inf
@@ -202,6 +202,7 @@ def check_gap_skipped(res, meas):
 
 
 def test_imu_gap_with_images_inside():
+    # a 3 s gap with images inside: bridged with events, a finite solution to the end
     model, _, imu, truth, meas = drive(5)
     gapped = imu[(imu["t"] < 7.0) | (imu["t"] > 10.0)]
     res = fuse(gapped, meas, model)
@@ -218,8 +219,8 @@ def test_imu_gap_with_images_inside():
 
 
 def test_impossible_imu_samples_are_dropped():
-    # before: a gyro sample of 1e300 aborted ("strapdown fixed-point iteration did not
-    # converge"), an accelerometer sample of 1e300 too ("zero norm quaternions")
+    # a gyro sample of 1e300 would stop the strapdown ("fixed-point iteration did not
+    # converge"), an accelerometer sample of 1e300 too ("zero norm quaternions"): dropped
     model, _, imu, truth, meas = drive(6)
     bad = imu.copy()
     bad.loc[1500, "gx"] = 1e300

@@ -182,3 +182,25 @@ def test_output_that_is_a_file_is_refused(tmp_path):
     target.write_text("not a folder")
     with pytest.raises(ValueError, match="not a folder"):
         simulate_log(target, **TINY)
+
+
+def test_static_scenario_is_a_record_for_imu_model(tmp_path, capsys):
+    """``polins simulate --scenario static`` then ``polins imu-model`` on its IMU file."""
+    import polins
+
+    out = tmp_path / "static"
+    args = ["simulate", "--scenario", "static", "--out", str(out), "--duration", "120"]
+    assert main([*args, "--imu", "mems-typical", "--seed", "4", "--quiet"]) == 0
+    assert "3 at 0.0167 Hz" in capsys.readouterr().out  # one image a minute: t = 0, 60, 120 s
+    log = read_log(out / "manifest.toml")
+    truth = log.truth
+    assert np.ptp(truth["yaw"]) == 0.0 and np.ptp(truth["roll"]) == 0.0  # at rest, level
+    assert np.abs(truth[["vn", "ve", "vu"]].to_numpy()).max() == 0.0
+    model_path = tmp_path / "sim-imu.toml"
+    assert main(["imu-model", str(out / "imu.csv"), "--out", str(model_path)]) == 0
+    fitted, true = polins.load_imu(model_path), polins.load_imu("mems-typical")
+    assert fitted.gyro_arw / true.gyro_arw == pytest.approx(1.0, abs=0.05)
+    assert fitted.accel_vrw / true.accel_vrw == pytest.approx(1.0, abs=0.05)
+    # 120 s cannot show a random walk: the file holds an upper bound above the truth
+    assert fitted.gyro_bias_rw > true.gyro_bias_rw
+    assert "random walk not identified" in capsys.readouterr().out

@@ -111,7 +111,7 @@ def test_berry_neutral_points_and_dop():
     assert pts[0, 2] > sun[2] > pts[1, 2]  # Babinet above, Brewster below the sun
     assert pts[2, 2] > -sun[2] > pts[3, 2]  # Arago above, fourth below the anti-sun
     np.testing.assert_allclose(berry_dop(sun, pts, 0.75, sep), 0.0, atol=1e-15)
-    # The sun itself is now polarized (between Babinet and Brewster), DoP <= d_max everywhere.
+    # The sun itself is polarized (between Babinet and Brewster), DoP <= d_max everywhere.
     assert berry_dop(sun, sun, 0.75, sep) > 0.005
     rays = _rays(np.random.default_rng(3), 20_000, upper=False)
     d = berry_dop(sun, rays, 0.75, sep)

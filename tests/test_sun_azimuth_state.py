@@ -203,7 +203,7 @@ def test_heading_bias_state_pairs_with_the_correlated_sigma():
     # sky's correlated error) it is consistent, and so are the defaults, whose bias variance
     # follows the rows' yaw_std_model (correlation time 300 s, not the true 60 s)
     seeds = range(4)
-    z_without = heading_z(seeds, heading_bias_std=math.inf)
+    z_without = heading_z(seeds, heading_bias_std="off")
     z_with = heading_z(seeds, heading_bias_std=CORR_STD, heading_bias_tau_s=CORR_TAU_S)
     z_default = heading_z(seeds)
     rms = [float(np.sqrt(np.mean(z**2))) for z in (z_without, z_with, z_default)]

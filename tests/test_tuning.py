@@ -1,6 +1,7 @@
 """IMU models from static recordings: Allan fit, plot, plausible ranges, the BROAD sensor."""
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +55,7 @@ def static_fit(static_recording):
 def test_static_recording_recovers_the_noise_model(
     static_recording, static_fit, truth_model, tmp_path, capsys
 ):
-    """The issue's done-when: ``polins imu-model`` on a static recording, then load_imu."""
+    """``polins imu-model`` on a static recording, then load_imu, recovers the noise model."""
     from polins.cli import main
     from polins.io import write_imu
 
@@ -134,7 +135,7 @@ def test_confidence_intervals_cover_the_truth():
         (lambda d: d.assign(gx=np.degrees(d.gx) + 60.0), "deg/s"),
         (lambda d: d.assign(az=d.az / 9.80665), "in g"),
         (lambda d: d.drop(columns="ay"), "lacks columns"),
-        (lambda d: d.drop(index=range(100, 200)), "not uniformly spaced"),
+        (lambda d: d.assign(t=d.t + np.where(d.index == 150, 0.003, 0.0)), "t = 1.49 s to 1.503 s"),
         (lambda d: d.assign(gz=np.where(d.index == 5, np.nan, d.gz)), "NaN"),
     ],
 )
@@ -143,6 +144,72 @@ def test_bad_static_input_is_one_line(change, match, truth_model):
     with pytest.raises(UserInputError, match=match) as err:
         imu_model_from_static(change(measured))
     assert "\n" not in str(err.value)
+
+
+def test_a_record_with_gaps_is_split_where_the_samples_are_missing(truth_model):
+    """The gaps' places are named, and the pieces are the segments a list would give."""
+    measured, _ = imu_errors(_static_ideal(200.0, 120.0), truth_model, np.random.default_rng(2))
+    t = measured["t"]
+    pieces = [measured[t <= 5.395], measured[(t >= 38.505) & (t <= 80.0)], measured[t >= 80.5]]
+    model, fit = imu_model_from_static(pd.concat(pieces))
+    split = [n for n in fit.notes if n.startswith("split at")]
+    assert split == ["split at 2 gap(s) in the samples: 5.395 -> 38.505 s, 80 -> 80.5 s"]
+    assert fit.n_segments == 3
+    as_list, _ = imu_model_from_static(pieces)
+    assert model.gyro_arw == as_list.gyro_arw and model.accel_bias_rw == as_list.accel_bias_rw
+
+
+def test_a_short_record_is_refused_for_its_length(truth_model):
+    """5.4 s cannot bound a MEMS gyro random walk: the message says so and how long to record."""
+    measured, _ = imu_errors(_static_ideal(200.0, 5.4), truth_model, np.random.default_rng(1))
+    with pytest.raises(UserInputError, match=r"too short.*gyro random walk.*5\.4 s") as err:
+        imu_model_from_static(measured)
+    need = float(re.search(r"record at least (\d+) s", str(err.value)).group(1))
+    # ten crossover times of the measured white noise and a mid-range MEMS random walk
+    k_mid = np.sqrt(0.01 * 1000.0) * np.radians(1.0) / 3600.0 / 60.0
+    assert need == pytest.approx(10 * np.sqrt(3) * truth_model.gyro_arw / k_mid, rel=0.05)
+    assert "units" not in str(err.value) and "grade right" not in str(err.value)
+    measured, _ = imu_errors(_static_ideal(200.0, 1.0), truth_model, np.random.default_rng(1))
+    with pytest.raises(UserInputError, match="record longer"):  # 200 samples, pieces of 64
+        imu_model_from_static(measured.iloc[::4])
+
+
+def test_the_allan_legend_is_the_model_file(static_fit, truth_model, tmp_path):
+    """Each legend value is the written file's, a bound marked as a bound."""
+    from polins.tuning.plot import legend_labels
+
+    short, _ = imu_errors(_static_ideal(RATE_HZ, 60.0), truth_model, np.random.default_rng(3))
+    for model, fit in (static_fit, imu_model_from_static(short)):
+        path = tmp_path / "m.toml"
+        path.write_text(imu_model_toml(model, fit.comment_lines()))
+        values = polins.load_imu(path).toml_values()
+        gyro, accel = legend_labels(fit)
+        for label, table, key in [
+            (gyro["white"], "gyro", "arw_deg_per_sqrt_h"),
+            (gyro["walk"], "gyro", "bias_rw_deg_per_h_per_sqrt_h"),
+            (accel["white"], "accel", "vrw_m_per_s_per_sqrt_h"),
+            (accel["walk"], "accel", "bias_rw_mg_per_sqrt_h"),
+        ]:
+            shown = float(re.search(r"(?:=|<=) ([0-9.e+-]+)", label).group(1))
+            assert shown == pytest.approx(values[table][key], rel=5e-4), label
+        bound = not fit.gyro.combined.identified["random_walk"]
+        assert ("<=" in gyro["walk"] and "upper bound" in gyro["walk"]) == bound
+    assert bound  # the second fit (60 s) gives a bound, the first (1.5 h) a fitted value
+
+
+def test_imu_model_takes_several_files(truth_model, tmp_path, capsys):
+    """``polins imu-model a.csv b.csv``: each file a segment, pooled as a list would be."""
+    from polins.cli import main
+    from polins.io import write_imu
+
+    rng = np.random.default_rng(5)
+    parts = [imu_errors(_static_ideal(RATE_HZ, 30.0), truth_model, rng)[0] for _ in range(2)]
+    files = [str(write_imu(tmp_path / f"{n}.csv", p)) for n, p in zip("ab", parts, strict=True)]
+    out = tmp_path / "two.toml"
+    assert main(["imu-model", *files, "--out", str(out)]) == 0
+    assert "in 2 segment(s)" in out.read_text()
+    expected, _ = imu_model_from_static(parts)
+    assert polins.load_imu(out).gyro_arw == pytest.approx(expected.gyro_arw, rel=1e-9)
 
 
 def test_fit_implausible_for_the_grade_is_refused(truth_model):

@@ -50,7 +50,7 @@ def test_updates_carry_innovation_and_its_variance(drive):
 
 def test_stats_see_a_too_small_r_and_recommend_its_floor(drive):
     imu, meas, config = drive
-    config = dataclasses.replace(config, gate_prob=None)  # a gate truncates the NIS
+    config = config.replace(gate_prob="off")  # a gate truncates the NIS
     stats = innovation_stats(run_fusion(imu, meas, config=config).updates)
     yaw = stats["yaw"]
     assert len(meas) - 10 < yaw.n < len(meas) and yaw.dim == 1  # all but the yaw acquisition
@@ -106,3 +106,16 @@ def test_unknown_parameter_is_one_line(drive):
         tune(imu, meas, config, params=("gyro_arx",))
     with pytest.raises(UserInputError, match="must be > 0"):
         tune(imu, meas, config, params=("gyro_arw",), initial={"gyro_arw": 0.0})
+
+
+def test_tune_runs_the_filter_that_fuses_with_the_odometer(drive):
+    """The likelihood is that of the filter ``polins fuse`` runs: with the log's odometer."""
+    from polins.sim.vehicle import forward_speed
+
+    imu, meas, config = drive
+    traj = ugv_drive(duration_s=DURATION_S, rate_hz=100.0, rng=np.random.default_rng(1))
+    odometry = pd.DataFrame({"t": traj.t[::10], "speed": forward_speed(traj)[::10]})
+    res = tune(imu, meas, config, params=("yaw_floor_deg",), odometry=odometry)
+    for run in (res.before, res.after):
+        assert (run.updates["name"] == "odo").sum() > 0.9 * len(odometry)
+    assert not (run_fusion(imu, meas, config=config).updates["name"] == "odo").any()

@@ -22,7 +22,6 @@ from polins.fusion.vehicle import (
     vehicle_items,
 )
 from polins.io.log import read_log, write_log
-from polins.io.manifest import ManifestError
 from polins.models import load_imu
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import Trajectory, turntable, ugv_drive
@@ -109,7 +108,7 @@ def test_vehicle_kinds_set_the_pseudo_measurements():
     assert (free.nhc_sigma, free.standstill_sigma) == (None, None)
     assert (ground.nhc_sigma, ground.standstill_sigma) == (0.05, 0.02)
     assert (static.nhc_sigma, static.standstill_sigma) == (None, 0.02)
-    tuned = FuseConfig(vehicle="ground", nhc_std=0.1, standstill_std=math.inf)
+    tuned = FuseConfig(vehicle="ground", nhc_std=0.1, standstill_std="off")
     assert (tuned.nhc_sigma, tuned.standstill_sigma) == (0.1, None)
     assert FuseConfig(nhc_std=0.2).nhc_sigma == 0.2  # a free vehicle with an explicit NHC
     for bad in ({"vehicle": "boat"}, {"nhc_std": -1.0}, {"standstill_std": math.nan},
@@ -269,7 +268,7 @@ def test_stream_add_odometry_matches_fuse(drive: Drive):
     assert nav is not None
     assert abs(nav.errors["so"][0] - ref["so"]) < 1e-6
     assert np.allclose(nav.vel_n, ref[["ve", "vn", "vu"]].to_numpy(float), atol=1e-5)
-    cfg_none = FuseConfig.from_options(cfg, odometer_std=None)
+    cfg_none = FuseConfig.from_options(cfg, odometer_std="off")
     bare = NavigationStream(load_camera("paper-table1"), MEMS, config=cfg_none,
                             epoch_utc="2023-09-05T07:06:00Z")  # fmt: skip
     bare.add_imu(t[0], w[0], f[0])
@@ -290,16 +289,16 @@ def test_manifest_vehicle_table_round_trip(tmp_path: Path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         log = read_log(manifest)
-    cfg = log.config
-    assert cfg.vehicle == "ground" and cfg.odometer_std == 0.07
-    np.testing.assert_allclose(cfg.mount_rpy, np.radians([0.5, -1.0, 2.0]), atol=1e-15)
-    assert cfg.lever_arm_b == (-0.6, 0.1, -0.3)
+    cfg = FuseConfig.from_log(log)
+    assert cfg.aiding.vehicle == "ground" and cfg.aiding.odometer_std == 0.07
+    np.testing.assert_allclose(cfg.aiding.mount_rpy, np.radians([0.5, -1.0, 2.0]), atol=1e-15)
+    assert cfg.aiding.lever_arm_b == (-0.6, 0.1, -0.3)
     assert log.odometry is not None
     np.testing.assert_allclose(log.odometry["speed"], [0.0, 0.1])
     text = Path(manifest).read_text().replace('kind = "ground"', 'kind = "boat"')
     Path(manifest).write_text(text)
-    with pytest.raises(ManifestError, match=r"vehicle\.kind"):
-        read_log(manifest)
+    with pytest.raises(UserInputError, match=r"vehicle\.kind' = 'boat'"):
+        FuseConfig.from_log(read_log(manifest))
 
 
 def test_simulate_ugv_writes_the_vehicle(tmp_path: Path):
@@ -310,9 +309,10 @@ def test_simulate_ugv_writes_the_vehicle(tmp_path: Path):
     sim = simulate_log(tmp_path / "log", scenario="ugv", duration_s=30.0, image_rate_hz=1.0,
                        imu="mems-typical", seed=2, progress=False)  # fmt: skip
     log = read_log(sim.manifest)
-    assert log.config.vehicle == "ground"
-    np.testing.assert_allclose(log.config.mount_rpy, np.radians(UGV_MOUNT_RPY_DEG), atol=1e-12)
-    assert log.config.lever_arm_b == UGV_LEVER_ARM_B and log.config.odometer_std == 0.05
+    assert FuseConfig.from_log(log).aiding.vehicle == "ground"
+    aiding = FuseConfig.from_log(log).aiding
+    np.testing.assert_allclose(aiding.mount_rpy, np.radians(UGV_MOUNT_RPY_DEG), atol=1e-12)
+    assert aiding.lever_arm_b == UGV_LEVER_ARM_B and aiding.odometer_std == 0.05
     assert log.odometry is not None and sim.vehicle_trajectory is not None
     odo = log.odometry
     k = np.rint(odo["t"].to_numpy() * 200.0).astype(int)
@@ -398,7 +398,7 @@ def test_per_sample_filter_matches_the_fast_path(drive: Drive):
 
 @pytest.mark.slow
 def test_smoothed_attitude_is_consistent_over_drives_not_on_each():
-    """Issue 13: one drive's smoothed RMS(err/sigma) is a statistic of few degrees of freedom.
+    """One drive's smoothed RMS(err/sigma) is a statistic of few degrees of freedom.
 
     The smoothed tilt error of a MEMS drive with the odometer is mostly one offset for the
     whole drive: the tilt and the accelerometer bias along it, which the turns of the whole

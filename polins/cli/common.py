@@ -98,4 +98,19 @@ class Parser(argparse.ArgumentParser):
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """``--help`` with each option's default and the epilog's line breaks kept."""
+    """``--help`` with each option's default and the epilog's line breaks kept.
+
+    No "(default: ...)" for a required argument, a flag, an option whose default is None (its
+    help says what happens without it) or a help text that already names its default.
+    """
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if (
+            action.required
+            or action.default in (None, False)
+            or not action.option_strings
+            or "default" in text
+        ):
+            return action.help
+        return super()._get_help_string(action)

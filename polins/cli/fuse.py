@@ -57,25 +57,26 @@ def filter_changes(args: argparse.Namespace) -> dict[str, Any]:
         try:
             changes[key] = parse_option_value(key, text)
         except UserInputError as exc:
-            raise ArgumentError(f"--set {item}: {exc}") from None
-        except ValueError:  # int()/float() of the text
-            raise ArgumentError(f"--set {item}: {text!r} is not a valid value for {key}") from None
+            said = str(exc).startswith(f"{key}=")  # the message quotes the value itself
+            raise ArgumentError(f"--set {exc}" if said else f"--set {item}: {exc}") from None
     if args.smooth:
         changes["smooth"] = True
     if args.scale_factors:
         changes["scale_factors"] = True
     if args.nhc is not None:
-        check(args.nhc > 0, f"--nhc {args.nhc:g}: expected a sigma > 0 [m/s]")
-        changes["nhc_std"] = args.nhc
+        try:
+            changes["nhc_std"] = parse_option_value("nhc_std", args.nhc)
+        except UserInputError as exc:
+            raise ArgumentError(f"--nhc {args.nhc}: {exc}") from None
     return changes
 
 
 def cmd_fuse(args: argparse.Namespace) -> int:
+    from polins.evaluation import format_summary, summarize, write_report
     from polins.fusion.config import FuseConfig
     from polins.io import read_log
     from polins.io.checks import preflight_warnings, run_verdict
     from polins.io.outputs import output_set
-    from polins.io.report import format_summary, summarize, write_report
     from polins.loop import LoopOptions, run_log
     from polins.models import load_imu
 
@@ -94,7 +95,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
                        imu_model=imu, allow_outside_paths=args.allow_outside_paths)  # fmt: skip
     except ImportError as exc:  # a ROS bag without the optional extra
         raise ArgumentError(str(exc)) from None
-    config = FuseConfig.from_options(log.config, **changes)  # the CLI overrides [filter]
+    config = FuseConfig.from_log(log).replace(**changes)  # the CLI overrides [filter]
     config.check_backend(args.backend)
     for note in preflight_warnings(log):
         print(f"polins fuse: warning: {note}", file=sys.stderr)
@@ -103,7 +104,7 @@ def cmd_fuse(args: argparse.Namespace) -> int:
                          workers=args.workers, rot_nb0=rot_nb0, progress=not args.quiet)  # fmt: skip
         summary = summarize(result.solution, result.measurements, result.events,
                             truth=log.truth, timing=result.timing, settings=result.settings,
-                            settle_s=args.settle)  # fmt: skip
+                            settle_s=args.settle, gate_prob=config.gate_probability)  # fmt: skip
         verdict = run_verdict(summary, result.events, args.max_image_failures,
                               t_imu=log.imu["t"].to_numpy(dtype=float),
                               t_images=np.asarray(log.images.t, dtype=float),
@@ -138,12 +139,16 @@ def filter_options_text() -> str:
     """The filter options of ``--set KEY=VALUE`` and the manifest's ``[filter]`` table."""
     from polins.fusion.config import option_table
 
-    lines = ["filter options (--set KEY=VALUE, or the manifest's [filter] table; SI units and "
+    lines = ["filter options by part (--set KEY=VALUE, or KEY = VALUE in the manifest's [filter] "
+             "table; 'off' turns an option off, 'auto' is the automatic choice; SI units and "
              "radians unless the name says otherwise):"]  # fmt: skip
-    for name, default, backends, doc in option_table():
-        if name not in ("imu_model", "site"):
-            only = "" if backends == "eskf/graph" else f" [{backends} only]"
-            lines.append(f"  {name} = {default}{only}\n      {doc}")
+    part = ""
+    for part_name, name, default, backends, doc in option_table():
+        if part_name != part:
+            part = part_name
+            lines.append(f" {part}:")
+        only = "" if backends == "eskf/graph" else f" [{backends} only]"
+        lines.append(f"  {name} = {default}{only}\n      {doc}")
     return "\n".join(lines)
 
 
@@ -160,7 +165,7 @@ def add_fuse(sub: Any) -> None:
                    help="list the filter options of --set and exit")  # fmt: skip
     p.add_argument("--backend", choices=["eskf", "graph"], default="eskf", help="estimator")
     p.add_argument("--imu", default=None,
-                   help="IMU model name or .toml path (None: the manifest's log.imu)")  # fmt: skip
+                   help="IMU model name or .toml path (default: the manifest's log.imu)")  # fmt: skip
     p.add_argument("--set", action="append", metavar="KEY=VALUE", default=None,
                    help="filter option (see --list-options); overrides the manifest's [filter]; "
                    "repeatable")  # fmt: skip
@@ -169,21 +174,22 @@ def add_fuse(sub: Any) -> None:
                    "scale_factors=true)")  # fmt: skip
     p.add_argument("--smooth", action="store_true", help="RTS smoother (ESKF backend)")
     p.add_argument("--workers", type=int, default=None,
-                   help="image processes, >= 1 (None: all cores)")  # fmt: skip
+                   help="image processes, >= 1 (default: all cores)")  # fmt: skip
     p.add_argument(
-        "--method", choices=["compensated", "traditional", "paper"], default="compensated",
+        "--method", choices=["compensated", "traditional"], default="compensated",
         help="heading estimator",
     )  # fmt: skip
     p.add_argument("--update", choices=["yaw", "sun"], default="yaw", help="filter update kind")
     p.add_argument("--prior-lag", type=finite, default=1.0, help="age of the image prior [s]")
-    p.add_argument("--nhc", type=finite, default=None,
-                   help="non-holonomic constraint sigma [m/s] (None: off)")  # fmt: skip
+    p.add_argument("--nhc", default=None, metavar="SIGMA|off|auto",
+                   help="non-holonomic constraint 1-sigma [m/s] = --set nhc_std=...; off: none; "
+                   "default auto: on (0.05 m/s) for a ground vehicle ([vehicle] kind), else off")  # fmt: skip
     p.add_argument("--rot0", default=None,
-                   help="initial ROLL,PITCH,HEADING [deg] (None: self-alignment)")  # fmt: skip
+                   help="initial ROLL,PITCH,HEADING [deg] (default: self-alignment)")  # fmt: skip
     p.add_argument("--gyro-unit", choices=["rad/s", "deg/s"], default=None,
-                   help="unit of gx, gy, gz (None: the file's or the manifest's, else rad/s)")  # fmt: skip
+                   help="unit of gx, gy, gz (default: the file's or the manifest's, else rad/s)")  # fmt: skip
     p.add_argument("--accel-unit", choices=["m/s^2", "g"], default=None,
-                   help="unit of ax, ay, az (None: the file's or the manifest's, else m/s^2)")  # fmt: skip
+                   help="unit of ax, ay, az (default: the file's or the manifest's, else m/s^2)")  # fmt: skip
     p.add_argument("--max-image-failures", type=fraction, default=0.5, metavar="SHARE",
                    help="exit 1 if more images than this share (50%% or 0.5) are not measured")  # fmt: skip
     p.add_argument("--allow-outside-paths", action="store_true",

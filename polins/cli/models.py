@@ -1,4 +1,4 @@
-"""Command ``polins imu-model STATIC --out MODEL.toml``: an IMU model file from a static recording (Allan deviation).
+"""Command ``polins imu-model STATIC [STATIC ...] --out MODEL.toml``: an IMU model file from a static recording (Allan deviation).
 
 The other command that writes a model file, ``polins calibrate`` (camera files), is in
 :mod:`polins.cli.calibrate`.
@@ -23,9 +23,11 @@ def cmd_imu_model(args: argparse.Namespace) -> int:
     out = Path(args.out)
     check(out.suffix == ".toml", f"--out {out}: the IMU model file must end in .toml")
     check(not out.is_dir(), f"--out {out} is a folder; give a .toml file name")
-    imu = read_imu(args.static, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit)
+    segments = [
+        read_imu(path, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit) for path in args.static
+    ]
     model, fit = imu_model_from_static(
-        imu, name=args.name or out.stem, grade=args.grade, source=args.static
+        segments, name=args.name or out.stem, grade=args.grade, source=args.static[0]
     )
     write_text_atomic(out, imu_model_toml(model, comments=fit.comment_lines()))
     written = [str(out)]
@@ -42,7 +44,9 @@ def add_imu_model(sub: Any) -> None:
     p = sub.add_parser(
         "imu-model", help="IMU noise model (TOML) from a static recording (Allan deviation)"
     )
-    p.add_argument("static", help="CSV/Parquet of the IMU at rest: t, gx, gy, gz, ax, ay, az")
+    p.add_argument("static", nargs="+",
+                   help="CSV/Parquet files of the IMU at rest (t, gx, gy, gz, ax, ay, az), each "
+                   "a segment; a file with missing samples is split at its gaps")  # fmt: skip
     p.add_argument("--out", required=True, help="IMU model TOML to write")
     p.add_argument("--plot", default=None, help="Allan deviation plot (PNG) to write")
     p.add_argument("--grade", choices=["navigation", "tactical", "mems"], default="mems",

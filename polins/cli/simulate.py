@@ -74,14 +74,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     from polins.io.outputs import output_set
     from polins.models import load_imu
-    from polins.sim.scenario import simulate_log
+    from polins.sim.scenario import DEFAULT_IMAGE_RATE_HZ, simulate_log
     from polins.site import Site, utc_timestamp
 
     check(args.downscale in (1, 2, 4, 8), f"--downscale {args.downscale}: expected 1, 2, 4 or 8")
     check(
         args.duration is None or args.duration > 0, f"--duration {args.duration}: expected > 0 [s]"
     )
-    check(args.image_rate > 0, f"--image-rate {args.image_rate}: expected > 0 [Hz]")
+    check(
+        args.image_rate is None or args.image_rate > 0,
+        f"--image-rate {args.image_rate}: expected > 0 [Hz]",
+    )
     Site(args.lat, args.lon, args.alt)
     utc_timestamp(args.epoch, "--epoch")
     load_imu(args.imu)  # an unknown model is named before any work
@@ -100,7 +103,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     print(f"wrote {Path(args.out) / sim.manifest.name}  ({elapsed:.1f} s)")
     print(f"scenario          {sim.scenario}, {traj.t[-1]:g} s, seed {args.seed}")
     print(f"imu               {len(sim.imu)} samples at {traj.rate_hz:g} Hz, {sim.imu_model.name}")
-    print(f"images            {len(sim.image_t)} at {args.image_rate:g} Hz, {cam.name}")
+    rate = DEFAULT_IMAGE_RATE_HZ[args.scenario] if args.image_rate is None else args.image_rate
+    print(f"images            {len(sim.image_t)} at {rate:.3g} Hz, {cam.name}")
     print(f"image size        {cam.shape[1]} x {cam.shape[0]} px (downscale {args.downscale})")
     print(f"truth             {len(traj)} rows (attitude, velocity, position, IMU errors)")
     if sim.vehicle is not None and sim.odometry is not None:
@@ -140,11 +144,15 @@ def add_demo(sub: Any) -> None:
 def add_simulate(sub: Any) -> None:
     """Register ``polins simulate``."""
     p = sub.add_parser("simulate", help="simulate a scenario log (IMU, raw sky images, truth)")
-    p.add_argument("--scenario", choices=["turntable", "ugv"], required=True)
+    p.add_argument("--scenario", choices=["turntable", "ugv", "static"], required=True,
+                   help="turntable: the paper's level turntable, 7.2 deg/s; ugv: a ground "
+                   "vehicle's drive with odometer, IMU mounting and road vibration; static: "
+                   "the IMU at rest, a record for polins imu-model")  # fmt: skip
     p.add_argument("--out", required=True, help="output folder of the log")
     p.add_argument("--duration", type=finite, default=None,
-                   help="[s] (None: 100 turntable, 300 ugv)")  # fmt: skip
-    p.add_argument("--image-rate", type=finite, default=5.0, help="camera rate [Hz]")
+                   help="length [s] (default: 100 turntable, 300 ugv, 7200 static)")  # fmt: skip
+    p.add_argument("--image-rate", type=finite, default=None,
+                   help="camera rate [Hz] (default: 5; static: one image a minute)")  # fmt: skip
     p.add_argument("--imu", default="fins-paper",
                    help="IMU model: fins-paper (navigation-grade FOG), mems-typical or a .toml "
                    "path")  # fmt: skip

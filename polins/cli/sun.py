@@ -74,7 +74,6 @@ def cmd_heading(args: argparse.Namespace) -> int:
     check(all(site) or not any(site),
           "--time, --lat and --lon go together (or leave all three out: sun in the body "
           "frame only)")  # fmt: skip
-    check(args.method != "paper" or all(site), "--method paper needs --time, --lat and --lon")
     cam = load_camera(args.camera)
     if all(site):
         Site(args.lat, args.lon, args.alt)
@@ -173,7 +172,7 @@ def add_heading(sub: Any) -> None:
                    help="prior ENU yaw [deg, counter-clockwise from East]; used only near the "
                    "horizon")  # fmt: skip
     p.add_argument(
-        "--method", choices=["compensated", "traditional", "paper"], default="compensated",
+        "--method", choices=["compensated", "traditional"], default="compensated",
         help="heading estimator",
     )  # fmt: skip
     p.add_argument("--json", action="store_true", help="print JSON")

@@ -34,13 +34,14 @@ def cmd_tune(args: argparse.Namespace) -> int:
     imu = None if args.imu is None else load_imu(args.imu)
     log = read_log(args.manifest, gyro_unit=args.gyro_unit, accel_unit=args.accel_unit,
                    imu_model=imu)  # fmt: skip
-    config = FuseConfig.from_options(log.config, **changes)
+    config = FuseConfig.from_log(log).replace(**changes)
     config.check_backend("eskf")
     # every image measured with the filter's prior (the loop), then the likelihood
     options = LoopOptions(method=args.method)
     first = run_log(log, options=options, config=config, workers=args.workers,
                     progress=not args.quiet)  # fmt: skip
-    result = tune(log.imu, first.measurements, options.filter_config(config), params)
+    result = tune(log.imu, first.measurements, options.filter_config(config), params,
+                  odometry=log.odometry)  # fmt: skip
     model = dataclasses.replace(result.config.imu, name=out.stem,
                                 description=f"{log.imu_model.name} tuned on {args.manifest}")  # fmt: skip
     write_text_atomic(out, imu_model_toml(model, comments=result.comment_lines()))
@@ -70,7 +71,7 @@ def add_tune(sub: Any) -> None:
     p.add_argument("--smooth", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--nhc", type=finite, default=None,
                    help="non-holonomic constraint sigma [m/s] (None: off)")  # fmt: skip
-    p.add_argument("--method", choices=["compensated", "traditional", "paper"],
+    p.add_argument("--method", choices=["compensated", "traditional"],
                    default="compensated", help="heading estimator")  # fmt: skip
     p.add_argument("--workers", type=int, default=None, help="image processes (None: all cores)")
     p.add_argument("--gyro-unit", choices=["rad/s", "deg/s"], default=None,

@@ -7,15 +7,21 @@ Modules in the order of the data flow::
     polarimetry  calibrated Stokes vectors and the pixel quality masks
     sunlight     the direct-sunlight term and its exact compensation
     lens         per-pixel lens constants of the estimators
+    image        stage 1: one image's Stokes rows, noise and masks
+    clouds       thin-cloud sky cells: DoP deficit, rotated AoP, fitted-sky DoP
+    skypixels    stage 2: region of interest, starting sun, cloud cells, selection rules
     eigen        the eigen sun vector and its covariance
     prediction   the AoP a trial sun predicts; selection: which pixels enter the estimate
     skymodel     the joint ML's sky: the Berry neutral points, the camera-fixed polarization
     jointml      joint maximum likelihood of the sun and epsilon; losses: its robust losses
-    solve        one image's joint ML: subsample, rotated-cloud cells, full-set step
+    solve        one image's joint ML: subsample, cloud cells, full-set step
+    sectors      the jackknife over sky sectors
+    solution     stage 3: the compensated or the traditional solution
+    instrumental the camera-fixed polarization's part of the sigma
     heading      level frame, yaw, its variance, the 180 deg choice
     branch       the 180 deg branch without an ephemeris: elevation, brightness, prior
-    measurement  Measurement and MeasureOptions; chain: one image through all of it
-    measure      ``polins.measure``; paper: the paper's Algorithm 1 (reproduction only)
+    measurement  Measurement and MeasureOptions; chain: the stages composed for one image
+    measure      ``polins.measure``
     crlb         the Cramer-Rao bound of the yaw
-    kernels      BLAS-free row products used throughout
+    kernels      BLAS-free row products and compiled passes used throughout
 """

@@ -13,18 +13,23 @@ few degrees of the horizon does the prior yaw choose between yaw and yaw + 180 d
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from polins.errors import UserInputError
 from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 
 __all__ = [
+    "Geometry",
     "check_sun_and_attitude",
     "filter_sigmas",
+    "image_geometry",
     "level_frames",
     "resolve_sun_sign",
     "sun_level_from_angles",
@@ -115,7 +120,7 @@ def filter_sigmas(
     Parameters
     ----------
     yaw_std_noise : float
-        Pixel-noise part (inflated by ``kappa``) [rad].
+        Pixel-noise part [rad].
     yaw_std_model : float
         Model-error part (jackknife over sky sectors, calibrated) [rad].
     zenith : float
@@ -136,3 +141,68 @@ def filter_sigmas(
     azimuth_std = float(np.hypot(yaw_std_noise, yaw_std_model))
     yaw_std = np.hypot(azimuth_std, cot_z * tilt_std)
     return float(yaw_std), float(sin_z * azimuth_std)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The frames of one image (docs/conventions.md).
+
+    Attributes
+    ----------
+    sun_n : (3,) or None
+        Unit ENU sun (None without an ephemeris).
+    yaw_prior : float
+        Yaw of the prior attitude [rad].
+    mat_lb, mat_cl, mat_cn : (3, 3)
+        Body -> level, level -> camera, ENU -> camera.
+    zenith : float
+        Sun zenith [rad] of ``sun_n`` (NaN without it).
+    sun_azimuth_b_prior : float or None
+        Without ``sun_n``: a prior body-frame sun azimuth [rad] for the 180 deg branch.
+    """
+
+    sun_n: NDArray | None
+    yaw_prior: float
+    mat_lb: NDArray
+    mat_cl: NDArray
+    mat_cn: NDArray
+    zenith: float
+    sun_azimuth_b_prior: float | None = None
+
+    @property
+    def mat_lc(self) -> NDArray:
+        """Camera -> level."""
+        return self.mat_cl.T
+
+
+def image_geometry(
+    cam: CameraModel,
+    sun_n: ArrayLike | None,
+    rot_nb_prior: Rotation | None,
+    sun_azimuth_b_prior: float | None = None,
+) -> Geometry:
+    """The checked sun and the frames of the prior attitude (identity, a level body, when
+    there is none and no ``sun_n``); the level frame has x the horizontal projection of
+    body x.
+
+    Raises
+    ------
+    UserInputError
+        A bad ``sun_n``, ``rot_nb_prior`` or ``sun_azimuth_b_prior``, or ``sun_n`` without
+        ``rot_nb_prior``.
+    """
+    if sun_azimuth_b_prior is not None and not np.isfinite(sun_azimuth_b_prior):
+        raise UserInputError(f"sun_azimuth_b_prior={sun_azimuth_b_prior} must be finite [rad]")
+    s_n = None
+    if sun_n is None:
+        rot = Rotation.identity() if rot_nb_prior is None else rot_nb_prior
+        if not isinstance(rot, Rotation) or not rot.single:
+            raise UserInputError("rot_nb_prior must be a single scipy Rotation (body -> ENU)")
+    elif rot_nb_prior is None:
+        raise UserInputError("sun_n needs rot_nb_prior: its roll and pitch level the sun")
+    else:
+        rot = rot_nb_prior
+        s_n = check_sun_and_attitude(sun_n, rot_nb_prior)
+    yaw_prior, mat_lb, mat_cl, mat_cn = level_frames(rot, cam)
+    zenith = float("nan") if s_n is None else float(np.arccos(np.clip(s_n[2], -1.0, 1.0)))
+    return Geometry(s_n, yaw_prior, mat_lb, mat_cl, mat_cn, zenith, sun_azimuth_b_prior)

@@ -147,14 +147,38 @@ def ml_evaluate(
         r *= weight
     if not jacobian:
         return r, None, u, mask
-    # Jacobian (docs/measurement.md §3). d r / d theta_sun = -d(2 zeta) r_hat . (L - eps u w)
-    # - eps u n . dw/dtheta, with n . dw/dtheta = 2 alpha_s' (r_hat . w) (alpha_s the sun's
-    # image-plane azimuth); only the O(eps^2) term through u is left out. dr/deps = -u (n . w).
+    rows = (c2, s2, inv_e, u, u_nw, n_dot_w)
+    jac = _jacobian(data, cols, xy, w, rows, eps, delta, k_par, delta_col is not None)
+    return r, jac, u, mask
+
+
+def _jacobian(
+    data: PixelData,
+    cols: NDArray,
+    xy: NDArray,
+    w: NDArray,
+    rows: tuple[NDArray, NDArray, NDArray, NDArray, NDArray, NDArray],
+    eps: float,
+    delta: float,
+    k_par: int,
+    fit_delta: bool,
+) -> NDArray:
+    """The residuals' Jacobian ``(k_par + 1, n)`` (docs/measurement.md §3) from the parameter
+    columns ``cols``, the image-plane E-vector rows ``xy`` and the residual's per-pixel rows
+    ``(cos 2zeta_R, sin 2zeta_R, 1/e2, u, u (n . w), n . w)`` (the last is only read with a
+    ``delta``). d r / d theta_sun = -d(2 zeta) r_hat . (L - eps u w) - eps u n . dw/dtheta,
+    with n . dw/dtheta = 2 alpha_s' (r_hat . w) (alpha_s the sun's image-plane azimuth); only
+    the O(eps^2) term through u is left out. dr/deps = -u (n . w)."""
+    c2, s2, inv_e, u, u_nw, n_dot_w = rows
+    n = data.s0.size
+    dt = data.s0.dtype
+    x, y = xy[0, :n], xy[0, n:]
+    sun_c = cols[:, 0]
     proj = c2 * data.s1
     proj += s2 * data.s2
     t_w = c2 * dt.type(w[0])  # eps u (r_hat . w) [- delta S0 (n . w)]
     t_w += s2 * dt.type(w[1])
-    r_w = t_w.copy() if delta_col is not None else None
+    r_w = t_w.copy() if fit_delta else None
     t_w *= u
     t_w *= dt.type(eps)
     if delta != 0.0:
@@ -176,9 +200,9 @@ def ml_evaluate(
         np.multiply(r_w, data.s0, out=jac[-2])
         jac[-2] *= -1.0
     np.negative(u_nw, out=jac[-1])
-    if weight is not None:
-        jac *= weight
-    return r, jac, u, mask
+    if isinstance(data.inv_sigma, np.ndarray):
+        jac *= data.inv_sigma
+    return jac
 
 
 def _predicted(
@@ -336,13 +360,7 @@ def gauss_newton(
     jtj = np.eye(theta.size)
     jtr = np.zeros(theta.size)
     scale, rss, n = 1.0, 0.0, data.n
-    r_scale = 1.0 if isinstance(data.inv_sigma, np.ndarray) else float(data.inv_sigma)
-    if loss == "linear" and r_scale != 1.0:
-        # Scale the normal equations instead of every residual.
-        data = dataclasses.replace(data, inv_sigma=1.0)
-        post_scale, r_scale = r_scale, 1.0
-    else:
-        post_scale = 1.0
+    data, r_scale, post_scale = _common_scale(data, loss)
     mask = data.mask
     theta_prev, step, loss_prev, halvings = theta, np.zeros_like(theta), np.inf, 0
     # The linear loss in one compiled pass (sums per jackknife group; no rows are stored).
@@ -355,12 +373,7 @@ def gauss_newton(
             jtj, jtr, rss = sums_normal_equations(group_sums, theta.size)
             objective = rss
         else:
-            r, jac_opt, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, sky)
-            assert jac_opt is not None
-            jac = jac_opt
-            if r_scale != 1.0:
-                r = r * r.dtype.type(r_scale)  # a common 1/sigma_L, for the robust weights
-                jac = jac * jac.dtype.type(r_scale)
+            r, jac, mask = _scaled_rows(data, theta, zenith, mat_cl, select, sky, r_scale)
             objective = loss_objective(r, loss, scale) if np.isfinite(loss_prev) else np.inf
         if select is not None:
             data = dataclasses.replace(data, mask=mask)
@@ -371,22 +384,17 @@ def gauss_newton(
             and halvings < _HALVINGS_MAX
             and objective * post_scale**2 > loss_prev * (1.0 + 1e-6)
         ):
-            step *= 0.5  # line search: back towards the previous point
-            theta = theta_prev + step
-            theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
+            theta, step = _halved(theta_prev, step, epsilon_bound)
             halvings += 1
             continue
         if fused:
             accepted = (group_sums, None, None, theta)  # the linearization of jtj, jtr
             loss_prev = rss * post_scale**2
         else:
-            weights, scale = loss_weights(r, loss, n)
-            jtj, jtr, rss = normal_equations(r, jac, weights)
+            jtj, jtr, rss, weights, scale = _irls_normal_equations(r, jac, loss, n)
             accepted = (r, jac, weights, theta)
             loss_prev = loss_objective(r, loss, scale) * post_scale**2
-        jtj *= post_scale**2
-        jtr *= post_scale**2
-        rss *= post_scale**2
+        jtj, jtr, rss = jtj * post_scale**2, jtr * post_scale**2, rss * post_scale**2
         try:
             step = _bounded_step(-np.linalg.solve(jtj, jtr), k_sun)
             jtj_inv = np.linalg.inv(jtj)
@@ -397,17 +405,102 @@ def gauss_newton(
         if not -epsilon_bound <= theta[-1] <= epsilon_bound:
             theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
             step = theta - theta_prev
-        # Converged when the sun step is below tol [rad], or negligible (tol_sigma sigma)
-        # against the statistical uncertainty (e.g. the float32 floor of noise-free data).
-        # The nuisance parameters (neutral_sep^2, delta_perp) to one sigma.
-        sigma = np.sqrt(rss / max(n - theta.size, 1) * np.abs(np.diag(jtj_inv)[:-1]))
-        sigma[:k_sun] *= tol_sigma
-        if np.all(np.abs(step[:-1]) <= np.maximum(tol, sigma)):
+        if _step_converged(step, rss, n, jtj_inv, k_sun, tol, tol_sigma):
             converged = True
             break
     dof = theta.size
+    cov, rms = _covariance(loss, r, scale, n, dof, rss, jtj, jtr)
+    sun_l, _ = _sun_derivatives(theta, zenith)
+    theta[0] = float(wrap_angle(theta[0]))
+    jackknife = share = sector_h_out = None
+    if sectors is not None and accepted is not None:
+        jackknife, share, sector_h_out = _sector_jackknife(
+            accepted, sectors, sector_h, zenith, mat_cl, jtj, jtr, post_scale
+        )
+    solution = MLSolution(theta, np.asarray(cov, dtype=np.float64), sun_l, rms, it, converged, n,
+                          jackknife, share, sector_h_out, k_sun)  # fmt: skip
+    return solution, mask
+
+
+def _halved(theta_prev: NDArray, step: NDArray, epsilon_bound: float) -> tuple[NDArray, NDArray]:
+    """The line search's half step back towards the previous point: ``theta`` (epsilon
+    kept in its bound) and the halved step."""
+    step *= 0.5
+    theta = theta_prev + step
+    theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
+    return theta, step
+
+
+def _scaled_rows(
+    data: PixelData,
+    theta: NDArray,
+    zenith: float | None,
+    mat_cl: NDArray,
+    select: Selection | None,
+    sky: SkyModel | None,
+    r_scale: float,
+) -> tuple[NDArray, NDArray, NDArray | None]:
+    """:func:`ml_evaluate`'s residuals and Jacobian times a common ``1/sigma_L``
+    ``r_scale`` (for the robust weights), and the mask in force."""
+    r, jac_opt, _, mask = ml_evaluate(data, theta, zenith, mat_cl, True, select, sky)
+    assert jac_opt is not None
+    jac = jac_opt
+    if r_scale != 1.0:
+        r = r * r.dtype.type(r_scale)
+        jac = jac * jac.dtype.type(r_scale)
+    return r, jac, mask
+
+
+def _irls_normal_equations(
+    r: NDArray, jac: NDArray, loss: str, n: int
+) -> tuple[NDArray, NDArray, float, NDArray | None, float]:
+    """``J^T W J``, ``J^T W r``, ``r^T W r`` with the loss's IRLS weights, the weights and
+    the loss's scale."""
+    weights, scale = loss_weights(r, loss, n)
+    jtj, jtr, rss = normal_equations(r, jac, weights)
+    return jtj, jtr, rss, weights, scale
+
+
+def _common_scale(data: PixelData, loss: str) -> tuple[PixelData, float, float]:
+    """``data``, the residuals' common ``1/sigma_L`` and the normal equations' scale: with the
+    linear loss a common ``1/sigma_L`` scales the normal equations instead of every residual."""
+    r_scale = 1.0 if isinstance(data.inv_sigma, np.ndarray) else float(data.inv_sigma)
+    if loss == "linear" and r_scale != 1.0:
+        return dataclasses.replace(data, inv_sigma=1.0), 1.0, r_scale
+    return data, r_scale, 1.0
+
+
+def _step_converged(
+    step: NDArray,
+    rss: float,
+    n: int,
+    jtj_inv: NDArray,
+    k_sun: int,
+    tol: float,
+    tol_sigma: float,
+) -> bool:
+    """Converged when the sun step is below ``tol`` [rad], or negligible (``tol_sigma``
+    sigma) against the statistical uncertainty (e.g. the float32 floor of noise-free data);
+    the nuisance parameters (neutral_sep^2, delta_perp) to one sigma."""
+    sigma = np.sqrt(rss / max(n - step.size, 1) * np.abs(np.diag(jtj_inv)[:-1]))
+    sigma[:k_sun] *= tol_sigma
+    return bool(np.all(np.abs(step[:-1]) <= np.maximum(tol, sigma)))
+
+
+def _covariance(
+    loss: str,
+    r: NDArray,
+    scale: float,
+    n: int,
+    dof: int,
+    rss: float,
+    jtj: NDArray,
+    jtr: NDArray,
+) -> tuple[NDArray, float]:
+    """The covariance ``(dof, dof)`` of the estimate and the RMS normalised residual: for the
+    linear loss from the residual sum of squares after the last step (to second order), else
+    Huber's sandwich factor (NaN covariance when ``J^T J`` is singular)."""
     if loss == "linear":
-        # Residual sum of squares after the last step, to second order.
         try:
             rss_after = max(rss - float(jtr @ np.linalg.solve(jtj, jtr)), 0.0)
         except np.linalg.LinAlgError:
@@ -421,42 +514,42 @@ def gauss_newton(
         cov = var * np.linalg.inv(jtj)
     except np.linalg.LinAlgError:
         cov = np.full((dof, dof), np.nan)
-    sun_l, _ = _sun_derivatives(theta, zenith)
-    theta[0] = float(wrap_angle(theta[0]))
-    jackknife = share = None
-    sector_parts = None
-    if sectors is not None and accepted is not None:
-        r_a, jac_a, weights_a, theta_a = accepted  # r_a: the pass's group sums when fused
-        sun_c = mat_cl @ _sun_derivatives(theta_a, zenith)[0]
-        if jac_a is None:
-            sector_parts = sums_sector_normal_equations(r_a, dof, sector_h)
-        else:
-            sector_parts = sector_normal_equations(r_a, jac_a, weights_a, sectors, sun_c, sector_h)
-    if sector_parts is not None:
-        group_h, sector_b = sector_parts
-        share = group_h[:, 0, 0] / max(float(np.sum(group_h[:, 0, 0])), 1e-300)
-        if sector_h is not None:  # another pixel set's: scale to this J^T J
-            group_h = group_h * (np.trace(jtj) / max(float(np.trace(group_h.sum(0))), 1e-300))
-        else:
-            group_h = group_h * post_scale**2
-        try:
-            jackknife = ml_jackknife(jtj, jtr, group_h, sector_b * post_scale**2)
-        except np.linalg.LinAlgError:
-            jackknife = None
-    solution = MLSolution(
-        theta,
-        np.asarray(cov, dtype=np.float64),
-        sun_l,
-        rms,
-        it,
-        converged,
-        n,
-        jackknife,
-        share,
-        None if sector_parts is None else sector_parts[0],
-        k_sun,
-    )
-    return solution, mask
+    return cov, rms
+
+
+def _sector_jackknife(
+    accepted: tuple[NDArray, NDArray | None, NDArray | None, NDArray],
+    sectors: SectorRuns,
+    sector_h: FloatArray | None,
+    zenith: float | None,
+    mat_cl: NDArray,
+    jtj: NDArray,
+    jtr: NDArray,
+    post_scale: float,
+) -> tuple[FloatArray | None, FloatArray | None, FloatArray | None]:
+    """The leave-one-group-out deviations of the last accepted linearization ``accepted``
+    (residuals or the compiled pass's group sums, Jacobian, weights, theta), the groups'
+    shares of the azimuth information and their normal matrices (docs/measurement.md §12)."""
+    r_a, jac_a, weights_a, theta_a = accepted  # r_a: the pass's group sums when fused
+    dof = theta_a.size
+    sun_c = mat_cl @ _sun_derivatives(theta_a, zenith)[0]
+    if jac_a is None:
+        sector_parts = sums_sector_normal_equations(r_a, dof, sector_h)
+    else:
+        sector_parts = sector_normal_equations(r_a, jac_a, weights_a, sectors, sun_c, sector_h)
+    if sector_parts is None:
+        return None, None, None
+    group_h, sector_b = sector_parts
+    share = group_h[:, 0, 0] / max(float(np.sum(group_h[:, 0, 0])), 1e-300)
+    if sector_h is not None:  # another pixel set's: scale to this J^T J
+        group_h = group_h * (np.trace(jtj) / max(float(np.trace(group_h.sum(0))), 1e-300))
+    else:
+        group_h = group_h * post_scale**2
+    try:
+        jackknife = ml_jackknife(jtj, jtr, group_h, sector_b * post_scale**2)
+    except np.linalg.LinAlgError:
+        jackknife = None
+    return jackknife, share, sector_parts[0]
 
 
 def sun_covariance(solution: MLSolution) -> FloatArray:

@@ -1,6 +1,6 @@
 """The polarization compass's entry point: ``polins.measure``, raw DoFP image -> heading.
 
-Three methods return the same :class:`~polins.compass.measurement.Measurement`:
+Two methods return the same :class:`~polins.compass.measurement.Measurement`:
 
 ``"compensated"`` (default)
     Joint maximum likelihood of the sun azimuth (and zenith, unless fixed from the
@@ -13,9 +13,8 @@ Three methods return the same :class:`~polins.compass.measurement.Measurement`:
     Gain-corrected least-squares Stokes, E-vectors built in the camera frame and rotated
     with the prior roll/pitch, weighted eigen sun vector (docs/model.md §9.1), eigen-gap
     sandwich covariance (docs/model.md §10.2).
-``"paper"``
-    The paper's Algorithm 1 followed by the same eigen solution: a reproduction mode, not
-    for operational use (:mod:`polins.compass.paper`, which also takes its switches).
+
+The paper's Algorithm 1 is not a method: it is reproduced in :mod:`polins.sim.algorithm1`.
 
 The chain itself is :mod:`polins.compass.chain`; the options are
 :class:`~polins.compass.measurement.MeasureOptions`.
@@ -37,10 +36,9 @@ from polins.compass.measurement import (
     MeasurementMaps,
     MeasureOptions,
     NoiseModelWarning,
+    check_method,
     measure_options,
 )
-from polins.compass.paper import SWITCHES, check_switches, measure_paper
-from polins.errors import UserInputError
 from polins.models import CameraModel
 
 __all__ = [
@@ -82,16 +80,14 @@ def measure(
     rot_nb_prior : Rotation, optional
         Prior body -> ENU attitude, required with ``sun_n``. Its roll and pitch rotate the
         E-vectors into the level frame; its yaw is used only near the horizon (180 deg
-        choice), by ``yaw_gate`` and by ``method="paper"`` (which needs it for the sunlight
-        angle). Without ``sun_n`` only its tilt is used; None means a level body.
-    method : {"compensated", "traditional", "paper"}
-        ``"paper"`` needs ``sun_n``.
+        choice) and by ``yaw_gate``. Without ``sun_n`` only its tilt is used; None means a
+        level body.
+    method : {"compensated", "traditional"}
     sun_azimuth_b_prior : float, optional
         Without ``sun_n``: a prior body-frame sun azimuth [rad] (e.g. the previous image's)
         that chooses the 180 deg branch when the elevation and the sky brightness cannot.
     **options
-        Fields of :class:`~polins.compass.measurement.MeasureOptions`; with
-        ``method="paper"`` also the switches of :func:`polins.compass.paper.measure_paper`.
+        Fields of :class:`~polins.compass.measurement.MeasureOptions`.
 
     Returns
     -------
@@ -136,8 +132,7 @@ def measure_with_maps(
 def check_measure_options(method: str, options: dict[str, Any]) -> MeasureOptions:
     """Check a method and its keyword options once, before any image (docs/faults.md).
 
-    Returns the :class:`~polins.compass.measurement.MeasureOptions` they give (for
-    ``method="paper"`` without its switches, which are checked too).
+    Returns the :class:`~polins.compass.measurement.MeasureOptions` they give.
 
     Raises
     ------
@@ -146,12 +141,8 @@ def check_measure_options(method: str, options: dict[str, Any]) -> MeasureOption
     TypeError
         Unknown option.
     """
-    if method not in METHODS:
-        raise UserInputError(f"method={method!r}: expected one of {METHODS}")
-    common = dict(options)
-    if method == "paper":
-        check_switches(**{k: common.pop(k) for k in SWITCHES if k in common})
-    return measure_options(**common)
+    check_method(method)
+    return measure_options(**options)
 
 
 def _dispatch(
@@ -165,29 +156,18 @@ def _dispatch(
     *,
     maps: bool,
 ) -> tuple[Measurement, MeasurementMaps | None]:
-    if method not in METHODS:
-        raise UserInputError(f"method={method!r}: expected one of {METHODS}")
-    if method == "paper":
-        if sun_n is None or rot_nb_prior is None:
-            raise UserInputError("method='paper' needs sun_n and rot_nb_prior")
-        result = measure_paper(
-            raw, cam, sun_n=sun_n, rot_nb_prior=rot_nb_prior, maps=maps, **options
-        )
-    else:
-        for name in ("instrumental_dop_std", "instrumental_mixing_std"):
-            if getattr(cam, name) is not None and name not in options:
-                options = {**options, name: getattr(cam, name)}
-        opt: MeasureOptions = measure_options(**options)
-        result = measure_image(
-            raw,
-            cam,
-            sun_n,
-            rot_nb_prior,
-            opt,
-            method=method,
-            maps=maps,
-            sun_azimuth_b_prior=sun_azimuth_b_prior,
-        )
+    check_method(method)
+    opt: MeasureOptions = measure_options(**options)
+    result = measure_image(
+        raw,
+        cam,
+        sun_n,
+        rot_nb_prior,
+        opt,
+        method=method,
+        maps=maps,
+        sun_azimuth_b_prior=sun_azimuth_b_prior,
+    )
     m = result[0]
     low, high = NOISE_RATIO_BAND
     # Noise-free input (a simulation: ratio zero to rounding) is not warned about.

@@ -38,7 +38,7 @@ class Selection:
     dop_min : float
         Minimum DoP along the predicted direction.
     p_min : (n,) or float
-        Minimum polarized intensity along it [DN] (``snr_min sigma_L``).
+        Minimum polarized intensity along it [DN] (``SNR_MIN sigma_L``).
     """
 
     valid: NDArray

@@ -1,10 +1,14 @@
-"""The one configuration of the fusion: every filter and graph option, its unit and default, defined once.
+"""The one configuration of the fusion: the IMU model, the site and the option parts, with the behaviour they resolve to.
 
 :class:`FuseConfig` is used by ``polins.fuse``, ``build_filter``, the GTSAM graph, the
-streaming loop, the manifest's ``[filter]`` table and the CLI's ``--set KEY=VALUE``. Each
-option is one dataclass field whose metadata holds its description (with the unit) and the
-backends it applies to; :func:`option_table` renders them for docs and ``--help``. Options
-are SI and radians unless the name carries another unit.
+streaming loop, the manifest's ``[filter]`` table and the CLI's ``--set KEY=VALUE``. Its
+options live in parts (:mod:`polins.fusion.parts`: vehicle and aiding, initial state,
+noise, gating, sky states, graph solver, output) and are set by their flat names:
+``FuseConfig(nhc_std=0.05)``, ``FuseConfig.from_options(...)``, ``--set nhc_std=0.05`` and
+``nhc_std = 0.05`` in a manifest's ``[filter]`` table, all parsed by
+:func:`polins.fusion.parts.coerce_option`. An option that can be off takes ``"off"``; an
+automatic choice is ``"auto"``. Options are SI and radians unless the name carries another
+unit. The implementation constants below are not options.
 """
 
 from __future__ import annotations
@@ -13,266 +17,226 @@ import dataclasses
 import difflib
 import math
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
+
+import numpy as np
+import pandas as pd
 
 from polins.errors import UnknownOptionError, UserInputError
+from polins.fusion.parts import (
+    AUTO,
+    BACKENDS,
+    NHC_STD_GROUND,
+    ODOMETER_STD,
+    OFF,
+    OPTION_FIELDS,
+    PARTS,
+    STANDSTILL_STD,
+    VEHICLE_KINDS,
+    Aiding,
+    Gating,
+    GraphSolver,
+    Initial,
+    Noise,
+    Output,
+    SkyStates,
+    coerce_option,
+    option_names,
+    option_table,
+    split_options,
+    unknown_option,
+)
 from polins.models import ImuModel, load_imu
 from polins.site import PAPER_SITE, Site
 
-BACKENDS = ("eskf", "graph")
-SOLVERS = ("batch", "isam2", "fixed_lag")
-OPTIMIZERS = ("gauss-newton", "levenberg-marquardt")
-GRAPH_OUTPUTS = ("samples", "keyframes")
-VEHICLE_KINDS = ("free", "ground", "static")
-NHC_STD_GROUND = 0.05  # [m/s] non-holonomic 1-sigma of a ground vehicle (docs/filter.md)
-STANDSTILL_STD = 0.02  # [m/s] zero-velocity 1-sigma at detected standstill
-ODOMETER_STD = 0.05  # [m/s] wheel-odometer speed 1-sigma when none is given
+# Implementation constants (docs/filter.md, "Options"): not options.
+TIME_TOL_S = 1e-6  # [s] measurement times this close to an IMU sample use it
+COV_STEP_S = 0.1  # [s] longest covariance-propagation step of the ESKF (ESKF(cov_step_s=))
+RESET_INTERVAL_S = 20.0  # [s] inject and zero the ESKF error state this long after a reset
+RESET_ANGLE_RAD = 0.005  # [rad] ... or as soon as the attitude error estimate exceeds this
+NHC_RATE_HZ = 10.0  # [Hz] rate of the non-holonomic constraint and the standstill updates
+STANDSTILL_WINDOW_S = 0.5  # [s] window of the standstill detector
+ODOMETER_SCALE_STD = 0.02  # [-] initial 1-sigma of the odometer scale factor
+SUN_AZIMUTH_RATE_STD = math.radians(24.0) / 3600.0  # [rad/s] no clock: the sun's azimuth rate
+MAX_KEYFRAME_DT_S = 1.0  # [s] longest interval between graph keyframes
+MAX_ITERATIONS = 20  # Gauss-Newton iterations of the graph's batch solver
+INTEGRATION_STD = 1e-2  # [m/sqrt(s)] GTSAM position-integration noise density
+MAX_GATE_ROUNDS = 10  # graph batch solver: most re-solves after gating post-fit outliers
+_SITE_KEYS = ("lat_deg", "lon_deg", "alt_m")
 
 
-def _opt(default: Any, doc: str, backends: tuple[str, ...] = BACKENDS, **kw: Any) -> Any:
-    """A config field: its default, its one-line description [unit], the backends using it."""
-    if isinstance(default, list | dict | set):
-        raise UserInputError("mutable defaults are not allowed")
-    return field(default=default, metadata={"doc": doc, "backends": backends}, **kw)
-
-
-ESKF = ("eskf",)
-GRAPH = ("graph",)
-
-
-@dataclass(frozen=True)
+# ----------------------------------------------------------------------------- FuseConfig
+@dataclass(frozen=True, init=False)
 class FuseConfig:
-    """Configuration of the fusion (both backends). Build with :meth:`from_options`.
+    """Configuration of the fusion (both backends): the IMU model, the site and the parts.
 
-    Every field is documented in its metadata; ``option_table()`` lists them. Fields that
-    apply to one backend only are refused by the other when set to a non-default value.
+    Set options by their flat names, ``FuseConfig(vehicle="ground", nhc_std="off")``, or a
+    part whole, ``FuseConfig(aiding=Aiding(...))``; ``lat_deg``, ``lon_deg`` and ``alt_m``
+    are a shorthand for ``site``. Read them from their part: ``config.aiding.nhc_std``; the
+    resolved behaviour from the properties (``nhc_sigma``, ``mechanize_earth_rate``, ...).
+    ``option_table()`` lists every option; options of one backend are refused by the other
+    when set away from their defaults.
     """
 
-    imu_model: ImuModel | str = _opt(
-        "mems-typical", "IMU error model: shipped name, TOML path or ImuModel"
-    )
-    site: Site | None = _opt(
-        None,
-        "start position (polins.Site: lat_deg, lon_deg, alt_m); None: no site known, "
-        "reported as a warning",
-    )
-    vel_n0: tuple[float, float, float] = _opt((0.0, 0.0, 0.0), "initial ENU velocity [m/s]")
-    site_assumed: bool = _opt(
-        False,
-        "the site is a stand-in because none was given (set by the one warning): the Earth "
-        "rate is then not mechanized and the process noise covers it (docs/filter.md)",
-    )
-    earth_rate: bool | None = _opt(
-        None,
-        "mechanize the Earth and transport rates (None: whenever the site is known; "
-        "false: the world does not rotate, e.g. a simulation without Earth rotation)",
-    )
-    gate_prob: float | None = _opt(
-        0.9973, "chi-square gate probability of the innovations (None: no gate)"
-    )
-    align_s: float = _opt(1.0, "static levelling window of the self-alignment [s]")
-    att_std0: tuple[float, float, float] = _opt(
-        (math.radians(1.0),) * 3, "initial attitude 1-sigma when rot_nb0 is given [rad]"
-    )
-    vel_std0: float = _opt(0.1, "initial velocity 1-sigma [m/s]")
-    pos_std0: float = _opt(1.0, "initial position 1-sigma [m]")
-    use_sun: bool = _opt(True, "use a row's sun vector (2-DOF) instead of its yaw")
-    tilt_coupling: bool | None = _opt(
-        None,
-        "tilt-coupled yaw model (docs/measurement.md); None: on when the table has the "
-        "prior_roll/pitch/yaw columns",
-    )
-    vehicle: str = _opt(
-        "free",
-        f"vehicle kind, one of {VEHICLE_KINDS}: 'ground' turns on the non-holonomic "
-        "constraint and zero-velocity updates at detected standstill, 'static' zero-velocity "
-        "updates throughout (docs/filter.md, 'Ground-vehicle aiding')",
-    )
-    nhc_std: float | None = _opt(
-        None,
-        f"non-holonomic constraint 1-sigma [m/s]; None: from the vehicle kind "
-        f"({NHC_STD_GROUND} for 'ground', else off); inf: off",
-    )
-    nhc_rate_hz: float = _opt(
-        10.0, "rate of the non-holonomic constraint and the standstill updates [Hz]"
-    )
-    standstill_std: float | None = _opt(
-        None,
-        f"zero-velocity 1-sigma at detected standstill [m/s]; None: from the vehicle kind "
-        f"({STANDSTILL_STD} for 'ground' and 'static', else off); inf: off",
-    )
-    standstill_window_s: float = _opt(0.5, "window of the standstill detector [s]")
-    mount_rpy: tuple[float, float, float] = _opt(
-        (0.0, 0.0, 0.0), "roll, pitch, yaw of the IMU body in the vehicle frame [rad] (mat_vb)"
-    )
-    lever_arm_b: tuple[float, float, float] = _opt(
-        (0.0, 0.0, 0.0),
-        "from the IMU to the vehicle's non-holonomic reference point (e.g. the rear axle's "
-        "centre), body axes [m]",
-    )
-    mount_std: float | None = _opt(
-        None,
-        "1-sigma of the errors of mount_rpy's pitch and yaw [rad]: two states (random "
-        "constants) the non-holonomic constraint and the odometer observe while the vehicle "
-        "moves; None or 0: the mounting is exact (docs/filter.md, 'Ground-vehicle aiding')",
-    )
-    lever_std: float | None = _opt(
-        None,
-        "1-sigma of the errors of lever_arm_b per axis [m]: three states (random constants) "
-        "the non-holonomic constraint and the odometer observe while the vehicle turns; "
-        "None or 0: the lever arm is exact (docs/filter.md, 'Ground-vehicle aiding')",
-    )
-    odometer_std: float | None = _opt(
-        None,
-        f"wheel-odometer speed 1-sigma [m/s], with an odometer scale-factor state; "
-        f"None: no odometer (polins.fuse(odometry=...) then uses {ODOMETER_STD})",
-    )
-    odometer_scale_std: float = _opt(0.02, "initial 1-sigma of the odometer scale factor [-]")
-    zupt_std: float | None = _opt(None, "zero-velocity 1-sigma at the stationary times [m/s]")
-    stationary: tuple[float, ...] = _opt((), "times at which the vehicle stands still [s]")
-    output_rate_hz: float | None = _opt(None, "output rows per second (None: every IMU sample)")
-    max_gap_s: float | None = _opt(
-        None, "longest IMU gap bridged [s] (None: 5 median sample intervals)"
-    )
-    time_tol_s: float = _opt(1e-6, "measurement times this close to an IMU sample use it [s]")
-    # yaw acquisition and recovery (docs/filter.md, "Yaw acquisition and recovery")
-    acquire_k: int = _opt(3, "yaw acquisition: this many of the last acquire_n headings must agree")
-    acquire_n: int = _opt(5, "yaw acquisition: headings considered for the consensus")
-    reacquire_after: int = _opt(
-        5, "re-acquire the yaw after this many consecutive gate rejections of headings", ESKF
-    )
-    # ESKF only
-    scale_factors: bool | None = _opt(
-        None,
-        "gyro/accel scale-factor errors: ESKF states (21 states), graph variables; "
-        "None: on for MEMS-grade IMU models",
-    )
-    reset_interval_s: float = _opt(
-        20.0, "inject and zero the error state this long after the last reset [s]", ESKF
-    )
-    reset_angle_rad: float = _opt(
-        0.005, "... or as soon as the attitude error estimate exceeds this [rad]", ESKF
-    )
-    cov_step_s: float = _opt(0.1, "longest covariance-propagation step [s]", ESKF)
-    smooth: bool = _opt(False, "run the Rauch-Tung-Striebel smoother", ESKF)
-    # the sky's error states (docs/filter.md, "Approximate site", "No clock",
-    # "Heading-measurement bias")
-    site_std: float | None = _opt(
-        None,
-        "1-sigma of the site's latitude and of its longitude [rad] (approximate site): the "
-        "site error becomes two states seen by the yaw and sun updates; None: site exact",
-    )
-    no_clock: bool | None = _opt(
-        None,
-        "no-clock mode: the sun's ENU azimuth and its rate are states, the heading is "
-        "relative; None: when the measurements carry sun_azimuth_b without yaw or sun_n",
-    )
-    sun_azimuth_rate_std: float = _opt(
-        math.radians(24.0) / 3600.0,
-        "no clock: 1-sigma of the sun's azimuth rate [rad/s] (24 deg/h: Harbin's largest; "
-        "up to hundreds of deg/h near the subsolar point)",
-    )
-    heading_bias_std: float | None = _opt(
-        None,
-        "1-sigma of a Gauss-Markov heading-measurement bias [rad] (sky-model errors "
-        "correlated from image to image; the rows lose yaw_std_correlated); None: from "
-        "the images, the part of each heading row's yaw_std_model beyond twice its "
-        "yaw_std_noise (docs/filter.md 5.7); inf: no bias state",
-    )
-    heading_bias_tau_s: float = _opt(300.0, "correlation time of the heading-measurement bias [s]")
-    # graph only
-    solver: str = _opt("batch", f"graph solver, one of {SOLVERS}", GRAPH)
-    lag_s: float = _opt(10.0, "window of the fixed-lag smoother [s]", GRAPH)
-    max_keyframe_dt_s: float = _opt(1.0, "longest interval between keyframes [s]", GRAPH)
-    max_iterations: int = _opt(20, "Gauss-Newton iterations of the batch solver", GRAPH)
-    integration_std: float = _opt(
-        1e-2, "GTSAM position-integration noise density [m/sqrt(s)]", GRAPH
-    )
-    graph_output: str = _opt(
-        "samples", f"report IMU samples or keyframes, one of {GRAPH_OUTPUTS}", GRAPH
-    )
-    max_gate_rounds: int = _opt(
-        10, "batch solver: most re-solves after gating post-fit outliers", GRAPH
-    )
-    optimizer: str = _opt("gauss-newton", f"batch optimizer, one of {OPTIMIZERS}", GRAPH)
+    imu_model: ImuModel
+    site: Site | None
+    aiding: Aiding
+    initial: Initial
+    noise: Noise
+    gating: Gating
+    sky: SkyStates
+    graph: GraphSolver
+    output: Output
+    site_is_assumed: bool = field(default=False, repr=False)
 
-    def __post_init__(self) -> None:
-        model = self.imu_model
-        if isinstance(model, str | Path):
-            object.__setattr__(self, "imu_model", load_imu(model))
-        elif not isinstance(model, ImuModel):
-            raise UserInputError(
-                f"imu_model must be a model name, a TOML path or an ImuModel, got {model!r}"
-            )
-        if self.site is not None:
-            object.__setattr__(self, "site", Site.coerce(self.site))
-        object.__setattr__(self, "vel_n0", _floats(self.vel_n0, 3, "vel_n0"))
-        att = self.att_std0
-        att = (att,) * 3 if isinstance(att, int | float) else att
-        object.__setattr__(self, "att_std0", _floats(att, 3, "att_std0"))
-        object.__setattr__(
-            self, "stationary", _floats(self.stationary, len(self.stationary), "stationary")
-        )
-        object.__setattr__(self, "mount_rpy", _floats(self.mount_rpy, 3, "mount_rpy"))
-        object.__setattr__(self, "lever_arm_b", _floats(self.lever_arm_b, 3, "lever_arm_b"))
-        _check(self)
+    def __init__(
+        self,
+        imu_model: ImuModel | str | Path = "mems-typical",
+        site: Site | None = None,
+        *,
+        aiding: Aiding | None = None,
+        initial: Initial | None = None,
+        noise: Noise | None = None,
+        gating: Gating | None = None,
+        sky: SkyStates | None = None,
+        graph: GraphSolver | None = None,
+        output: Output | None = None,
+        site_is_assumed: bool = False,
+        **options: Any,
+    ) -> None:
+        site = site_from_shorthand(site, options)
+        given = {"aiding": aiding, "initial": initial, "noise": noise, "gating": gating,
+                 "sky": sky, "graph": graph, "output": output}  # fmt: skip
+        flat = split_options(options)
+        for name, cls in PARTS.items():
+            part = given[name] if given[name] is not None else cls()
+            if not isinstance(part, cls):
+                raise UserInputError(f"{name} must be a {cls.__name__}, got {part!r}")
+            if flat[name]:
+                part = dataclasses.replace(part, **flat[name])  # type: ignore[type-var]
+            object.__setattr__(self, name, part)
+        object.__setattr__(self, "imu_model", _imu_model(imu_model))
+        object.__setattr__(self, "site", None if site is None else _site(site))
+        object.__setattr__(self, "site_is_assumed", bool(site_is_assumed))
 
+    # ---------------------------------------------------------------- building
+    @classmethod
+    def from_options(cls, base: FuseConfig | None = None, /, **options: Any) -> FuseConfig:
+        """``base`` (default: all defaults) with the options given by their flat names (an
+        unknown name is a one-line error with a hint)."""
+        return (base or cls()).replace(**options)
+
+    def replace(self, **options: Any) -> FuseConfig:
+        """This configuration with the options given by their flat names (or whole parts,
+        ``imu_model``, ``site``, the ``lat_deg``/``lon_deg``/``alt_m`` shorthand)."""
+        site = site_from_shorthand(options.pop("site", None), options)
+        keep: dict[str, Any] = {name: getattr(self, name) for name in PARTS}
+        keep["imu_model"] = options.pop("imu_model", self.imu_model)
+        keep["site"] = site if site is not None else self.site
+        keep["site_is_assumed"] = self.site_is_assumed and site is None
+        for name in PARTS:
+            if name in options:
+                keep[name] = options.pop(name)
+        return FuseConfig(**keep, **options)
+
+    @classmethod
+    def from_log(cls, log: LogLike) -> FuseConfig:
+        """The configuration of a log (:class:`polins.io.Log`): its IMU model, its site, its
+        manifest's ``[vehicle]`` and ``[filter]`` tables (:func:`config_from_manifest`)."""
+        return config_from_manifest(log.manifest, log.imu_model, log.site, log.manifest_path)
+
+    # ---------------------------------------------------------------- resolved behaviour
     @property
     def imu(self) -> ImuModel:
-        """The resolved IMU model."""
-        assert isinstance(self.imu_model, ImuModel)  # resolved in __post_init__
+        """The IMU model."""
         return self.imu_model
 
     @property
     def mechanize_earth_rate(self) -> bool:
         """Whether the Earth and transport rates are mechanized: whenever the site is known
         and the heading is absolute (not ``no_clock``), unless ``earth_rate`` says otherwise."""
-        if self.earth_rate is None:
-            return self.site is not None and not self.site_assumed and not self.no_clock
-        return bool(self.earth_rate)
+        if self.sky.earth_rate == AUTO:
+            return self.site is not None and not self.site_is_assumed and not self.no_clock
+        return bool(self.sky.earth_rate)
 
     @property
     def uncovered_earth_rate(self) -> bool:
         """True when the world rotates but the Earth rate is not mechanized (no site known,
         or no clock: the heading is relative, so the horizontal Earth rate cannot be
         projected): the process noise then covers it (docs/filter.md, "Without a site")."""
-        return self.earth_rate is None and (self.site_assumed or bool(self.no_clock))
+        return self.sky.earth_rate == AUTO and (self.site_is_assumed or self.no_clock)
+
+    @property
+    def no_clock(self) -> bool:
+        """Whether the no-clock mode is on (``"auto"`` resolves to it when the run's
+        measurements ask for it: :meth:`resolve`)."""
+        return self.sky.no_clock is True
+
+    @property
+    def tilt_coupling(self) -> bool:
+        """Whether the yaw updates use the tilt-coupled model (``"auto"``: off until
+        :meth:`resolve` sees the prior columns)."""
+        return self.gating.tilt_coupling is True
+
+    @property
+    def gate_probability(self) -> float | None:
+        """The chi-square gate probability, or None: no gate."""
+        return _value(self.gating.gate_prob, None)
+
+    @property
+    def gap_s(self) -> float | None:
+        """The longest IMU gap bridged [s], or None: 5 median sample intervals."""
+        return _value(self.gating.max_gap_s, None)
+
+    @property
+    def output_rate(self) -> float | None:
+        """Output rows per second, or None: every IMU sample."""
+        return _value(self.output.output_rate_hz, None)
 
     @property
     def nhc_sigma(self) -> float | None:
-        """The non-holonomic 1-sigma in use [m/s] (``nhc_std``, else the vehicle kind's), or
-        None: off."""
-        return _sigma_in_use(self.nhc_std, NHC_STD_GROUND if self.vehicle == "ground" else None)
-
-    @property
-    def mount_sigma(self) -> float | None:
-        """The prior 1-sigma [rad] of the mounting pitch and yaw error states, or None: no
-        such states (``mount_std`` None or 0)."""
-        return float(self.mount_std) if self.mount_std else None
-
-    @property
-    def lever_sigma(self) -> float | None:
-        """The prior 1-sigma [m] of the lever-arm error states, or None: no such states
-        (``lever_std`` None or 0)."""
-        return float(self.lever_std) if self.lever_std else None
+        """The non-holonomic 1-sigma in use [m/s], or None: off."""
+        return _value(
+            self.aiding.nhc_std, NHC_STD_GROUND if self.aiding.vehicle == "ground" else None
+        )
 
     @property
     def standstill_sigma(self) -> float | None:
         """The zero-velocity 1-sigma at (detected) standstill [m/s], or None: off."""
-        kind_default = STANDSTILL_STD if self.vehicle in ("ground", "static") else None
-        return _sigma_in_use(self.standstill_std, kind_default)
+        kind = STANDSTILL_STD if self.aiding.vehicle in ("ground", "static") else None
+        return _value(self.aiding.standstill_std, kind)
+
+    @property
+    def odometer_sigma(self) -> float | None:
+        """The wheel-odometer 1-sigma [m/s] (and with it the scale-factor state), or None:
+        no odometer (``"auto"`` becomes a value when a run gets odometry: :meth:`resolve`)."""
+        return _value(self.aiding.odometer_std, None)
+
+    @property
+    def mount_sigma(self) -> float | None:
+        """The prior 1-sigma [rad] of the mounting pitch and yaw error states, or None."""
+        return _value(self.aiding.mount_std, None)
+
+    @property
+    def lever_sigma(self) -> float | None:
+        """The prior 1-sigma [m] of the lever-arm error states, or None."""
+        return _value(self.aiding.lever_std, None)
+
+    @property
+    def site_sigma(self) -> float | None:
+        """The 1-sigma [rad] of the site's latitude and longitude states, or None: exact."""
+        return _value(self.sky.site_std, None)
 
     @property
     def heading_bias(self) -> str:
-        """The heading-measurement bias state (docs/filter.md §5.7): ``"model"`` (None: its
+        """The heading-measurement bias state (docs/filter.md §5.7): ``"model"`` (auto: its
         variance from the heading rows' ``yaw_std_model``), ``"fixed"`` (a value: that
-        1-sigma [rad], the rows lose ``yaw_std_correlated``) or ``"off"`` (inf)."""
-        if self.heading_bias_std is None:
-            return "model"
-        return "off" if math.isinf(self.heading_bias_std) else "fixed"
+        1-sigma [rad], the rows lose ``yaw_std_correlated``) or ``"off"``."""
+        std = self.sky.heading_bias_std
+        return "model" if std == AUTO else OFF if std == OFF else "fixed"
 
     @property
     def heading_bias_sigma(self) -> float | None:
@@ -280,185 +244,196 @@ class FuseConfig:
         0 for ``"model"`` (the images' model parts set it,
         :class:`polins.fusion.sky_states.ModelPart`), None when off."""
         mode = self.heading_bias
-        if mode == "off":
+        if mode == OFF:
             return None
-        return 0.0 if mode == "model" else float(self.heading_bias_std)  # type: ignore[arg-type]
+        return 0.0 if mode == "model" else float(self.sky.heading_bias_std)
 
     @property
     def use_scale_factors(self) -> bool:
-        """Whether the scale-factor errors are modelled (``scale_factors``; None: for a
-        MEMS-grade model whose scale factors are not both switched off)."""
-        if self.scale_factors is None:
+        """Whether the scale-factor errors are modelled (``"auto"``: for a MEMS-grade model
+        whose scale factors are not both switched off)."""
+        if self.noise.scale_factors == AUTO:
             model = self.imu
             return (
                 model.grade == "mems" and (model.gyro_scale_factor + model.accel_scale_factor) > 0
             )
-        return bool(self.scale_factors)
+        return bool(self.noise.scale_factors)
 
-    @classmethod
-    def from_options(cls, base: FuseConfig | None = None, /, **options: Any) -> FuseConfig:
-        """A config from keyword options (an unknown name is a ``TypeError`` with a hint).
+    def yaw_sigma(self, yaw_std: Any) -> Any:
+        """The 1-sigma [rad] a heading row's ``yaw_std`` is fused with: times ``yaw_std_scale``,
+        ``yaw_floor_deg`` added in quadrature (:class:`~polins.fusion.parts.Noise`)."""
+        noise = self.noise
+        return scaled_sigma(yaw_std, noise.yaw_std_scale, noise.yaw_floor_deg)
 
-        ``lat_deg``, ``lon_deg`` and ``alt_m`` are accepted as a shorthand for ``site``.
-        Values given replace those of ``base`` (default: all defaults).
-        """
-        opts = dict(options)
-        if {"lat_deg", "lon_deg", "alt_m"} & set(opts):
-            if "site" in opts:
-                raise UnknownOptionError("give either site or lat_deg/lon_deg/alt_m, not both")
-            if "lat_deg" not in opts or "lon_deg" not in opts:
-                raise UnknownOptionError(
-                    "a site needs both lat_deg and lon_deg (alt_m is optional)"
+    def sun_sigma(self, sun_std: Any) -> Any:
+        """The 1-sigma [rad] a sun row's ``sun_std`` is fused with (``sun_std_scale``,
+        ``sun_floor_deg``)."""
+        noise = self.noise
+        return scaled_sigma(sun_std, noise.sun_std_scale, noise.sun_floor_deg)
+
+    def resolve(
+        self, *, priors: bool = False, sun_azimuth_only: bool = False, odometry: bool = False
+    ) -> FuseConfig:
+        """The configuration of one run: its ``"auto"`` choices that depend on the inputs
+        made (the tilt coupling when the measurements carry the prior columns, the no-clock
+        mode when they carry ``sun_azimuth_b`` only, the odometer's sigma when odometry is
+        given). An explicit ``no_clock=False`` with such measurements is an error."""
+        changes: dict[str, Any] = {}
+        if self.gating.tilt_coupling == AUTO:
+            changes["tilt_coupling"] = priors
+        if sun_azimuth_only:
+            if self.sky.no_clock is False:
+                raise UserInputError(
+                    "no_clock=off but the measurements carry only sun_azimuth_b (no yaw, no sun_n)"
                 )
-            opts["site"] = Site(opts.pop("lat_deg"), opts.pop("lon_deg"), opts.pop("alt_m", 0.0))
-        names = option_names()
-        unknown = [k for k in opts if k not in names]
-        if unknown:
-            hints = []
-            for k in unknown:
-                close = difflib.get_close_matches(k, names, n=1)
-                hints.append(f"{k!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
-            raise UserInputError(
-                f"unknown fuse option(s) {', '.join(hints)}; valid: {', '.join(names)}"
-            )
-        return dataclasses.replace(base or cls(), **opts)
+            changes["no_clock"] = True
+        if odometry and self.aiding.odometer_std == AUTO:
+            changes["odometer_std"] = ODOMETER_STD
+        return self.replace(**changes) if changes else self
+
+    # ---------------------------------------------------------------- reporting
+    def options(self) -> dict[str, Any]:
+        """Every option by its flat name (the parts' fields)."""
+        return {f.name: getattr(getattr(self, part), f.name)
+                for part, cls in PARTS.items() for f in dataclasses.fields(cls)}  # fmt: skip
 
     def check_backend(self, backend: str) -> None:
-        """Raise ``ValueError`` if an option set away from its default does not apply to ``backend``."""
+        """Raise ``UserInputError`` if an option set away from its default does not apply
+        to ``backend``."""
         if backend not in BACKENDS:
             raise UserInputError(f"backend={backend!r}: expected one of {BACKENDS}")
-        default = FuseConfig(imu_model=self.imu_model)
-        for f in dataclasses.fields(self):
-            if backend not in f.metadata["backends"] and getattr(self, f.name) != getattr(
-                default, f.name
-            ):
+        for name, value in self.options().items():
+            f = OPTION_FIELDS[name]
+            if backend not in f.metadata["backends"] and value != f.default:
                 only = "/".join(f.metadata["backends"])
-                raise UserInputError(f"option {f.name} applies to the {only} backend only")
+                raise UserInputError(f"option {name} applies to the {only} backend only")
 
     def changes(self) -> dict[str, Any]:
         """The options that differ from their defaults (for run stamps and reports)."""
-        default = FuseConfig(imu_model=self.imu_model)
         out: dict[str, Any] = {"imu_model": self.imu.name}
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if f.name != "imu_model" and value != getattr(default, f.name):
-                out[f.name] = dataclasses.asdict(value) if isinstance(value, Site) else value
+        if self.site is not None:
+            out["site"] = dataclasses.asdict(self.site)
+        out.update({k: v for k, v in self.options().items() if v != OPTION_FIELDS[k].default})
         return out
 
 
-def _floats(value: Any, n: int, name: str) -> tuple[float, ...]:
-    try:
-        out = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise UserInputError(f"{name} must be {n} numbers, got {value!r}") from None
-    if len(out) != n or not all(math.isfinite(v) for v in out):
-        raise UserInputError(f"{name} must be {n} finite numbers, got {value!r}")
-    return out
+def _value(value: float | str | bool, auto: float | None) -> float | None:
+    """An option's number in use: the value given, ``auto`` for "auto", None for "off"."""
+    if value == OFF:
+        return None
+    if value == AUTO:
+        return auto
+    return float(value)
 
 
-def _sigma_in_use(value: float | None, default: float | None) -> float | None:
-    """An option's sigma: the value given (inf: off), else the default (None: off)."""
-    if value is None:
-        return default
-    return None if math.isinf(value) else float(value)
-
-
-def _check(c: FuseConfig) -> None:
-    """Range checks of every option (one-line ``ValueError`` naming the option)."""
-    positive = ("align_s", "vel_std0", "pos_std0", "nhc_rate_hz", "time_tol_s", "cov_step_s",
-                "lag_s", "max_keyframe_dt_s", "integration_std", "standstill_window_s",
-                "odometer_scale_std", "sun_azimuth_rate_std", "heading_bias_tau_s")  # fmt: skip
-    for name in positive:
-        value = getattr(c, name)
-        if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-            raise UserInputError(f"{name} must be a finite number > 0, got {value!r}")
-    for name in ("nhc_std", "standstill_std", "heading_bias_std"):
-        value = getattr(c, name)
-        if value is not None and not (isinstance(value, int | float) and value > 0):
-            unit = "rad" if name == "heading_bias_std" else "m/s"
-            raise UserInputError(f"{name} must be > 0 [{unit}], inf (off) or None, got {value!r}")
-    if c.vehicle not in VEHICLE_KINDS:
-        raise UserInputError(f"vehicle={c.vehicle!r}: expected one of {VEHICLE_KINDS}")
-    for name in ("zupt_std", "output_rate_hz", "max_gap_s", "odometer_std", "site_std"):
-        value = getattr(c, name)
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise UserInputError(f"{name} must be > 0 or None, got {value!r}")
-    for name, unit in (("mount_std", "rad"), ("lever_std", "m")):
-        value = getattr(c, name)
-        if value is not None and not (math.isfinite(value) and value >= 0):
-            raise UserInputError(f"{name} must be >= 0 [{unit}] or None, got {value!r}")
-    if not all(a > 0 for a in c.att_std0):
-        raise UserInputError(f"att_std0 must be 3 positive sigmas [rad], got {c.att_std0}")
-    if c.gate_prob is not None and not 0.0 < c.gate_prob < 1.0:
-        raise UserInputError(f"gate_prob must be in (0, 1) or None, got {c.gate_prob}")
-    if not c.reset_interval_s >= 0.0:
-        raise UserInputError(f"reset_interval_s must be >= 0 [s], got {c.reset_interval_s}")
-    if not c.reset_angle_rad > 0.0:
-        raise UserInputError(f"reset_angle_rad must be > 0 [rad], got {c.reset_angle_rad}")
-    for name in ("max_iterations", "max_gate_rounds", "acquire_k", "acquire_n", "reacquire_after"):
-        value = getattr(c, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise UserInputError(f"{name} must be an integer >= 1, got {value!r}")
-    for name, allowed in (("solver", SOLVERS), ("optimizer", OPTIMIZERS),
-                          ("graph_output", GRAPH_OUTPUTS)):  # fmt: skip
-        if getattr(c, name) not in allowed:
-            raise UserInputError(f"{name}={getattr(c, name)!r}: expected one of {allowed}")
-    if c.acquire_k > c.acquire_n or c.acquire_n > c.reacquire_after:
+def _imu_model(model: Any) -> ImuModel:
+    if isinstance(model, str | Path):
+        return load_imu(model)
+    if not isinstance(model, ImuModel):
         raise UserInputError(
-            f"need acquire_k <= acquire_n <= reacquire_after, got {c.acquire_k}, "
-            f"{c.acquire_n}, {c.reacquire_after}"
+            f"imu_model must be a model name, a TOML path or an ImuModel, got {model!r}"
         )
-    if c.stationary and c.zupt_std is None:
-        raise UserInputError("stationary times need zupt_std [m/s]")
+    return model
 
 
-def option_names() -> list[str]:
-    """Names of all options (the fields of :class:`FuseConfig`)."""
-    return [f.name for f in dataclasses.fields(FuseConfig)]
+def _site(site: Any) -> Site:
+    try:
+        return Site.coerce(site)
+    except TypeError as exc:
+        raise UserInputError(str(exc)) from None
 
 
-def option_table(backends: Sequence[str] = BACKENDS) -> list[tuple[str, str, str, str]]:
-    """``(name, default, backends, description)`` of every option, for docs and ``--help``."""
-    rows = []
-    for f in dataclasses.fields(FuseConfig):
-        if set(f.metadata["backends"]) & set(backends):
-            rows.append((f.name, repr(f.default), "/".join(f.metadata["backends"]),
-                         f.metadata["doc"]))  # fmt: skip
-    return rows
+def site_from_shorthand(site: Any, options: dict[str, Any]) -> Any:
+    """``site``, or the site of the ``lat_deg``/``lon_deg``/``alt_m`` shorthand popped from
+    ``options`` [deg, deg, m] (both latitude and longitude needed; not with ``site``)."""
+    given = {k: options.pop(k) for k in _SITE_KEYS if options.get(k) is not None}
+    for k in _SITE_KEYS:
+        options.pop(k, None)
+    if not given:
+        return site
+    if site is not None:
+        raise UnknownOptionError("give either site or lat_deg/lon_deg/alt_m, not both")
+    if "lat_deg" not in given or "lon_deg" not in given:
+        raise UnknownOptionError("a site needs both lat_deg and lon_deg (alt_m is optional)")
+    return Site(given["lat_deg"], given["lon_deg"], given.get("alt_m", 0.0))
 
 
 def parse_option_value(name: str, text: str) -> Any:
-    """The value of ``--set name=text`` (CLI) or a manifest entry, typed as the field."""
-    fields = {f.name: f for f in dataclasses.fields(FuseConfig)}
-    if name not in fields:
-        close = difflib.get_close_matches(name, list(fields), n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise UnknownOptionError(f"unknown filter option {name!r}{hint}")
-    default = fields[name].default
-    low = text.strip().lower()
-    if low in ("none", "null", "off") and (default is None or "None" in str(fields[name].type)):
-        return None
-    if isinstance(default, bool) or "bool" in str(fields[name].type):
-        if low in ("true", "1", "yes", "on"):
-            return True
-        if low in ("false", "0", "no", "off"):
-            return False
-        raise UserInputError(f"{name}={text!r}: expected true or false")
-    if isinstance(default, tuple):
-        return tuple(float(v) for v in text.split(","))
-    if isinstance(default, int):
-        return int(text)
-    if isinstance(default, float) or default is None:
-        try:
-            return float(text)
-        except ValueError:
-            raise UserInputError(f"{name}={text!r}: expected a number") from None
-    return text
+    """The value of ``--set name=text`` (:func:`coerce_option`)."""
+    return coerce_option(name.strip(), text)
 
 
 def config_from_mapping(table: Mapping[str, Any], base: FuseConfig | None = None) -> FuseConfig:
-    """A config from a mapping of option names (a manifest ``[filter]`` table)."""
+    """A config from a mapping of option names (``base`` with them)."""
     return FuseConfig.from_options(base, **dict(table))
+
+
+class LogLike(Protocol):
+    """What :meth:`FuseConfig.from_log` reads of a :class:`polins.io.Log`."""
+
+    @property
+    def manifest_path(self) -> Path: ...
+
+    @property
+    def manifest(self) -> dict[str, dict[str, Any]]: ...
+
+    @property
+    def imu_model(self) -> ImuModel: ...
+
+    @property
+    def site(self) -> Site: ...
+
+
+def config_from_manifest(
+    manifest: Mapping[str, Mapping[str, Any]],
+    imu_model: ImuModel | str | Path,
+    site: Site | None,
+    path: str | Path = "manifest.toml",
+) -> FuseConfig:
+    """The configuration of a log's manifest (:func:`polins.io.parse_manifest`'s tables):
+    the IMU model and the site, the ``[vehicle]`` table's options (degrees converted; a
+    sigma of 0 is off; an odometer file without ``odometer_std`` gets ``"auto"``), then
+    the ``[filter]`` table's options by their flat names. A bad key or value is a one-line
+    ``UserInputError`` naming the manifest, the table and the key."""
+    vehicle = manifest.get("vehicle", {})
+    opts: dict[str, Any] = {}
+    if "kind" in vehicle:
+        if vehicle["kind"] not in VEHICLE_KINDS:
+            raise UserInputError(
+                f"{path}: key 'vehicle.kind' = {vehicle['kind']!r}: expected one of "
+                f"{', '.join(repr(k) for k in VEHICLE_KINDS)}"
+            )
+        opts["vehicle"] = vehicle["kind"]
+    if "mount_rpy_deg" in vehicle:
+        opts["mount_rpy"] = tuple(math.radians(v) for v in vehicle["mount_rpy_deg"])
+    if "mount_std_deg" in vehicle:
+        opts["mount_std"] = math.radians(vehicle["mount_std_deg"]) or OFF
+    if "lever_arm_b" in vehicle:
+        opts["lever_arm_b"] = tuple(vehicle["lever_arm_b"])
+    if "lever_std" in vehicle:
+        opts["lever_std"] = float(vehicle["lever_std"]) or OFF
+    if "odometer" in vehicle and "odometer_std" in vehicle:
+        opts["odometer_std"] = vehicle["odometer_std"]
+    try:
+        base = FuseConfig(imu_model, site, **opts)
+    except UserInputError as exc:
+        raise UserInputError(f"{path}: table [vehicle]: {exc}") from None
+    table = manifest.get("filter", {})
+    for key in table:
+        if key in ("imu_model", "site", *_SITE_KEYS):
+            raise UserInputError(
+                f"{path}: unknown key 'filter.{key}' (the IMU model and the site are [log]'s)"
+            )
+        if key not in OPTION_FIELDS:
+            error = str(unknown_option(key))
+            close = difflib.get_close_matches(key, option_names(), n=1)
+            hint = f"; did you mean 'filter.{close[0]}'?" if close else ""
+            detail = error if "unknown" not in error else f"unknown key 'filter.{key}'{hint}"
+            raise UserInputError(f"{path}: {detail}")
+    try:
+        return base.replace(**table)
+    except UserInputError as exc:
+        raise UserInputError(f"{path}: table [filter]: {exc}") from None
 
 
 def config_with_site(config: FuseConfig | None, *, stacklevel: int = 3) -> FuseConfig:
@@ -474,4 +449,55 @@ def config_with_site(config: FuseConfig | None, *, stacklevel: int = 3) -> FuseC
         UserWarning,
         stacklevel=stacklevel,
     )
-    return FuseConfig.from_options(config, site=PAPER_SITE, site_assumed=True)
+    return dataclasses.replace(config, site=PAPER_SITE, site_is_assumed=True)
+
+
+def scaled_sigma(std: Any, scale: float, floor_deg: float) -> Any:
+    """``hypot(scale * std, radians(floor_deg))``: a measurement 1-sigma [rad] with a noise
+    scale [-] and a floor [deg] (scalar or array; exactly ``std`` for 1 and 0)."""
+    if scale == 1.0 and floor_deg == 0.0:
+        return std
+    return np.hypot(np.asarray(std, dtype=float) * scale, math.radians(floor_deg))
+
+
+def scaled_measurement_noise(measurements: pd.DataFrame, config: FuseConfig) -> pd.DataFrame:
+    """The measurements with the configured measurement noise (:class:`Noise`): each
+    ``yaw_std`` / ``sun_std`` multiplied by its scale, then its floor added in quadrature.
+    Returns ``measurements`` itself when the noise is the rows' own."""
+    noise = config.noise
+    terms = {"yaw_std": (noise.yaw_std_scale, noise.yaw_floor_deg),
+             "sun_std": (noise.sun_std_scale, noise.sun_floor_deg)}  # fmt: skip
+    todo = {c: t for c, t in terms.items() if c in measurements.columns and t != (1.0, 0.0)}
+    if not todo:
+        return measurements
+    out = measurements.copy()
+    for col, (scale, floor_deg) in todo.items():
+        out[col] = scaled_sigma(out[col].to_numpy(dtype=float), scale, floor_deg)
+    return out
+
+
+__all__ = [
+    "AUTO",
+    "BACKENDS",
+    "OFF",
+    "PARTS",
+    "Aiding",
+    "FuseConfig",
+    "Gating",
+    "GraphSolver",
+    "Initial",
+    "LogLike",
+    "Noise",
+    "Output",
+    "SkyStates",
+    "coerce_option",
+    "config_from_manifest",
+    "config_from_mapping",
+    "config_with_site",
+    "option_names",
+    "option_table",
+    "parse_option_value",
+    "scaled_measurement_noise",
+    "scaled_sigma",
+    "site_from_shorthand",
+]

@@ -9,7 +9,6 @@ inputs into what both backends solve (:class:`Prepared`).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -24,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from polins.compass.measurement import Measurement
 from polins.errors import UserInputError
 from polins.frames import euler_from_rot_nb
-from polins.fusion.config import ODOMETER_STD, FuseConfig, config_with_site
+from polins.fusion.config import OFF, FuseConfig, config_with_site, scaled_measurement_noise
 from polins.fusion.faults import (
     FusionEvent,
     GyroHeadingCheck,
@@ -302,8 +301,8 @@ class Prepared:
     Attributes
     ----------
     config : FuseConfig
-        The resolved configuration: a site, ``tilt_coupling`` and ``no_clock`` decided,
-        ``odometer_std`` set when odometry is given.
+        The resolved configuration (``FuseConfig.resolve``): a site, ``tilt_coupling`` and
+        ``no_clock`` decided, ``odometer_std`` set when odometry is given.
     imu : ImuArrays
         The accepted IMU samples and the ``"gap"`` items of the IMU gaps.
     items : list of MeasurementItem
@@ -339,27 +338,24 @@ def prepare(
     no-clock mode.
     """
     cfg = config or FuseConfig()
-    if odometry is not None and cfg.odometer_std is None:
-        cfg = dataclasses.replace(cfg, odometer_std=ODOMETER_STD)
     cfg.check_backend(backend)
     if rot_nb0 is not None and (not isinstance(rot_nb0, Rotation) or not rot_nb0.single):
         raise UserInputError("rot_nb0 must be a single scipy Rotation (body FLU -> ENU) or None")
-    meas = validate_measurements(measurements)
-    arrays = validate_imu(imu, max_gap_s=cfg.max_gap_s, model=cfg.imu)
+    meas = scaled_measurement_noise(validate_measurements(measurements), cfg)
+    arrays = validate_imu(imu, max_gap_s=cfg.gap_s, model=cfg.imu)
     check_gyro_against_headings(arrays, meas)
-    if cfg.tilt_coupling is None:
-        cfg = dataclasses.replace(cfg, tilt_coupling=all(c in meas.columns for c in PRIOR_COLUMNS))
     cfg = config_with_site(cfg, stacklevel=5)
     if no_clock_table(meas):
         cfg = announce_no_clock(cfg)
-    items = items_from_table(meas, use_sun=cfg.use_sun, heading_bias=cfg.heading_bias)
-    if odometry is not None:
-        assert cfg.odometer_std is not None
-        items += odometer_items(odometry, cfg.odometer_std)
-    if cfg.zupt_std is not None:
+    cfg = cfg.resolve(priors=all(c in meas.columns for c in PRIOR_COLUMNS),
+                      odometry=odometry is not None)  # fmt: skip
+    items = items_from_table(meas, use_sun=cfg.gating.use_sun, heading_bias=cfg.heading_bias)
+    if odometry is not None and cfg.odometer_sigma is not None:  # "off": ignored
+        items += odometer_items(odometry, cfg.odometer_sigma)
+    if cfg.aiding.zupt_std != OFF:
         t0, t1 = arrays.t[0], arrays.t[-1]
-        items += [MeasurementItem(float(ts), "zupt", cfg.zupt_std)
-                  for ts in cfg.stationary if t0 <= ts <= t1]  # fmt: skip
+        items += [MeasurementItem(float(ts), "zupt", float(cfg.aiding.zupt_std))
+                  for ts in cfg.aiding.stationary if t0 <= ts <= t1]  # fmt: skip
     items, in_gaps = skip_in_gaps(arrays.gap_spans, items)
     return Prepared(cfg, arrays, items, [*arrays.events, *in_gaps], rot_nb0)
 
@@ -367,10 +363,7 @@ def prepare(
 def announce_no_clock(config: FuseConfig) -> FuseConfig:
     """The config of a measurements table in the no-clock mode (sun_azimuth_b without yaw
     or sun_n), with the one warning that says so (both backends)."""
-    if config.no_clock is False:
-        raise UserInputError(
-            "no_clock=False but the measurements carry only sun_azimuth_b (no yaw, no sun_n)"
-        )
+    config = config.resolve(sun_azimuth_only=True)  # no_clock=off: a one-line error
     warnings.warn(
         "no-clock mode: the measurements carry sun_azimuth_b without yaw or sun_n; the sun's "
         "ENU azimuth is a filter state and the heading is relative to the initial yaw "
@@ -378,7 +371,7 @@ def announce_no_clock(config: FuseConfig) -> FuseConfig:
         UserWarning,
         stacklevel=5,
     )
-    return dataclasses.replace(config, no_clock=True)
+    return config
 
 
 def measurement_row(measurement: Measurement) -> dict[str, Any]:

@@ -46,7 +46,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from polins.errors import UserInputError
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import NHC_RATE_HZ, STANDSTILL_WINDOW_S, FuseConfig
 from polins.fusion.items import MeasurementItem
 from polins.ins.earth import OMEGA_IE
 from polins.models import ImuModel
@@ -134,14 +134,14 @@ class VehicleAiding:
     def __init__(self, config: FuseConfig, dt: float) -> None:
         self.nhc_std = config.nhc_sigma
         self.zupt_std = config.standstill_sigma
-        self.static = config.vehicle == "static"
-        self.every = max(1, round(1.0 / (config.nhc_rate_hz * dt)))
-        self.n = window_samples(config.standstill_window_s, dt)
+        self.static = config.aiding.vehicle == "static"
+        self.every = max(1, round(1.0 / (NHC_RATE_HZ * dt)))
+        self.n = window_samples(STANDSTILL_WINDOW_S, dt)
         self.gyro_var, self.accel_var = standstill_variances(config.imu, dt)
         self.threshold = standstill_threshold(self.n)
-        mount = np.asarray(config.mount_rpy, dtype=float)
+        mount = np.asarray(config.aiding.mount_rpy, dtype=float)
         self.mat_vb = mat_vb_from_mount(mount) if np.any(mount) else None
-        lever = np.asarray(config.lever_arm_b, dtype=float)
+        lever = np.asarray(config.aiding.lever_arm_b, dtype=float)
         self.lever_arm_b = lever if np.any(lever) else None
         self.lever_state = config.lever_sigma is not None  # the items carry omega_b
         self.detect = self.zupt_std is not None and not self.static

@@ -31,17 +31,10 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from polins.errors import UserInputError
-from polins.fusion.config import FuseConfig, config_from_mapping
 from polins.io.atomic import atomic_path, write_text_atomic
 from polins.io.images import IMAGE_SUFFIXES, ImageIndex, read_image_index, write_image
 from polins.io.images import write_image_index as _write_index
-from polins.io.manifest import (
-    MANIFEST_NAME,
-    ManifestError,
-    number_in,
-    parse_manifest,
-    vehicle_config,
-)
+from polins.io.manifest import MANIFEST_NAME, ManifestError, number_in, parse_manifest
 from polins.io.model_files import (
     camera_model_toml,
     imu_model_toml,
@@ -88,9 +81,8 @@ class Log:
         Reference trajectory (``Trajectory.truth_frame()`` columns), if the log has one.
     description : str
     manifest : dict
-        The validated manifest (``parse_manifest``).
-    config : FuseConfig
-        The filter configuration of the ``[filter]`` table, with the log's site and IMU model.
+        The validated manifest (``parse_manifest``); its filter configuration is
+        ``polins.FuseConfig.from_log(log)``.
     events : tuple of (t, kind, detail)
         Data faults found while loading (``path-outside-log``: an image index entry outside
         the log folder, skipped); the navigation loop reports them with its own.
@@ -108,7 +100,6 @@ class Log:
     truth: pd.DataFrame | None = None
     description: str = ""
     manifest: dict[str, dict[str, Any]] = field(default_factory=dict)
-    config: FuseConfig = field(default_factory=FuseConfig)
     events: tuple[tuple[float, str, str], ...] = ()
     odometry: pd.DataFrame | None = None
 
@@ -263,9 +254,6 @@ def read_log(
         truth=truth,
         description=log["description"],
         manifest=m,
-        config=config_from_mapping(
-            m["filter"], vehicle_config(vehicle, FuseConfig(imu_model=model, site=site))
-        ),
         events=tuple(events),
         odometry=odometry,
     )

@@ -32,13 +32,15 @@
     lever_arm_b = [-0.6, 0.1, -0.3]   # IMU -> vehicle reference point, IMU axes [m]
     lever_std = 0.3                   # optional: estimate the lever arm's error, 1-sigma [m]
     odometer = "odometer.csv"         # optional wheel-odometer stream: t [s], speed [m/s]
-    odometer_std = 0.05               # its 1-sigma [m/s] (default 0.05)
+    odometer_std = 0.05               # its 1-sigma [m/s] (default: auto, 0.05)
 
-    [filter]                 # optional; polins.fusion.config.FuseConfig options
-    nhc_std = 0.05           # (an unknown key is an error naming the closest one;
-                             # they override the [vehicle] table's)
+    [filter]                 # optional; FuseConfig options by their flat names, "off" and
+    nhc_std = 0.05           # "auto" as in Python; they override the [vehicle] table's
 
-An unknown or missing key is a :class:`ManifestError` naming it (and the closest key).
+An unknown or missing key is a :class:`ManifestError` naming it (and the closest key). This
+module reads the file only: the filter configuration of a manifest is built by
+:func:`polins.fusion.config.config_from_manifest` (``FuseConfig.from_log``), which checks the
+``[filter]`` table.
 """
 
 from __future__ import annotations
@@ -54,13 +56,6 @@ from typing import Any
 import pandas as pd
 
 from polins.errors import UserInputError
-from polins.fusion.config import (
-    ODOMETER_STD,
-    VEHICLE_KINDS,
-    FuseConfig,
-    config_from_mapping,
-    option_names,
-)
 from polins.io.tables import ACCEL_UNITS, GYRO_UNITS
 from polins.site import utc_timestamp
 
@@ -118,12 +113,6 @@ def _triple(v: Any) -> tuple[float, float, float]:
     return (x, y, z)
 
 
-def _kind(v: Any) -> str:
-    if v not in VEHICLE_KINDS:
-        raise UserInputError(f"expected one of {', '.join(repr(k) for k in VEHICLE_KINDS)}")
-    return str(v)
-
-
 def _sigma(v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float) or not (0 < v < math.inf):
         raise UserInputError("expected a number > 0")
@@ -156,7 +145,7 @@ _MANIFEST_SCHEMA: dict[str, dict[str, tuple[bool, Callable[[Any], Any]]]] = {
     "units": {"gyro": (False, _unit(GYRO_UNITS)), "accel": (False, _unit(ACCEL_UNITS))},
     "ros": {"imu_topic": (False, _str), "image_topic": (False, _str)},
     "vehicle": {
-        "kind": (False, _kind),
+        "kind": (False, _str),  # checked with the configuration (FuseConfig's vehicle)
         "mount_rpy_deg": (False, _triple),
         "mount_std_deg": (False, number_in(0.0, 90.0)),
         "lever_arm_b": (False, _triple),
@@ -244,40 +233,8 @@ def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
                 )
     if out["ros"] and "bag" not in files:
         raise ManifestError(f"{path}: table [ros] is only used with 'files.bag'")
-    out["filter"] = _filter_table(path, data.get("filter", {}))
+    out["filter"] = dict(data.get("filter", {}))  # FuseConfig options: polins.fusion.config
     return out
 
 
-def _filter_table(path: Path, table: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``[filter]`` table: ``FuseConfig`` options (the site and IMU model are in [log])."""
-    allowed = [n for n in option_names() if n not in ("imu_model", "site")]
-    for key in table:
-        if key not in allowed:
-            raise _unknown(path, f"filter.{key}", allowed)
-    try:
-        config_from_mapping(table)
-    except (UserInputError, TypeError) as exc:  # TypeError: a value of the wrong type
-        raise ManifestError(f"{path}: table [filter]: {exc}") from None
-    return dict(table)
-
-
-def vehicle_config(vehicle: Mapping[str, Any], base: FuseConfig) -> FuseConfig:
-    """``base`` with the options of a manifest's ``[vehicle]`` table (kind, mounting and
-    its prior sigma in degrees, lever arm and its prior sigma [m], the odometer's sigma)."""
-    opts: dict[str, Any] = {}
-    if "kind" in vehicle:
-        opts["vehicle"] = vehicle["kind"]
-    if "mount_rpy_deg" in vehicle:
-        opts["mount_rpy"] = tuple(math.radians(v) for v in vehicle["mount_rpy_deg"])
-    if "mount_std_deg" in vehicle:
-        opts["mount_std"] = math.radians(vehicle["mount_std_deg"])
-    if "lever_arm_b" in vehicle:
-        opts["lever_arm_b"] = tuple(vehicle["lever_arm_b"])
-    if "lever_std" in vehicle:
-        opts["lever_std"] = float(vehicle["lever_std"])
-    if "odometer" in vehicle:
-        opts["odometer_std"] = vehicle.get("odometer_std", ODOMETER_STD)
-    return FuseConfig.from_options(base, **opts)
-
-
-__all__ = ["MANIFEST_NAME", "ManifestError", "number_in", "parse_manifest", "vehicle_config"]
+__all__ = ["MANIFEST_NAME", "ManifestError", "number_in", "parse_manifest"]

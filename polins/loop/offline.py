@@ -137,12 +137,12 @@ def run_log(
 
     check_images_exist(log)
     opts = options if options is not None else LoopOptions()
-    base = config if config is not None else log.config
+    base = config if config is not None else FuseConfig.from_log(log)
     base.check_backend(backend)
     if workers is not None and (isinstance(workers, bool) or workers < 1):
         raise UserInputError(f"workers={workers!r} must be an integer >= 1")
     n_workers = int(workers) if workers else (os.cpu_count() or 1)
-    own_solution = backend == "eskf" and not base.smooth
+    own_solution = backend == "eskf" and not base.output.smooth
     start = time.perf_counter()
     imu = log.imu
     t_imu = imu["t"].to_numpy(dtype=float)
@@ -159,7 +159,7 @@ def run_log(
         epoch_utc=log.epoch_utc,
         rot_nb0=rot_nb0,
         options=dataclasses.replace(opts, record_solution=own_solution),
-        config=dataclasses.replace(base, smooth=False),
+        config=base.replace(smooth=False),
         imu_dt=dt_med,
         executor="process" if n_workers > 1 else "inline",
         workers=n_workers,
@@ -199,7 +199,7 @@ def run_log(
     if own_solution:
         solution = stream.drain_solution()
     else:
-        config = dataclasses.replace(stream.config, smooth=base.smooth)
+        config = stream.config.replace(smooth=base.output.smooth)
         solution = fuse_measurements(
             imu_used, measurements, config, rot_nb0=rot_nb0, backend=backend, odometry=odometry
         ).solution
@@ -208,7 +208,7 @@ def run_log(
     settings = {
         "manifest": str(log.manifest_path),
         "backend": backend,
-        "smooth": base.smooth,
+        "smooth": base.output.smooth,
         "workers": n_workers,
         "method": opts.method,
         "update": opts.update,

@@ -7,7 +7,6 @@ The filter itself is configured by one :class:`polins.fusion.config.FuseConfig`;
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,7 +24,7 @@ class LoopOptions:
     Attributes
     ----------
     method : str
-        ``polins.measure`` method ("compensated", "traditional", "paper").
+        ``polins.measure`` method ("compensated", "traditional").
     measure_options : mapping
         Keyword options of ``polins.measure`` (``polins.compass.MeasureOptions`` fields).
     update : {"yaw", "sun"}
@@ -95,8 +94,9 @@ class LoopOptions:
     def filter_config(self, config: FuseConfig) -> FuseConfig:
         """The filter configuration of this loop: ``config`` with ``use_sun`` set by
         ``update``, and ``tilt_coupling`` on for ``update="yaw"`` unless ``config`` sets it."""
-        tilt = self.update == "yaw" if config.tilt_coupling is None else config.tilt_coupling
-        return dataclasses.replace(config, use_sun=self.update == "sun", tilt_coupling=tilt)
+        tilt = config.gating.tilt_coupling
+        tilt = self.update == "yaw" if tilt == "auto" else tilt
+        return config.replace(use_sun=self.update == "sun", tilt_coupling=tilt)
 
 
 __all__ = ["UPDATES", "LoopOptions"]

@@ -20,7 +20,7 @@ import pandas as pd
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import TIME_TOL_S, FuseConfig
 from polins.fusion.eskf.filter import ESKF
 from polins.fusion.eskf.propagate import advance, interpolate
 from polins.fusion.items import UpdateRecord
@@ -88,7 +88,7 @@ class FilterRunner:
         if not f.ready:  # self-alignment: level on the window, then run from its start
             self._levelling.extend(samples)
             t_lev = np.array([s[0] for s in self._levelling]) - self.t0
-            k_end = int(np.searchsorted(t_lev, f.config.align_s - f.config.time_tol_s))
+            k_end = int(np.searchsorted(t_lev, f.config.initial.align_s - TIME_TOL_S))
             if k_end >= len(t_lev):
                 return [], False
             f.level(self._levelling[: k_end + 1])

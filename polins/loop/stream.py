@@ -65,7 +65,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
 from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
-from polins.fusion.config import FuseConfig, config_with_site
+from polins.fusion.config import TIME_TOL_S, FuseConfig, config_with_site, site_from_shorthand
 from polins.fusion.eskf.filter import ESKF
 from polins.fusion.faults import (
     EventKind,
@@ -165,12 +165,7 @@ class NavigationStream:
         executor: str = "inline",
         workers: int = 1,
     ) -> None:
-        if lat_deg is not None or lon_deg is not None or alt_m is not None:
-            if site is not None or lat_deg is None or lon_deg is None:
-                raise UserInputError(
-                    "give either site or lat_deg and lon_deg (alt_m optional), not both"
-                )
-            site = Site(lat_deg, lon_deg, 0.0 if alt_m is None else alt_m)
+        site = site_from_shorthand(site, {"lat_deg": lat_deg, "lon_deg": lon_deg, "alt_m": alt_m})
         if executor not in EXECUTORS:
             raise UserInputError(f"executor={executor!r}: expected one of {EXECUTORS}")
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
@@ -188,7 +183,7 @@ class NavigationStream:
         self.epoch_utc = utc_timestamp(epoch_utc)
         self.rot_nb0 = rot_nb0
         self.imu_dt = float(imu_dt) if imu_dt else 1.0 / imu_model.sample_rate_hz
-        self._tol = self.config.time_tol_s
+        self._tol = TIME_TOL_S
         self.workers = workers
         self.max_in_flight = self.options.max_in_flight or (2 * workers + 1)
         measurer = ImageMeasurer(camera, self.options.method, self.options.measure_kwargs())
@@ -203,8 +198,8 @@ class NavigationStream:
         self._events = EventBuffer(self.options.max_table_rows)
         # the fault policy of every path (polins.fusion.faults, docs/faults.md)
         full_scale = imu_model.full_scale()
-        self._screen = ImuScreen(full_scale, default_max_gap_s(self.config.max_gap_s, self.imu_dt))
-        self._units = UnitsWindow(self.config.align_s, full_scale[0])
+        self._screen = ImuScreen(full_scale, default_max_gap_s(self.config.gap_s, self.imu_dt))
+        self._units = UnitsWindow(self.config.initial.align_s, full_scale[0])
         self._heading_check = GyroHeadingCheck()
         self._last: Sample | None = None  # the newest accepted sample
         self.n_images = 0  # images added (including skipped ones)
@@ -232,7 +227,7 @@ class NavigationStream:
 
     @property
     def counts(self) -> dict[str, int]:
-        """Events reported per kind since the start (``polins.loop.tables.EVENT_KINDS``)."""
+        """Events reported per kind since the start (``polins.fusion.faults.EventKind``)."""
         return dict(self._events.counts)
 
     @property
@@ -370,7 +365,7 @@ class NavigationStream:
         frame; one or many), forward-velocity updates with the odometer scale-factor state
         (needs ``odometer_std``: FuseConfig or the manifest's ``[vehicle]``). They are
         applied when the filter reaches their time; an older one is rejected (logged)."""
-        std = self.config.odometer_std
+        std = self.config.odometer_sigma
         if std is None:
             raise UserInputError("add_odometry needs odometer_std [m/s] (FuseConfig, [vehicle])")
         if self._runner is None:
@@ -394,7 +389,7 @@ class NavigationStream:
         if f is None or t < self._units.t_first - self._tol:
             self._skip(index, t, "image-outside-imu", f"{what} before the first IMU sample")
             return False
-        align_s = self.config.align_s
+        align_s = self.config.initial.align_s
         if self.rot_nb0 is None and t <= self._units.t_first + align_s + self._tol:
             self._skip(index, t, "image-during-alignment",
                        f"{what} inside the levelling window ({align_s} s)")  # fmt: skip
@@ -537,12 +532,12 @@ class NavigationStream:
         self._heading_check.add_headings(img.t, heading_proxy(row))  # ImuUnitsError: deg/s
         cols: dict[str, Any] = {"sky": {c: row[c] for c in SKY_COLUMNS if c in row}}
         if "yaw" in row:
-            cols.update(yaw=row["yaw"], yaw_std=row["yaw_std"])
+            cols.update(yaw=row["yaw"], yaw_std=float(self.config.yaw_sigma(row["yaw_std"])))
             if f.ready and f.yaw_aligned:
                 row["innovation"] = float(wrap_angle(row["yaw"] - self._predicted_yaw(img.t)))
         if "sun_bx" in row:
             cols.update(sun_b=[row["sun_bx"], row["sun_by"], row["sun_bz"]],
-                        sun_std=row["sun_std"])  # fmt: skip
+                        sun_std=float(self.config.sun_sigma(row["sun_std"])))  # fmt: skip
         if all(np.isfinite(row.get(c, np.nan)) for c in PRIOR_COLUMNS):
             cols["rot_nb_prior"] = rot_nb_from_euler(
                 row["prior_yaw"], row["prior_pitch"], row["prior_roll"]

@@ -9,7 +9,6 @@ file and the key.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,7 +64,7 @@ _IMU_SCHEMA: Schema = {
     "name": string,
     "description": string,
     "grade": choice("navigation", "tactical", "mems"),
-    "earth_rate": Optional(boolean),  # no longer used: a warning says so
+    "earth_rate": Optional(boolean),  # not a sensor property: load_imu names the filter option
     "sample_rate_hz": positive,
     **_SENSOR_SCHEMA,
 }
@@ -226,14 +225,12 @@ def load_imu(name_or_path: str | Path) -> ImuModel:
         model's grade (``IMU_PLAUSIBLE_RANGES``), named with the file and the key.
     """
     path, d = read_model(name_or_path, "imus", _IMU_SCHEMA)
-    _check_plausible(path, d["grade"], d)
     if "earth_rate" in d:
-        warnings.warn(
-            f"{path}: key 'earth_rate' is no longer used and is ignored: the Earth rate is "
-            "mechanized whenever the site is known (FuseConfig.earth_rate overrides)",
-            UserWarning,
-            stacklevel=2,
+        raise ModelFileError(
+            f"{path}: key 'earth_rate' is not an IMU property: delete it (the filters mechanize "
+            "the Earth rate whenever the site is known; the filter option earth_rate turns it off)"
         )
+    _check_plausible(path, d["grade"], d)
     g, a = d["gyro"], d["accel"]
     sqrt_h = 60.0  # sqrt(3600 s)
     return ImuModel(

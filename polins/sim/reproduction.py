@@ -11,7 +11,7 @@ about the vertical, and a prior heading = truth + N(0, 0.5 deg).
 
 Every image is measured with each of the estimators in :data:`ESTIMATORS`: the operational
 methods of ``polins.measure`` and the paper's Algorithm 1
-(:func:`polins.compass.paper.measure_paper`). :data:`PAPER_OCCLUDER` (a world-fixed tree
+(:func:`polins.sim.algorithm1.measure_algorithm1`). :data:`PAPER_OCCLUDER` (a world-fixed tree
 line, azimuth 260-350 deg, elevation < 40 deg, docs/model.md §12.6) breaks the symmetry of
 the level geometry, in which the direct-sunlight term cannot bias the heading.
 :mod:`polins.sim.paper` turns the results into the ``polins demo`` report.
@@ -20,7 +20,6 @@ the level geometry, in which the direct-sunlight term cannot bias the heading.
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -28,13 +27,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from polins.compass.camera import fov_mask, pixel_rays_c
 from polins.compass.crlb import yaw_crlb
-from polins.compass.measure import NoiseModelWarning, measure
-from polins.compass.paper import measure_paper
+from polins.compass.measure import Measurement, measure
 from polins.frames import heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
 from polins.models import CameraModel, load_camera
+from polins.sim.algorithm1 import measure_algorithm1, measure_baseline
 from polins.sim.render import azimuth_band, occluded, render_raw
 from polins.site import PAPER_SITE
 from polins.sky.ephemeris import sun_position, sun_vector_n
@@ -82,10 +82,11 @@ class Estimator:
     label : str
         Row label of the table.
     method : str
-        "traditional" or "compensated" (``polins.measure``), or "paper"
-        (:func:`polins.compass.paper.measure_paper`).
+        "traditional" or "compensated" (``polins.measure``; "traditional" with the
+        ``gain_correction`` or ``weighted`` switch: :func:`polins.sim.algorithm1.measure_baseline`),
+        or "paper" (:func:`polins.sim.algorithm1.measure_algorithm1`).
     options : tuple of (name, value)
-        Keyword options: ``MeasureOptions`` fields, and for "paper" its switches.
+        Keyword options: ``MeasureOptions`` fields and the switches of those functions.
     paper_role : str
         What the row stands for in the paper's comparison.
     """
@@ -148,6 +149,18 @@ ESTIMATORS: tuple[Estimator, ...] = (
         "docs/model.md §9.2, this library's default",
     ),
 )
+
+
+def _measure(
+    est: Estimator, raw: NDArray, cam: CameraModel, sun_n: NDArray, rot_prior: Rotation
+) -> Measurement:
+    """One image measured by the estimator ``est``."""
+    options = dict(est.options)
+    if est.method == "paper":
+        return measure_algorithm1(raw, cam, sun_n=sun_n, rot_nb_prior=rot_prior, **options)[0]
+    if {"gain_correction", "weighted"} & options.keys():  # the paper's baselines
+        return measure_baseline(raw, cam, sun_n=sun_n, rot_nb_prior=rot_prior, **options)
+    return measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot_prior, method=est.method, **options)
 
 
 @dataclass(frozen=True)
@@ -283,24 +296,7 @@ def run_scenario(
         rot_prior = rot_nb_from_euler(yaw_prior, 0.0, 0.0)
         for est in estimators:
             tic = time.perf_counter()
-            if est.method == "paper":
-                m, _ = measure_paper(
-                    raw, cam, sun_n=sun_n[k], rot_nb_prior=rot_prior, **dict(est.options)
-                )
-            else:
-                with warnings.catch_warnings():
-                    if dict(est.options).get("gain_correction", True) is False:
-                        # the paper's baseline ignores the gains on purpose: its noise
-                        # check must disagree with the camera file, and says so
-                        warnings.simplefilter("ignore", NoiseModelWarning)
-                    m = measure(
-                        raw,
-                        cam,
-                        sun_n=sun_n[k],
-                        rot_nb_prior=rot_prior,
-                        method=est.method,
-                        **dict(est.options),
-                    )
+            m = _measure(est, raw, cam, sun_n[k], rot_prior)
             measure_s[est.key].append(time.perf_counter() - tic)
             if est.method == "compensated" and m.ok:
                 n_pix.append(int(m.n_pixels))

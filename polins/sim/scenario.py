@@ -54,9 +54,12 @@ from polins.sky.ephemeris import sun_position, sun_vector_n
 
 FloatArray = NDArray[np.float64]
 
-SCENARIOS = ("turntable", "ugv")
+SCENARIOS = ("turntable", "ugv", "static")
 SKIES = ("model", "realistic")
-DEFAULT_DURATION_S = {"turntable": 100.0, "ugv": 300.0}
+# static: two hours, ten crossover times of a mid-range MEMS gyro's white noise and bias
+# random walk (polins.tuning.record_length_needed), at one image a minute
+DEFAULT_DURATION_S = {"turntable": 100.0, "ugv": 300.0, "static": 7200.0}
+DEFAULT_IMAGE_RATE_HZ = {"turntable": 5.0, "ugv": 5.0, "static": 1.0 / 60.0}
 DEFAULT_EPOCH = PAPER_EPOCH  # the paper's Sec. 4.1 simulation (Harbin)
 TURNTABLE_RATE = np.radians(7.2)  # [rad/s]: the paper's 720 deg in 100 s
 
@@ -130,7 +133,9 @@ def scenario_trajectory(
 
     ``"turntable"``: the paper's turntable, level, 7.2 deg/s about the vertical (720 deg in
     the default 100 s). ``"ugv"``: :func:`polins.sim.trajectory.ugv_drive` (default 300 s)
-    with an initial yaw drawn from ``rng``.
+    with an initial yaw drawn from ``rng``. ``"static"``: the IMU at rest, level, at a yaw
+    drawn from ``rng`` (default 7200 s): a record for ``polins imu-model``
+    (docs/imu-model.md).
     """
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
@@ -140,6 +145,9 @@ def scenario_trajectory(
         return turntable(
             duration_s=duration, turn_rad=TURNTABLE_RATE * duration, rate_hz=rate_hz, **site
         )
+    if scenario == "static":
+        yaw = float(rng.uniform(-np.pi, np.pi))
+        return turntable(duration_s=duration, turn_rad=0.0, rate_hz=rate_hz, yaw0=yaw, **site)
     yaw0 = float(rng.uniform(-np.pi, np.pi))
     return ugv_drive(duration_s=duration, rate_hz=rate_hz, rng=rng, yaw0=yaw0, **site)
 
@@ -174,7 +182,7 @@ def simulate_log(
     *,
     scenario: str = "turntable",
     duration_s: float | None = None,
-    image_rate_hz: float = 5.0,
+    image_rate_hz: float | None = None,
     downscale: int = 8,
     imu: str | Path | ImuModel = "fins-paper",
     camera: str | Path | CameraModel = "paper-table1",
@@ -195,12 +203,13 @@ def simulate_log(
     ----------
     out : str or Path
         Output folder (created; an existing log there is replaced).
-    scenario : {"turntable", "ugv"}
+    scenario : {"turntable", "ugv", "static"}
         See :func:`scenario_trajectory`.
     duration_s : float, optional
-        Length [s]; default 100 s (turntable) or 300 s (ugv).
-    image_rate_hz : float
+        Length [s]; default ``DEFAULT_DURATION_S`` (turntable 100 s, ugv 300 s, static 7200 s).
+    image_rate_hz : float, optional
         Camera rate [Hz] (e.g. 5-22); images are taken at the nearest IMU sample times.
+        Default ``DEFAULT_IMAGE_RATE_HZ``: 5 Hz, for the static record one image a minute.
     downscale : int
         Render the camera at ``1/downscale`` resolution (``CameraModel.downscaled``), for
         small, quick logs; 1 = full resolution (2048 x 2448, ~6 MB per PNG). The default
@@ -238,6 +247,10 @@ def simulate_log(
     -------
     SimulatedLog
     """
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}: expected one of {', '.join(SCENARIOS)}")
+    if image_rate_hz is None:
+        image_rate_hz = DEFAULT_IMAGE_RATE_HZ[scenario]
     if isinstance(downscale, bool) or not isinstance(downscale, int | np.integer):
         raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
     if seed < 0:
@@ -360,7 +373,9 @@ def rot_nb_at(traj: Trajectory, t: FloatArray) -> Rotation:
 
 
 __all__ = [
+    "DEFAULT_DURATION_S",
     "DEFAULT_EPOCH",
+    "DEFAULT_IMAGE_RATE_HZ",
     "SCENARIOS",
     "SimulatedLog",
     "image_indices",

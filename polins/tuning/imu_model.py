@@ -27,7 +27,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from polins.errors import UserInputError
-from polins.models import ImuModel, ModelFileError
+from polins.models import IMU_PLAUSIBLE_RANGES, ImuModel, ModelFileError
 from polins.tuning.allan import CI_LEVEL, FLICKER_FACTOR, AllanCurve, NoiseTerms, fit_allan
 
 FloatArray = NDArray[np.float64]
@@ -37,6 +37,8 @@ ACCEL_COLUMNS = ("ax", "ay", "az")
 EARTH_RATE = 7.292115e-5  # [rad/s] WGS-84
 STANDARD_GRAVITY = 9.80665  # [m/s^2]
 _DEG_PER_H = np.pi / 180.0 / 3600.0  # [rad/s] per [deg/h]
+GAP_FACTOR = 1.5  # a time step over 1.5 sample periods is a gap: samples are missing
+MIN_SEGMENT_SAMPLES = 64  # the shortest series an Allan deviation is computed for
 
 # What a static recording cannot show, typical of each grade (SI): turn-on bias 1-sigma
 # (gyro [rad/s], accel [m/s^2]) and scale-factor 1-sigma [-]; the values of the shipped
@@ -165,6 +167,35 @@ def _segments(imu: pd.DataFrame | Sequence[pd.DataFrame]) -> list[pd.DataFrame]:
     return frames
 
 
+def split_at_gaps(frame: pd.DataFrame) -> tuple[list[pd.DataFrame], list[tuple[float, float]]]:
+    """Split a static table where samples are missing (a step over ``GAP_FACTOR`` periods).
+
+    Parameters
+    ----------
+    frame : DataFrame
+        A static IMU table with strictly increasing ``t`` [s].
+
+    Returns
+    -------
+    pieces : list of DataFrame
+        The uniformly sampled parts, in order.
+    gaps : list of (float, float)
+        Each gap's last sample before and first sample after [s].
+    """
+    t = frame["t"].to_numpy(dtype=float)
+    dt = np.diff(t)
+    if len(t) < 2 or not np.all(dt > 0):
+        first = int(np.argmax(dt <= 0)) if len(t) >= 2 else 0
+        raise UserInputError(
+            f"static IMU times t must be strictly increasing (t = {t[first]:.6g} s is followed"
+            f" by {t[min(first + 1, len(t) - 1)]:.6g} s)"
+        )
+    period = float(np.median(dt))
+    cut = np.flatnonzero(dt > GAP_FACTOR * period)
+    pieces = [frame.iloc[idx] for idx in np.split(np.arange(len(t)), cut + 1)]
+    return pieces, [(float(t[k]), float(t[k + 1])) for k in cut]
+
+
 def _rate(frames: list[pd.DataFrame], sample_rate_hz: float | None) -> float:
     if sample_rate_hz is not None:
         if not sample_rate_hz > 0:
@@ -174,19 +205,121 @@ def _rate(frames: list[pd.DataFrame], sample_rate_hz: float | None) -> float:
     for f in frames:
         t = f["t"].to_numpy(dtype=float)
         dt = np.diff(t)
-        if len(t) < 2 or not np.all(dt > 0):
-            raise UserInputError("static IMU times t must be strictly increasing")
-        mean = (t[-1] - t[0]) / (len(t) - 1)
-        bad = np.flatnonzero(np.abs(dt - mean) > 0.01 * mean)
+        period = float(np.median(dt))
+        bad = np.flatnonzero(np.abs(dt - period) > 0.01 * period)
         if len(bad):
+            k = int(bad[0])
             raise UserInputError(
-                f"static IMU samples are not uniformly spaced (gap at t = {t[bad[0]]:.6g} s):"
-                " pass the parts between gaps as a list of segments"
+                f"static IMU samples are not uniformly spaced: the step from t = {t[k]:.6g} s "
+                f"to {t[k + 1]:.6g} s is {dt[k]:.3g} s against a sample period of {period:.3g} s"
             )
-        rates.append(1.0 / mean)
+        rates.append(1.0 / float(np.mean(dt)))
     if max(rates) > 1.001 * min(rates):
         raise UserInputError(f"static segments have different sample rates: {rates}")
     return float(np.mean(rates))
+
+
+def _usable_segments(
+    frames: list[pd.DataFrame],
+) -> tuple[list[pd.DataFrame], list[str]]:
+    """The segments split at their gaps, those too short for an Allan deviation dropped."""
+    pieces, notes = [], []
+    for f in frames:
+        parts, gaps = split_at_gaps(f)
+        if gaps:
+            where = ", ".join(f"{a:.6g} -> {b:.6g} s" for a, b in gaps[:5])
+            more = f" and {len(gaps) - 5} more" if len(gaps) > 5 else ""
+            notes.append(f"split at {len(gaps)} gap(s) in the samples: {where}{more}")
+        pieces += parts
+    short = [p for p in pieces if len(p) < MIN_SEGMENT_SAMPLES]
+    kept = [p for p in pieces if len(p) >= MIN_SEGMENT_SAMPLES]
+    if short:
+        notes.append(
+            f"{len(short)} piece(s) shorter than {MIN_SEGMENT_SAMPLES} samples left out "
+            f"({sum(len(p) for p in short)} samples)"
+        )
+    if not kept:
+        raise UserInputError(
+            f"no static segment has {MIN_SEGMENT_SAMPLES} samples: the longest holds "
+            f"{max(len(p) for p in pieces)}; record longer (record_length_needed says how long)"
+        )
+    return kept, notes
+
+
+def grade_random_walk(grade: str, sensor: str) -> float:
+    """A mid-range bias random walk of a grade [SI]: the geometric mean of its plausible range.
+
+    Gyro [rad/s/sqrt(s)], accelerometer [m/s^2/sqrt(s)] (``IMU_PLAUSIBLE_RANGES``).
+    """
+    key, scale = {
+        "gyro": ("gyro.bias_rw_deg_per_h_per_sqrt_h", _DEG_PER_H / 60.0),
+        "accel": ("accel.bias_rw_mg_per_sqrt_h", 1e-3 * STANDARD_GRAVITY / 60.0),
+    }[sensor]
+    lo, hi = IMU_PLAUSIBLE_RANGES[grade][key]
+    return float(np.sqrt(lo * hi)) * scale
+
+
+def record_length_needed(white: float, random_walk: float) -> float:
+    """Record length that identifies a bias random walk [s]: ten crossover times.
+
+    The white line ``N / sqrt(tau)`` and the random-walk line ``K sqrt(tau / 3)`` of the
+    Allan deviation cross at ``tau_c = sqrt(3) N / K``; the Allan deviation reaches a
+    quarter of the record and the random walk dominates from a few ``tau_c`` on, so the
+    record needs about ``10 tau_c`` (docs/imu-model.md §2).
+
+    Parameters
+    ----------
+    white : float
+        White-noise density ``N`` [unit sqrt(s)].
+    random_walk : float
+        Random-walk density ``K`` [unit/sqrt(s)].
+    """
+    return float(10.0 * np.sqrt(3.0) * white / random_walk) if random_walk > 0 else np.inf
+
+
+def _length_notes(
+    gyro: SensorAllan, accel: SensorAllan, grade: str, longest_s: float
+) -> tuple[list[str], list[str]]:
+    """Per sensor, whether the record identifies its random walk and how long it would need.
+
+    Returns the notes and the problems (a random-walk bound above the grade's range).
+    """
+    notes, problems = [], []
+    keys = {"gyro": ("gyro.bias_rw_deg_per_h_per_sqrt_h", 1.0 / _DEG_PER_H * 60.0, "deg/h/sqrt(h)"),
+            "accel": ("accel.bias_rw_mg_per_sqrt_h", 60.0 / (1e-3 * STANDARD_GRAVITY), "mg/sqrt(h)")}  # fmt: skip
+    for sensor in (gyro, accel):
+        c = sensor.combined
+        key, scale, unit = keys[sensor.sensor]
+        k_typ = grade_random_walk(grade, sensor.sensor)
+        need = record_length_needed(c.white, k_typ)
+        if c.identified["random_walk"]:
+            notes.append(f"{sensor.sensor} random walk identified by the {longest_s:.0f} s segment")
+            continue
+        notes.append(
+            f"{sensor.sensor} random walk not identified (an upper bound): a mid-range {grade} "
+            f"value, {k_typ * scale:.3g} {unit}, shows in a segment of about {need:.0f} s "
+            f"({need / 3600:.2g} h, 10 crossover times); the longest here is {longest_s:.1f} s"
+        )
+        bound, _ = model_random_walk(c)
+        hi = IMU_PLAUSIBLE_RANGES[grade][key][1]
+        if bound * scale > hi:
+            problems.append(
+                f"the static record is too short to bound the {sensor.sensor} random walk: its "
+                f"longest segment, {longest_s:.1f} s, gives only {key} <= {bound * scale:.4g}, "
+                f"above the {grade} range's {hi:g}; record at least {need:.0f} s ({need / 3600:.2g} h) at "
+                "rest to identify it"
+            )
+    return notes, problems
+
+
+def _white_plausible(gyro: SensorAllan, accel: SensorAllan, grade: str) -> bool:
+    """Whether the white-noise densities lie in the grade's plausible ranges."""
+    ranges = IMU_PLAUSIBLE_RANGES[grade]
+    values = {
+        "gyro.arw_deg_per_sqrt_h": float(np.degrees(gyro.combined.white)) * 60.0,
+        "accel.vrw_m_per_s_per_sqrt_h": accel.combined.white * 60.0,
+    }
+    return all(ranges[k][0] <= v <= ranges[k][1] for k, v in values.items())
 
 
 def _check_units(frames: list[pd.DataFrame]) -> None:
@@ -277,9 +410,11 @@ def imu_model_from_static(
     imu : DataFrame or sequence of DataFrame
         Columns ``t`` [s], ``gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2] of an IMU at rest,
         uniformly sampled. Several static segments (e.g. the rests before and after a
-        trial) are analysed one by one and their Allan variances pooled; no jump between
-        them enters. Longer is better: the bias random walk shows only at averaging times
-        near a tenth of the longest segment.
+        trial, or several files) are analysed one by one and their Allan variances pooled;
+        no jump between them enters. A table with missing samples is split at its gaps
+        (:func:`split_at_gaps`; the notes say where), pieces under
+        ``MIN_SEGMENT_SAMPLES`` are left out. Longer is better: the bias random walk shows
+        only in a segment of about ten crossover times (:func:`record_length_needed`).
     sample_rate_hz : float, optional
         Sample rate [Hz]; by default from ``t``.
     name, description : str
@@ -310,17 +445,23 @@ def imu_model_from_static(
     ------
     UserInputError
         Missing columns, non-uniform or non-finite samples, units that are not rad/s and
-        m/s^2, an unknown grade, or a fitted value implausible for the grade.
+        m/s^2, an unknown grade, a record too short to bound a random walk within the
+        grade's range (the message says how long a record is needed), or a fitted value
+        implausible for the grade.
     """
     if grade not in GRADE_TYPICAL:
         raise UserInputError(f"grade must be one of {sorted(GRADE_TYPICAL)}, got {grade!r}")
-    frames = _segments(imu)
+    frames, split_notes = _usable_segments(_segments(imu))
     rate = _rate(frames, sample_rate_hz)
     _check_units(frames)
     gyro = _sensor(frames, "gyro", GYRO_COLUMNS, rate, points_per_decade)
     accel = _sensor(frames, "accel", ACCEL_COLUMNS, rate, points_per_decade)
     typical = GRADE_TYPICAL[grade]
     g_rw, a_rw, notes = _noise_notes(gyro, accel)
+    longest_s = max(len(f) for f in frames) / rate
+    length_notes, too_short = _length_notes(gyro, accel, grade, longest_s)
+    if too_short and _white_plausible(gyro, accel, grade):  # else units or grade: below
+        raise UserInputError(too_short[0])
     deg_h, mg = 1.0 / _DEG_PER_H, 1.0 / (1e-3 * STANDARD_GRAVITY)
 
     seg_means = [f[list(GYRO_COLUMNS)].to_numpy(dtype=float).mean(axis=0) for f in frames]
@@ -377,15 +518,19 @@ def imu_model_from_static(
         sample_rate_hz=rate,
         duration_s=n_total / rate,
         n_segments=len(frames),
-        notes=tuple(notes),
+        notes=tuple(notes + split_notes + length_notes),
     )
     return model, fit
 
 
 __all__ = [
+    "GAP_FACTOR",
     "GRADE_TYPICAL",
     "AllanFit",
     "SensorAllan",
+    "grade_random_walk",
     "imu_model_from_static",
     "model_random_walk",
+    "record_length_needed",
+    "split_at_gaps",
 ]

@@ -7,7 +7,18 @@ updates lies in ``chi2.ppf([a/2, 1 - a/2], n dim) / n`` with probability ``1 - a
 whitened innovations ``L^-1 nu`` (``S = L L'``) have no autocorrelation beyond
 ``+-z / sqrt(n)``. A mean NIS above the band says ``S`` is too small (Q or R too small), below
 it too large; autocorrelated innovations say the process noise is too small (the filter
-trusts a drifting prediction). The measurement sigma floor is the ``f`` [rad or the unit of
+trusts a drifting prediction).
+
+Autocorrelated innovations (the NHC and ZUPT pseudo-measurements at the IMU rate, whose
+innovations follow the slowly varying velocity error) carry fewer independent samples than
+updates: the band of the mean NIS uses the effective number ``n_eff = n / (1 + 2 sum_k
+rho_k)`` of the NIS series' autocorrelation ``rho_k`` (summed while it exceeds the white
+band), as the variance of a mean of correlated samples. A gate that rejects ``NIS > c``
+truncates the chi-square, so the accepted updates' expected mean is ``dim F_{dim+2}(c) /
+F_dim(c)``, below ``dim``; the band is that truncated mean's (a scaled chi-square with the
+truncated variance). Each kind gets a verdict: consistent, conservative (``S`` too large:
+the errors are smaller than the filter thinks) or optimistic (``S`` too small), with the
+likely cause for its kind (:func:`likely_cause`). The measurement sigma floor is the ``f`` [rad or the unit of
 the kind] that, added in quadrature to every ``R``, brings the mean NIS to ``dim``.
 
 The input is the ``updates`` table of :class:`polins.fusion.FusionResult` with its
@@ -16,6 +27,7 @@ The input is the ``updates`` table of :class:`polins.fusion.FusionResult` with i
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +66,10 @@ class InnovationStats:
         One step with this run's gains: when ``R`` was much too small the filter followed
         the measurement noise and the floor comes out too large (up to sqrt(2) x);
         :func:`polins.tuning.tune` refits it by maximum likelihood.
+    n_eff : float
+        Effective number of independent NIS samples (:func:`effective_samples`).
+    nis_expected : float
+        Expected mean NIS: ``dim``, less under a gate (:func:`nis_mean_band`).
     """
 
     kind: str
@@ -64,6 +80,8 @@ class InnovationStats:
     autocorr: FloatArray
     autocorr_band: float
     sigma_floor: float
+    n_eff: float = math.nan
+    nis_expected: float = math.nan
 
     @property
     def consistent(self) -> bool:
@@ -78,11 +96,83 @@ class InnovationStats:
     @property
     def verdict(self) -> str:
         """One phrase: consistent, or which way ``S`` is off."""
-        if self.nis_mean > self.nis_band[1]:
-            return "S too small (Q or R too small)"
-        if self.nis_mean < self.nis_band[0]:
-            return "S too large (Q or R too large)"
-        return "consistent"
+        return nis_verdict(self.nis_mean, self.nis_band)
+
+    @property
+    def cause(self) -> str:
+        """The likely cause of an inconsistent mean NIS for this kind ('' when consistent)."""
+        return likely_cause(self.kind, self.verdict)
+
+
+def nis_verdict(nis_mean: float, band: tuple[float, float]) -> str:
+    """``consistent``, ``optimistic: S too small ...`` or ``conservative: S too large ...``."""
+    if nis_mean > band[1]:
+        return "optimistic: S too small (Q or R too small)"
+    if nis_mean < band[0]:
+        return "conservative: S too large (Q or R too large)"
+    return "consistent"
+
+
+_CAUSES = {
+    ("image", "optimistic"): "the measurement sigma or the IMU noise is too small for this log "
+    "(polins tune), or the data hold errors the model lacks (units, time base, camera file)",
+    ("image", "conservative"): "the measurement sigma or the IMU noise is larger than this "
+    "log's errors (polins tune lowers it)",
+    ("pseudo", "optimistic"): "the vehicle slips, rolls or vibrates more than the "
+    "pseudo-measurement's sigma allows, or the IMU mounting is wrong",
+    ("pseudo", "conservative"): "a pseudo-measurement's sigma is an allowance for slip, "
+    "vibration and mounting errors larger than this log's (a simulator's no-slip wheels)",
+}
+
+
+def likely_cause(kind: str, verdict: str) -> str:
+    """The likely cause of a verdict for a measurement kind (yaw, sun: images; nhc, zupt,
+    odometer: pseudo-measurements); '' for a consistent one."""
+    side = verdict.split(":")[0]
+    if side == "consistent":
+        return ""
+    return _CAUSES[("image" if kind in ("yaw", "sun") else "pseudo", side)]
+
+
+def effective_samples(series: FloatArray, *, prob: float = 0.95) -> float:
+    """Effective number of independent samples of a series' mean [-].
+
+    ``n / (1 + 2 sum_k rho_k)`` with the sample autocorrelation ``rho_k`` of the centred
+    series summed over the lags before it first falls inside the white band
+    ``z / sqrt(n)`` (the initial positive sequence); between 1 and ``n``.
+    """
+    x = np.asarray(series, dtype=float)
+    x = x[np.isfinite(x)]
+    n = x.size
+    if n < 3 or not np.any(x != x[0]):
+        return float(max(n, 1))
+    x = x - x.mean()
+    full = correlate(x, x, mode="full", method="fft")[n - 1 :]
+    rho = full[1:] / full[0]
+    band = norm.ppf(0.5 + prob / 2) / np.sqrt(n)
+    below = np.flatnonzero(rho <= band)
+    k = int(below[0]) if below.size else rho.size
+    return float(np.clip(n / (1.0 + 2.0 * rho[:k].sum()), 1.0, n))
+
+
+def nis_mean_band(
+    dim: int, n_eff: float, *, prob: float = 0.95, gate_prob: float | None = None
+) -> tuple[float, tuple[float, float]]:
+    """Expected mean NIS and its ``prob`` band for ``n_eff`` independent updates of ``dim``.
+
+    Under a gate at ``gate_prob`` the accepted NIS follow a chi-square truncated at
+    ``c = chi2.ppf(gate_prob, dim)``: mean ``dim F_{dim+2}(c) / F_dim(c)``, second moment
+    ``dim (dim + 2) F_{dim+4}(c) / F_dim(c)``; the band is that of a scaled chi-square with
+    the same mean and variance (without a gate: ``chi2.ppf(q, n_eff dim) / n_eff``).
+    """
+    c = np.inf if gate_prob is None else float(chi2.ppf(gate_prob, dim))
+    f0 = chi2.cdf(c, dim)
+    mean = dim * chi2.cdf(c, dim + 2) / f0
+    var = dim * (dim + 2) * chi2.cdf(c, dim + 4) / f0 - mean**2
+    k = 2.0 * mean**2 * n_eff / var
+    a = 1.0 - prob
+    lo, hi = mean * chi2.ppf([a / 2, 1 - a / 2], k) / k
+    return float(mean), (float(lo), float(hi))
 
 
 def innovation_arrays(
@@ -134,7 +224,11 @@ def sigma_floor(nu: FloatArray, S: FloatArray) -> float:
 
 
 def innovation_stats(
-    updates: pd.DataFrame, *, max_lag: int = 10, prob: float = 0.95
+    updates: pd.DataFrame,
+    *,
+    max_lag: int = 10,
+    prob: float = 0.95,
+    gate_prob: float | None = None,
 ) -> dict[str, InnovationStats]:
     """Innovation statistics per measurement kind of a fusion's ``updates`` table.
 
@@ -142,12 +236,15 @@ def innovation_stats(
     ----------
     updates : DataFrame
         ``FusionResult.updates`` (ESKF): ``name, dim, accepted, innovation, innovation_var``.
-        A gate truncates the NIS (its rejections are left out): judge the noise model on a
-        run without one (``gate_prob=None``).
+        A gate truncates the NIS (its rejections are left out): give its ``gate_prob`` so
+        the band is the truncated chi-square's, or judge the noise model on a run without
+        one.
     max_lag : int
-        Largest autocorrelation lag [updates].
+        Largest autocorrelation lag [updates] reported.
     prob : float
-        Probability of the chi-square band of the mean NIS and of the whiteness band.
+        Probability of the band of the mean NIS and of the whiteness band.
+    gate_prob : float, optional
+        The run's gate probability (None: no gate).
 
     Returns
     -------
@@ -167,16 +264,19 @@ def innovation_stats(
         n, dim = nu.shape
         nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S, nu[..., None])[..., 0])
         a = 1.0 - prob
-        band = chi2.ppf([a / 2, 1 - a / 2], n * dim) / n
+        n_eff = effective_samples(nis, prob=prob)
+        expected, band = nis_mean_band(dim, n_eff, prob=prob, gate_prob=gate_prob)
         out[str(kind)] = InnovationStats(
             kind=str(kind),
             n=n,
             dim=dim,
             nis_mean=float(nis.mean()),
-            nis_band=(float(band[0]), float(band[1])),
+            nis_band=band,
             autocorr=autocorrelation(whitened(nu, S), max_lag),
             autocorr_band=float(norm.ppf(1 - a / 2) / np.sqrt(n)),
             sigma_floor=sigma_floor(nu, S),
+            n_eff=n_eff,
+            nis_expected=expected,
         )
     return out
 
@@ -188,12 +288,14 @@ def stats_table(stats: dict[str, InnovationStats]) -> pd.DataFrame:
             {
                 "kind": s.kind,
                 "n": s.n,
+                "n_eff": s.n_eff,
                 "NIS mean": s.nis_mean,
                 "NIS band": f"{s.nis_band[0]:.3g} .. {s.nis_band[1]:.3g}",
                 "lag-1 autocorr": float(s.autocorr[0]) if s.autocorr.size else np.nan,
                 "white band": s.autocorr_band,
                 "sigma floor": s.sigma_floor,
                 "verdict": s.verdict,
+                "likely cause": s.cause,
             }
             for s in stats.values()
         ]
@@ -203,8 +305,12 @@ def stats_table(stats: dict[str, InnovationStats]) -> pd.DataFrame:
 __all__ = [
     "InnovationStats",
     "autocorrelation",
+    "effective_samples",
     "innovation_arrays",
     "innovation_stats",
+    "likely_cause",
+    "nis_mean_band",
+    "nis_verdict",
     "sigma_floor",
     "stats_table",
     "whitened",

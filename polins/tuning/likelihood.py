@@ -193,10 +193,13 @@ class TuneResult:
             start = f"{b.nis_mean:.3g} ({b.verdict})" if b else "-"
             lines.append(
                 f"{kind} NIS mean {start} -> {after.nis_mean:.3g} ({after.verdict}); "
-                f"band {after.nis_band[0]:.3g} .. {after.nis_band[1]:.3g}; lag-1 autocorr "
+                f"band {after.nis_band[0]:.3g} .. {after.nis_band[1]:.3g} from "
+                f"{after.n_eff:.0f} independent of {after.n}; lag-1 autocorr "
                 f"{after.autocorr[0] if after.autocorr.size else math.nan:.3f} "
                 f"(white within ±{after.autocorr_band:.3f})"
             )
+            if after.cause:
+                lines.append(f"  likely cause: {after.cause}")
         return "\n".join(lines)
 
 
@@ -253,6 +256,7 @@ def tune(
     *,
     initial: Mapping[str, float] | None = None,
     rot_nb0: Any = None,
+    odometry: pd.DataFrame | None = None,
     max_log_sigma: float = math.log(2.0),
     search_factor: float = 100.0,
     hessian_step: float = 0.2,
@@ -273,6 +277,10 @@ def tune(
         0.05 deg for a floor.
     rot_nb0 : Rotation, optional
         Initial attitude (None: self-alignment), as in ``run_fusion``.
+    odometry : DataFrame, optional
+        The log's odometer (``t, speed``), as in ``run_fusion``: the tuned filter must be
+        the one that fuses, with every aiding the log has; without it the IMU noise absorbs
+        the velocity errors the odometer would have removed.
     max_log_sigma : float
         Largest Cramér-Rao sigma of ``log(parameter)`` of an identifiable parameter.
     search_factor : float
@@ -289,13 +297,13 @@ def tune(
     params = check_params(params)
     cfg = config or FuseConfig()
     start = _start_values(cfg, params, initial or {})
-    ungated = dataclasses.replace(cfg, gate_prob=None, smooth=False)
+    ungated = cfg.replace(gate_prob="off", smooth=False)
     count = [0]
 
     def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
         c, m = with_values(base, measurements, values)
         count[0] += 1
-        return run_fusion(imu, m, rot_nb0=rot_nb0, config=c)
+        return run_fusion(imu, m, rot_nb0=rot_nb0, config=c, odometry=odometry)
 
     def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
         values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}
@@ -334,8 +342,8 @@ def tune(
         identifiable=ident,
         nll_before=nll(theta_start, params, {}),
         nll_after=nll(np.log([values[p] for p in params]), params, {}),
-        stats_before=innovation_stats(before.updates, prob=prob),
-        stats_after=innovation_stats(after.updates, prob=prob),
+        stats_before=innovation_stats(before.updates, prob=prob, gate_prob=cfg.gate_probability),
+        stats_after=innovation_stats(after.updates, prob=prob, gate_prob=cfg.gate_probability),
         config=tuned_config,
         measurements=tuned_meas,
         before=before,

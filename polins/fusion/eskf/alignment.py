@@ -75,7 +75,7 @@ def level(
         log.warning(
             "self-alignment: the IMU does not look static in the first %.2f s "
             "(|f| = %.3f m/s^2, max |w| = %.3f rad/s); roll/pitch may be wrong",
-            config.align_s, np.linalg.norm(f_mean), np.max(np.abs(gyro_b)),
+            config.initial.align_s, np.linalg.norm(f_mean), np.max(np.abs(gyro_b)),
         )  # fmt: skip
     roll, pitch = level_from_accel(f_mean)
     rot = Rotation.from_euler("ZYX", [0.0, pitch, roll])
@@ -108,7 +108,7 @@ def level(
     P[0:2, ba] = J @ p_ba
     P[ba, 0:2] = (J @ p_ba).T
     P[2, 2] = yaw_var
-    P[vel, vel] = np.eye(3) * config.vel_std0**2
+    P[vel, vel] = np.eye(3) * config.initial.vel_std0**2
     if config.no_clock:  # the heading is relative to the levelled yaw (docs/filter.md §5.7)
         P[2, :] = P[:, 2] = 0.0
     return rot.as_matrix(), P

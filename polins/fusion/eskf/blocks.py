@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import ODOMETER_SCALE_STD, SUN_AZIMUTH_RATE_STD, FuseConfig
 from polins.fusion.eskf.dynamics import StepNominal
 from polins.fusion.items import LEVER_STATE, MOUNT_STATES, MeasurementItem, item_model
 from polins.fusion.measurement import (
@@ -131,11 +131,11 @@ def _sa(step: StepNominal) -> Mapping[str, FloatArray]:
     return {"vel": -step.mat_force * step.accel_divisor}
 
 
-ATT = Block("att", 3, _att, lambda m, c: c.att_std0, lambda m: m.gyro_arw**2,
+ATT = Block("att", 3, _att, lambda m, c: c.initial.att_std0, lambda m: m.gyro_arw**2,
             slice(0, 3), navigation=True)  # fmt: skip
-VEL = Block("vel", 3, _vel, lambda m, c: c.vel_std0, lambda m: m.accel_vrw**2,
+VEL = Block("vel", 3, _vel, lambda m, c: c.initial.vel_std0, lambda m: m.accel_vrw**2,
             slice(3, 6), navigation=True)  # fmt: skip
-POS = Block("pos", 3, _pos, lambda m, c: c.pos_std0, jacobian=slice(6, 9),
+POS = Block("pos", 3, _pos, lambda m, c: c.initial.pos_std0, jacobian=slice(6, 9),
             navigation=True)  # fmt: skip
 GYRO_BIAS = Block("bg", 3, _bg, lambda m, c: m.gyro_bias, lambda m: m.gyro_bias_rw**2,
                   BG, correct=lambda w, f, e: (w - e, f))  # fmt: skip
@@ -157,7 +157,7 @@ def _odometer_scale_jacobian(item: MeasurementItem, lin: Linearized) -> FloatArr
 
 
 # the wheel odometer's scale factor k (a constant), with odometer_std
-ODOMETER_SCALE = Block("so", 1, lambda step: {}, lambda m, c: c.odometer_scale_std,
+ODOMETER_SCALE = Block("so", 1, lambda step: {}, lambda m, c: ODOMETER_SCALE_STD,
                        jacobian=_odometer_scale_jacobian)  # fmt: skip
 # the mounting's pitch and yaw errors (random constants), with mount_std; the NHC and the
 # odometer use the mounting turned by their estimate (polins.fusion.items.item_model)
@@ -183,22 +183,22 @@ def sky_blocks(config: FuseConfig) -> tuple[Block, ...]:
     """The measurement-side blocks ``config`` asks for (:mod:`polins.fusion.sky_states`;
     docs/filter.md, "Approximate site", "No clock", "Heading-measurement bias")."""
     out: tuple[Block, ...] = ()
-    if config.site_std is not None and config.site is not None:
-        std = site_rotation_std(config.site.lat, config.site_std)
+    if config.site_sigma is not None and config.site is not None:
+        std = site_rotation_std(config.site.lat, config.site_sigma)
         out += (Block("site_rot_n", 3, lambda step: {}, lambda m, c: std,
                       jacobian=sun_attitude_columns, offset=True),)  # fmt: skip
     if config.no_clock:
-        rate_std = config.sun_azimuth_rate_std
+        rate_std = SUN_AZIMUTH_RATE_STD
         out += (
             Block("sun_azimuth_n", 1, lambda step: {}, lambda m, c: SUN_AZIMUTH_STD0,
                   jacobian=sun_azimuth_jacobian),
             Block("sun_azimuth_rate", 1,
                   lambda step: {"sun_azimuth_n": np.ones((step.dt.shape[0], 1, 1))},
-                  lambda m, c: c.sun_azimuth_rate_std,
+                  lambda m, c: SUN_AZIMUTH_RATE_STD,
                   lambda m: rate_std**2 / SUN_RATE_CHANGE_S),
         )  # fmt: skip
     if config.heading_bias_sigma is not None:
-        sig, tau = config.heading_bias_sigma, config.heading_bias_tau_s
+        sig, tau = config.heading_bias_sigma, config.sky.heading_bias_tau_s
         out += (Block("heading_bias", 1,
                       lambda step: {"heading_bias": np.full((step.dt.shape[0], 1, 1), -1.0 / tau)},
                       lambda m, c: sig, lambda m: 2.0 * sig**2 / tau, heading_bias_jacobian,
@@ -212,7 +212,7 @@ def error_blocks(config: FuseConfig) -> tuple[Block, ...]:
     blocks: tuple[Block, ...] = (ATT, VEL, POS, gyro_bias, ACCEL_BIAS)
     if config.use_scale_factors:
         blocks += (GYRO_SCALE, ACCEL_SCALE)
-    if config.odometer_std is not None:
+    if config.odometer_sigma is not None:
         blocks += (ODOMETER_SCALE,)
     if config.mount_sigma is not None:
         blocks += (MOUNT_PITCH, MOUNT_YAW)

@@ -46,7 +46,15 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
-from polins.fusion.config import FuseConfig, config_with_site
+from polins.fusion.config import (
+    COV_STEP_S,
+    NHC_RATE_HZ,
+    RESET_ANGLE_RAD,
+    RESET_INTERVAL_S,
+    TIME_TOL_S,
+    FuseConfig,
+    config_with_site,
+)
 from polins.fusion.eskf.acquisition import Acquisition, hold_heading
 from polins.fusion.eskf.alignment import level
 from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav
@@ -81,12 +89,16 @@ class ESKF:
         Time of the first IMU sample [s] (the filter starts there).
     dt : float
         IMU sample interval [s]: sets the samples per covariance step (``cov_step_s``) and
-        per non-holonomic update (``nhc_rate_hz``).
+        per non-holonomic update (``NHC_RATE_HZ``).
     rot_nb0 : Rotation, optional
         Initial attitude; None for self-alignment.
     blocks : sequence of Block, optional
         The error-state blocks (default :func:`~polins.fusion.eskf.blocks.error_blocks`
         of ``config``; docs/filter.md, "Adding a state block").
+    cov_step_s, reset_interval_s : float
+        Internal hooks (tests, benchmarks): the longest covariance-propagation step [s]
+        and the interval of the error-state resets [s]
+        (:data:`polins.fusion.config.COV_STEP_S`, ``RESET_INTERVAL_S``).
     """
 
     def __init__(
@@ -96,6 +108,9 @@ class ESKF:
         dt: float,
         rot_nb0: Rotation | None = None,
         blocks: Sequence[Block] | None = None,
+        *,
+        cov_step_s: float = COV_STEP_S,
+        reset_interval_s: float = RESET_INTERVAL_S,
     ) -> None:
         if not isinstance(config, FuseConfig):
             raise TypeError(f"config must be a FuseConfig, got {type(config).__name__}")
@@ -114,13 +129,14 @@ class ESKF:
         self.layout = Layout(error_blocks(config) if blocks is None else blocks)
         self.n = self.layout.n
         self.qc = self.layout.noise_density(self.model)
-        self.cov_every = max(1, int(config.cov_step_s / dt + 1e-9))
-        self.nhc_every = max(1, round(1.0 / (config.nhc_rate_hz * dt)))
+        self.cov_every = max(1, int(cov_step_s / dt + 1e-9))
+        self.reset_interval_s = float(reset_interval_s)
+        self.nhc_every = max(1, round(1.0 / (NHC_RATE_HZ * dt)))
         self.vehicle = VehicleAiding(config, dt)  # NHC, standstill (fusion/vehicle.py)
-        self.tilt_coupling = bool(config.tilt_coupling)
+        self.tilt_coupling = config.tilt_coupling
         self.t = float(t0)
         self.mat_nb = (rot_nb0 or Rotation.identity()).as_matrix()
-        self.vel_n = np.array(config.vel_n0, dtype=float)
+        self.vel_n = np.array(config.initial.vel_n0, dtype=float)
         self.lat, self.lon, self.alt_m = config.site.lat, config.site.lon, config.site.alt_m
         self.errors = {b.name: np.zeros(b.size) for b in self.layout.sensor}
         self.x = np.zeros(self.n)
@@ -129,9 +145,11 @@ class ESKF:
         self.events: list[FusionEvent] = []  # yaw re-acquisitions
         self.yaw_aligned = rot_nb0 is not None
         self.yaw_epoch = 0  # (re-)acquisitions of the yaw: a new smoother chain each
-        self.acquisition = Acquisition(config.acquire_k, config.acquire_n, config.reacquire_after)
+        self.acquisition = Acquisition(
+            config.gating.acquire_k, config.gating.acquire_n, config.gating.reacquire_after
+        )
         model = config.heading_bias == "model"  # the bias variance from the images
-        self.model_part = ModelPart(config.heading_bias_tau_s) if model else None
+        self.model_part = ModelPart(config.sky.heading_bias_tau_s) if model else None
         self.t_reset = float(t0)
         self.n_resets = 0
         self.count = 0  # real IMU samples consumed
@@ -210,7 +228,7 @@ class ESKF:
         ):
             raise ValueError("gyro_b and accel_b must be finite 3-vectors [rad/s], [m/s^2]")
         n_before = len(self.records)
-        tol = self.config.time_tol_s
+        tol = TIME_TOL_S
         buffer = self._align_buffer
         if buffer is None:
             self._consume(t, w, f)
@@ -220,7 +238,7 @@ class ESKF:
         if not buffer and abs(t - self._t0) > tol:
             raise ValueError(f"the first IMU sample must be at t0={self._t0}, got {t}")
         buffer.append((t, w, f))
-        if t - self._t0 >= self.config.align_s - tol:
+        if t - self._t0 >= self.config.initial.align_s - tol:
             self.level(buffer)
             for s in buffer:
                 self._consume(*s)
@@ -299,7 +317,7 @@ class ESKF:
         """
         items = measurement_items(
             t, yaw=yaw, yaw_std=yaw_std, sun_b=sun_b, sun_n=sun_n, sun_std=sun_std,
-            zupt_std=zupt_std, use_sun=self.config.use_sun, rot_nb_prior=rot_nb_prior, sky=sky,
+            zupt_std=zupt_std, use_sun=self.config.gating.use_sun, rot_nb_prior=rot_nb_prior, sky=sky,
             heading_bias=self.config.heading_bias,
         )  # fmt: skip
         return self.add_items(items)
@@ -307,7 +325,7 @@ class ESKF:
     def add_items(self, items: Sequence[MeasurementItem]) -> list[UpdateRecord]:
         """Queue measurement items (see :meth:`add_measurement`)."""
         n_before = len(self.records)
-        tol = self.config.time_tol_s
+        tol = TIME_TOL_S
         started = self.started and self.ready
         queued = False
         for item in items:
@@ -458,10 +476,10 @@ class ESKF:
             Sm = H @ (self.P @ H.T) + lin.R
             nis = float(y @ np.linalg.solve(Sm, y))
             nu, S = tuple(y.tolist()), tuple(Sm.ravel().tolist())
-        limit = gate_limit(self.config.gate_prob, dim)
+        limit = gate_limit(self.config.gate_probability, dim)
         if nis > limit:
             reason = (f"NIS above the gate: {nis:.3g} > {limit:.3g} (chi2, {dim} dof, "
-                      f"p={self.config.gate_prob})")  # fmt: skip
+                      f"p={self.config.gate_probability})")  # fmt: skip
             rec = self._record(item, dim, nis, False, reason, nu, S)
             if item.kind in ("yaw", "sun"):
                 self.acquisition.rejections += 1
@@ -476,8 +494,8 @@ class ESKF:
             rec = self._record(item, dim, nis, True, "", nu, S)
         x_att = self.x[0:3]
         if (
-            self.t - self.t_reset >= self.config.reset_interval_s
-            or float(np.dot(x_att, x_att)) > self.config.reset_angle_rad**2
+            self.t - self.t_reset >= self.reset_interval_s
+            or float(np.dot(x_att, x_att)) > RESET_ANGLE_RAD**2
         ):
             self.reset()
         return rec
@@ -501,8 +519,8 @@ class ESKF:
         ``samples`` are the raw ``(t, gyro_b, accel_b)`` from ``t0``; those up to
         ``align_s`` are used. Ends the levelling (``ready``).
         """
-        tol = self.config.time_tol_s
-        use = [s for s in samples if s[0] - self._t0 <= self.config.align_s + tol]
+        tol = TIME_TOL_S
+        use = [s for s in samples if s[0] - self._t0 <= self.config.initial.align_s + tol]
         self._align_buffer = None
         self.mat_nb, self.P = level(
             np.array([s[0] for s in use]), np.array([s[1] for s in use]),
@@ -510,7 +528,7 @@ class ESKF:
             self.mech,
         )  # fmt: skip
         self.vel_n = np.zeros(3)
-        self.yaw_aligned = self.yaw_aligned or bool(self.config.no_clock)  # relative heading
+        self.yaw_aligned = self.yaw_aligned or self.config.no_clock  # relative heading
 
     # ------------------------------------------------------------------ internals
     def _record(
@@ -533,7 +551,7 @@ class ESKF:
 
     def _consume(self, t: float, w: FloatArray, f: FloatArray) -> None:
         """One real IMU sample: apply the pending items up to ``t``, step to ``t``."""
-        tol = self.config.time_tol_s
+        tol = TIME_TOL_S
         if self._cur is None:
             if abs(t - self._t0) > tol:
                 raise ValueError(f"the first IMU sample must be at t0={self._t0}, got {t}")

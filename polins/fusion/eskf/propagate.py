@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import TIME_TOL_S, FuseConfig
 from polins.fusion.eskf.blocks import Layout, inject_nav
 from polins.fusion.eskf.dynamics import StepNominal, discretize, step_nominal
 from polins.fusion.items import MeasurementItem, UpdateRecord
@@ -59,6 +59,7 @@ class Filter(Protocol):
     count: int  # real samples consumed
     n_resets: int
     t_reset: float
+    reset_interval_s: float
     x: FloatArray
     P: FloatArray
     correction: FloatArray  # sum of the update corrections since the last node
@@ -180,7 +181,7 @@ def _schedule(
     """The merged sample grid (real samples and the virtual samples of measurement times
     between them), the merged index of each real sample, and the items per merged index."""
     W, A = gyro_b, accel_b
-    tol = filt.config.time_tol_s
+    tol = TIME_TOL_S
     N = t.shape[0]
     items = filt.take_items(float(t[-1]) + tol)
     early = [it for it in items if it.t < t[0] - tol]
@@ -269,10 +270,10 @@ def advance(
         out[real_at[np.asarray(output_mask, dtype=bool)]] = True
     ep = np.array(sorted(epochs), dtype=int)
     s = 0
-    reset_s = filt.config.reset_interval_s
+    reset_s = filt.reset_interval_s
     horizon = MIN_SEGMENT  # planned samples: doubled after a segment without an early reset
     while s < M - 1:
-        due = int(np.searchsorted(T, float(filt.t_reset + reset_s - filt.config.time_tol_s)))
+        due = int(np.searchsorted(T, float(filt.t_reset + reset_s - TIME_TOL_S)))
         i_due = int(np.searchsorted(ep, max(due, s + 1)))
         e = min(M - 1, s + horizon, int(ep[i_due]) if i_due < ep.size else M - 1)
         ends = _step_ends(s, e, ep, filt.cov_every)

@@ -151,7 +151,6 @@ def fuse_graph(prep: Prepared) -> FusionResult:
     """
     t_start = time.perf_counter()
     config, arrays, items = prep.config, prep.imu, prep.items
-    assert config.tilt_coupling is not None
     spans = zip(arrays.gap_spans, arrays.gaps, strict=True)
     gaps = [(t_a, t_b, g.inflation) for (t_a, t_b), g in spans if g.inflation is not None]
     prob = Problem(config, config.tilt_coupling, arrays.t, arrays.gyro_b, arrays.accel_b,
@@ -168,15 +167,15 @@ def fuse_graph(prep: Prepared) -> FusionResult:
     ]
     info: dict[str, Any] = {}
     t_built = time.perf_counter()
-    solve = solve_batch if config.solver == "batch" else solve_incremental
+    solve = solve_batch if config.graph.solver == "batch" else solve_incremental
     est = solve(prob, records, info)
     t_solved = time.perf_counter()
-    if config.graph_output == "keyframes":
+    if config.graph.graph_output == "keyframes":
         state = keyframe_output(prob, est)
     else:
-        state = interpolate(prob, est, arrays.t[output_mask(arrays.t, config.output_rate_hz)])
+        state = interpolate(prob, est, arrays.t[output_mask(arrays.t, config.output_rate)])
     info.update(
-        solver=config.solver,
+        solver=config.graph.solver,
         n_keyframes=len(prob.t_key),
         n_measurement_factors=len(prob.meas),
         time_build_s=t_built - t_start,

@@ -22,7 +22,12 @@ from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 
 from polins.fusion.acquisition import consensus, yaw_offset
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import (
+    INTEGRATION_STD,
+    MAX_KEYFRAME_DT_S,
+    TIME_TOL_S,
+    FuseConfig,
+)
 from polins.fusion.faults import FusionEvent
 from polins.fusion.graph.factors import (
     bias_from_polins,
@@ -155,16 +160,16 @@ class Problem:
         n_given = len(zupts)
         zupts += [it for it in ground if it.kind == "zupt"]
         nhcs = [it for it in ground if it.kind == "nhc"]
-        # Times within time_tol_s of an IMU sample are moved onto it (as the ESKF does).
-        t_aid = snap_times([it.t for it in aiding], t_imu, config.time_tol_s).tolist()
-        t_zupt = snap_times([it.t for it in zupts], t_imu, config.time_tol_s).tolist()
+        # Times within TIME_TOL_S of an IMU sample are moved onto it (as the ESKF does).
+        t_aid = snap_times([it.t for it in aiding], t_imu, TIME_TOL_S).tolist()
+        t_zupt = snap_times([it.t for it in zupts], t_imu, TIME_TOL_S).tolist()
         nhc_t = np.array([it.t for it in nhcs], dtype=float)
         # (start, end, variances of the attitude and velocity errors) of each IMU gap
         self.gaps = [(t_a, t_b, np.asarray(var)[[0, 3]]) for t_a, t_b, var in gaps]
         t_gaps = [t for a, b, _ in self.gaps for t in (a, b)]
-        t_odo = snap_times([it.t for it in odos], t_imu, config.time_tol_s).tolist()
+        t_odo = snap_times([it.t for it in odos], t_imu, TIME_TOL_S).tolist()
         events = np.concatenate([t_aid, t_zupt, nhc_t, t_gaps, t_odo])
-        self.t_key = keyframe_times(t0, t1, events, config.max_keyframe_dt_s)
+        self.t_key = keyframe_times(t0, t1, events, MAX_KEYFRAME_DT_S)
         self.segments = imu_segments(t_imu, gyro, accel, self.t_key)
         n_key = len(self.t_key)
         self.interval_params = self._interval_params()
@@ -193,7 +198,7 @@ class Problem:
                     non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b)
                 )
         # else unknown until the first yaw / sun; no clock: relative to the first yaw
-        self.yaw_given = rot_nb0 is not None or bool(config.no_clock)
+        self.yaw_given = rot_nb0 is not None or config.no_clock
         self.held: list[UpdateRecord] = []  # headings rejected by the yaw acquisition
         self.events: list[FusionEvent] = []
         self.state0, self.bias0, self.priors = self._first_state(t_imu, accel, rot_nb0)
@@ -231,7 +236,7 @@ class Problem:
             c.imu,
             gravity_mps2=self.gravity,
             omega_ie_n=earth_rate_n(self.lat) if self.earth_rate else None,
-            integration_std=c.integration_std,
+            integration_std=INTEGRATION_STD,
             **densities,
         )
 
@@ -297,15 +302,15 @@ class Problem:
                 B(0), bias0, gtsam.noiseModel.Diagonal.Sigmas(np.maximum(bias_sigmas, 1e-12))
             )
         ]
-        vel_n0 = np.asarray(c.vel_n0, dtype=float)
+        vel_n0 = np.asarray(c.initial.vel_n0, dtype=float)
         if rot_nb0 is not None:
-            att_var = np.asarray(c.att_std0, dtype=float) ** 2
+            att_var = np.asarray(c.initial.att_std0, dtype=float) ** 2
             turn = self._acquire(rot_nb0, vel_n0, float(np.sqrt(att_var[2])), att_var[:2])
             rot = Rotation.from_rotvec([0.0, 0.0, turn]) * rot_nb0
             if turn != 0.0:
                 att_var[2] = 1.0  # re-acquired: the prior's yaw is released
         else:
-            window = t_imu <= t_imu[0] + c.align_s
+            window = t_imu <= t_imu[0] + c.initial.align_s
             f_mean = accel[window].mean(axis=0)
             duration = max(float(t_imu[window][-1] - t_imu[0]), 1.0 / m.sample_rate_hz)
             roll, pitch = level_from_accel(f_mean)
@@ -327,7 +332,7 @@ class Problem:
             if c.no_clock:  # the heading is relative to the levelled yaw (docs/filter.md §5.7)
                 att_var[2] = 1e-12
         mat_nb = rot.as_matrix()
-        cov_n = np.diag(np.concatenate([att_var, np.full(3, c.pos_std0**2)]))
+        cov_n = np.diag(np.concatenate([att_var, np.full(3, c.initial.pos_std0**2)]))
         state0 = gtsam.NavState(gtsam.Rot3(mat_nb), np.zeros(3), vel_n0)
         priors.append(
             gtsam.PriorFactorPose3(
@@ -337,7 +342,9 @@ class Problem:
             )
         )
         priors.append(
-            gtsam.PriorFactorVector(V(0), vel_n0, gtsam.noiseModel.Isotropic.Sigma(3, c.vel_std0))
+            gtsam.PriorFactorVector(
+                V(0), vel_n0, gtsam.noiseModel.Isotropic.Sigma(3, c.initial.vel_std0)
+            )
         )
         return state0, bias0, priors
 
@@ -379,8 +386,8 @@ class Problem:
             offset, std, _ = yaw_offset(mf.item, mat, None, self.tilt_coupling, np.diag(tilt_var))
             offsets.append(offset)
             stds.append(std)
-            lo = max(0, len(offsets) - c.acquire_n)
-            res = consensus(np.array(offsets[lo:]), np.array(stds[lo:]), c.acquire_k)
+            lo = max(0, len(offsets) - c.gating.acquire_n)
+            res = consensus(np.array(offsets[lo:]), np.array(stds[lo:]), c.gating.acquire_k)
             if res is not None:
                 found = (res[0], res[1], res[2] + lo, len(offsets) - 1)
                 break
@@ -390,7 +397,7 @@ class Problem:
             mean, _std, members, last = found
             t_last = self.meas[order[last]].item.t
             detail = (
-                f"re-acquired: {members.size} of {min(last + 1, c.acquire_n)} headings "
+                f"re-acquired: {members.size} of {min(last + 1, c.gating.acquire_n)} headings "
                 f"agree on a yaw {math.degrees(mean):.1f} deg from the initial attitude's"
             )
             self.events.append(FusionEvent(t_last, "yaw-reacquired", detail))
@@ -401,8 +408,12 @@ class Problem:
             if i in used:
                 continue
             it = self.meas[i].item
-            agreed = found is not None and pos > last - c.acquire_n
-            why = "disagrees" if agreed else f"no consensus of {c.acquire_k} in {c.acquire_n}"
+            agreed = found is not None and pos > last - c.gating.acquire_n
+            why = (
+                "disagrees"
+                if agreed
+                else f"no consensus of {c.gating.acquire_k} in {c.gating.acquire_n}"
+            )
             self.held.append(UpdateRecord(it.t, it.kind, 0, math.nan, False, f"{HELD}: {why}"))
         drop = set(order[: last + 1]) - used
         self.meas = [mf for i, mf in enumerate(self.meas) if i not in drop]

@@ -16,6 +16,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 from numpy.typing import NDArray
 
+from polins.fusion.config import MAX_GATE_ROUNDS, MAX_ITERATIONS
 from polins.fusion.graph.factors import pose_cov_nav_from_body
 from polins.fusion.graph.problem import Estimates, Problem
 from polins.fusion.items import HEADING_KINDS, UpdateRecord, gate_limit
@@ -106,15 +107,15 @@ def optimize(
 ) -> tuple[gtsam.Values, int]:
     """The batch optimizer of ``prob.config``; Levenberg-Marquardt if Gauss-Newton fails."""
     c = prob.config
-    if c.optimizer == "gauss-newton":
+    if c.graph.optimizer == "gauss-newton":
         try:
-            return gauss_newton_qr(graph, values, max_iterations=c.max_iterations)
+            return gauss_newton_qr(graph, values, max_iterations=MAX_ITERATIONS)
         except RuntimeError as exc:
             # DivergedError, or GTSAM's IndeterminantLinearSystemException (a RuntimeError
             # in Python, "Indeterminant linear system detected ..."): fall back to damping.
             if not isinstance(exc, DivergedError) and "Indeterminant" not in str(exc):
                 raise
-    return levenberg_marquardt_qr(graph, values, max_iterations=5 * c.max_iterations)
+    return levenberg_marquardt_qr(graph, values, max_iterations=5 * MAX_ITERATIONS)
 
 
 def batch_graph(
@@ -161,7 +162,6 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
     detector also fires at constant speed, and so many wrong factors bend the whole
     solution, which a post-fit gate cannot undo.
     """
-    c = prob.config
     rejected: dict[int, tuple[float, str]] = {}
     if prob.detected:
         causal: dict[int, tuple[float, str]] = {}
@@ -171,7 +171,7 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
                     if i in prob.detected}  # fmt: skip
     result: gtsam.Values | None = None
     iterations: list[int] = []
-    for gate_round in range(1 + c.max_gate_rounds):
+    for gate_round in range(1 + MAX_GATE_ROUNDS):
         for p in range(2 if prob.earth_rate else 1):
             # Second pass: re-preintegrate with the transport rate and bias of the first.
             lin = result if (p > 0 or result is not None) else None
@@ -201,7 +201,7 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
             if prob.scale_jac is not None:
                 cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
                 est.store_scale(k, result.atVector, cov_of.__getitem__)
-        new = post_fit_gate(prob, est, rejected, records, final=gate_round == c.max_gate_rounds)
+        new = post_fit_gate(prob, est, rejected, records, final=gate_round == MAX_GATE_ROUNDS)
         if not new:
             break
         rejected.update(new)
@@ -244,7 +244,7 @@ def post_fit_gate(
         s = lin.R - lin.H @ est.cov[mf.k] @ lin.H.T
         s = 0.5 * (s + s.T) + 1e-6 * lin.R  # kept regular when the measurement dominates
         nis = float(lin.residual @ np.linalg.solve(s, lin.residual))
-        limit = gate_limit(prob.config.gate_prob, lin.dim)
+        limit = gate_limit(prob.config.gate_probability, lin.dim)
         if nis > limit and not final:
             reason = f"post-fit NIS {nis:.3g} > gate {limit:.3g} (chi2, {lin.dim} dof)"
             exceed[i] = (nis, reason)
@@ -272,7 +272,7 @@ def solve_incremental(
     scale-factor variables out.
     """
     c = prob.config
-    solver = solver or c.solver
+    solver = solver or c.graph.solver
     scale = scale and prob.scale_jac is not None
     isam_params = gtsam.ISAM2Params()
     isam_params.setFactorization("QR")
@@ -303,7 +303,7 @@ def solve_incremental(
     engine: Any = (
         gtsam.ISAM2(isam_params)
         if solver == "isam2"
-        else gtsam.IncrementalFixedLagSmoother(c.lag_s, isam_params)
+        else gtsam.IncrementalFixedLagSmoother(c.graph.lag_s, isam_params)
     )
     n_key = len(prob.t_key)
     est = Estimates.empty(n_key, prob.states.n)
@@ -341,7 +341,7 @@ def solve_incremental(
             else:
                 s = lin.H @ cov_prev @ lin.H.T + lin.R
                 nis = float(lin.residual @ np.linalg.solve(s, lin.residual))
-            limit = gate_limit(c.gate_prob, lin.dim)
+            limit = gate_limit(c.gate_probability, lin.dim)
             if (seen_aiding or not heading) and nis > limit:
                 reason = f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {lin.dim} dof)"
                 records.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
@@ -360,7 +360,7 @@ def solve_incremental(
             record(k)
             return
         t_k = float(prob.t_key[k])
-        while pending and prob.t_key[pending[0]] < t_k - c.lag_s:
+        while pending and prob.t_key[pending[0]] < t_k - c.graph.lag_s:
             record(pending.pop(0))  # last chance before it is marginalized
         stamps = {X(k): t_k, V(k): t_k, B(k): t_k, **prob.states.timestamps(k, t_k)}
         if scale:

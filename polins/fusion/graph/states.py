@@ -42,7 +42,7 @@ import numpy as np
 from gtsam.symbol_shorthand import V, X
 from numpy.typing import NDArray
 
-from polins.fusion.config import FuseConfig
+from polins.fusion.config import ODOMETER_SCALE_STD, SUN_AZIMUTH_RATE_STD, FuseConfig
 from polins.fusion.graph.factors import body_jacobian
 from polins.fusion.graph.imu import CONSTANT_S
 from polins.fusion.items import (
@@ -158,7 +158,7 @@ def heading_bias_std(config: FuseConfig, headings: Sequence[MeasurementItem]) ->
     ESKF's state stays at zero. None: off."""
     mode = config.heading_bias
     if mode == "fixed":
-        return float(config.heading_bias_std)  # type: ignore[arg-type]
+        return config.heading_bias_sigma
     if mode != "model":
         return None
     parts = [it.model_std**2 for it in headings if it.kind in HEADING_KINDS]
@@ -206,13 +206,13 @@ class GraphStates:
         self.t_key = np.asarray(t_key, dtype=float)
         self.bias_std = heading_bias_std(config, headings)
         variables: list[Variable] = []
-        if config.odometer_std is not None:
+        if config.odometer_sigma is not None:
             variables.append(ODOMETER_SCALE)
         if config.mount_sigma is not None:
             variables.append(MOUNT)
         if config.lever_sigma is not None:
             variables.append(LEVER)
-        if config.site_std is not None and config.site is not None:
+        if config.site_sigma is not None and config.site is not None:
             variables.append(SITE_ROTATION)
         if config.no_clock:
             variables.append(SUN_AZIMUTH)
@@ -296,16 +296,16 @@ class GraphStates:
         out: list[gtsam.NonlinearFactor] = []
         for var in self.variables:
             if var is ODOMETER_SCALE:
-                sig = np.array([c.odometer_scale_std])
+                sig = np.array([ODOMETER_SCALE_STD])
             elif var is MOUNT:
                 sig = np.full(2, c.mount_sigma)
             elif var is LEVER:
                 sig = np.full(3, c.lever_sigma)
             elif var is SITE_ROTATION:
-                assert c.site is not None and c.site_std is not None
-                sig = np.array(site_rotation_std(c.site.lat, c.site_std))
+                assert c.site is not None and c.site_sigma is not None
+                sig = np.array(site_rotation_std(c.site.lat, c.site_sigma))
             elif var is SUN_AZIMUTH:
-                sig = np.array([SUN_AZIMUTH_STD0, c.sun_azimuth_rate_std])
+                sig = np.array([SUN_AZIMUTH_STD0, SUN_AZIMUTH_RATE_STD])
             else:
                 assert self.bias_std is not None
                 sig = np.array([self.bias_std])
@@ -322,7 +322,7 @@ class GraphStates:
         for var in self.variables:
             ki, kj = self.key(var, k - 1), self.key(var, k)
             if var is SUN_AZIMUTH:
-                out.append(sun_azimuth_factor(ki, kj, dt, c.sun_azimuth_rate_std))
+                out.append(sun_azimuth_factor(ki, kj, dt, SUN_AZIMUTH_RATE_STD))
             elif var in (MOUNT, LEVER):  # constants (module docstring)
                 sigma = c.mount_sigma if var is MOUNT else c.lever_sigma
                 std = max(float(sigma) * math.sqrt(dt / CONSTANT_S), 1e-12)  # type: ignore[arg-type]
@@ -331,7 +331,7 @@ class GraphStates:
             elif var is HEADING_BIAS:
                 assert self.bias_std is not None
                 out.append(gauss_markov_factor(ki, kj, dt, self.bias_std,
-                                               c.heading_bias_tau_s))  # fmt: skip
+                                               c.sky.heading_bias_tau_s))  # fmt: skip
         return out
 
     def predict(self, extra: FloatArray, k: int) -> FloatArray:
@@ -342,7 +342,7 @@ class GraphStates:
             s = self.slices[SUN_AZIMUTH]
             out[s.start] += dt * out[s.start + 1]
         if HEADING_BIAS in self.slices:
-            out[self.slices[HEADING_BIAS]] *= math.exp(-dt / self.config.heading_bias_tau_s)
+            out[self.slices[HEADING_BIAS]] *= math.exp(-dt / self.config.sky.heading_bias_tau_s)
         return out
 
     def initial(self, k: int, extra: FloatArray) -> gtsam.Values:

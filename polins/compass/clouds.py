@@ -1,21 +1,17 @@
-"""Model error of the heading: the camera-fixed (instrumental) polarization part of its sigma.
+"""Thin clouds: the sky cells whose polarization falls short of, or turns away from, the clear sky's.
 
-A channel-gain or polarizer-angle residual of the calibration leaves a spurious
-polarization fixed to the camera, ``dL_i = S0_i delta`` with ``delta = (delta_1, delta_2)``
-a small constant (e.g. ``delta ~ 0.002`` for gains good to +-0.5 %). It is common to every
-sky sector, so the jackknife of :mod:`polins.compass.sectors` does not see it, and it is
-the same from image to image. Its effect on the estimate is linear: with the estimator's
-Jacobian ``J`` (the joint ML's, epsilon included for ``"compensated"``; the sun angles only
-for the eigen methods, whose first-order sensitivity is that of the same weighted
-AoP fit) and the residual change ``dr_i = n_i . dL_i``::
-
-    d theta = -(J^T J)^-1 J^T dr,     sigma_instr^2 = sigma_delta^2 (g_1^2 + g_2^2)
-
-with ``g_j`` the yaw's change per unit ``delta_j`` (docs/measurement.md §12).
+A thin cloud depolarizes and turns the E-vector by a few degrees. The field of view is cut
+once per camera into a :data:`CLOUD_CELLS` x :data:`CLOUD_CELLS` grid of the rays'
+image-plane components (:func:`sky_cells`); three detectors judge the cells
+(docs/measurement.md §4): the DoP deficit against the Rayleigh shape with the starting sun
+(:func:`cloudy_cells`), the mean AoP residual of a fit (:func:`rotated_cells`) and the DoP
+deficit against the fitted Berry sky (:func:`depolarized_cells`, through
+:class:`DopTest`). ``MeasureOptions.clouds`` switches them on or off together.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -24,21 +20,39 @@ from scipy import ndimage
 
 from polins.compass.jointml import ml_evaluate
 from polins.compass.lens import camera_constants
-from polins.compass.measurement import MeasureOptions
-from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
+from polins.compass.prediction import PixelData
 from polins.compass.skymodel import SkyModel
 from polins.models import CameraModel
+from polins.sky.neutral_points import berry_neutral_points_level
 
 __all__ = [
+    "CLOUD_AOP_MIN",
+    "CLOUD_AOP_Z",
     "CLOUD_CELLS",
+    "CLOUD_DOP_RATIO",
+    "CLOUD_FIT_RATIO",
+    "DopTest",
     "cloudy_cells",
     "depolarized_cells",
-    "fitted_sensitivity",
-    "instrumental_sensitivity",
-    "model_weights",
+    "fitted_sky_depolarized",
     "rotated_cells",
     "sky_cells",
 ]
+
+CLOUD_DOP_RATIO = 0.95
+"""A cell whose polarized intensity is below this fraction of the clear sky's (Rayleigh
+shape, starting sun) is cloud (:func:`cloudy_cells`)."""
+
+CLOUD_AOP_Z = 4.0
+"""A cell whose mean AoP residual exceeds this many sigmas (and :data:`CLOUD_AOP_MIN`) is
+cloud (:func:`rotated_cells`)."""
+
+CLOUD_AOP_MIN = float(np.radians(0.1))
+"""Smallest mean E-vector rotation of a cloud cell [rad]."""
+
+CLOUD_FIT_RATIO = 0.97
+"""A cell whose polarized intensity is below this fraction of the fitted sky's level (by
+more than 3 sigmas) is cloud (:func:`depolarized_cells`)."""
 
 _SHAPE_FIT = 0.5  # Rayleigh DoP shape above which d_max is fitted
 _SHAPE_TEST = 0.3  # ... and above which a pixel is tested (near the sun and the antisun the
@@ -86,7 +100,7 @@ def cloudy_cells(
     sun_c : (3,)
         Camera-frame unit sun.
     ratio : float
-        ``cloud_dop_ratio`` [-].
+        :data:`CLOUD_DOP_RATIO` [-].
     valid : (n,) bool
     cells : (n,) int
         The pixels' :func:`sky_cells`.
@@ -174,7 +188,7 @@ def depolarized_cells(
     up_c : (3,)
         Camera-frame unit vertical (a cell's elevation: that of its tested pixels' mean ray).
     ratio : float
-        ``cloud_fit_ratio`` [-].
+        :data:`CLOUD_FIT_RATIO` [-].
     """
     n_cells = CLOUD_CELLS * CLOUD_CELLS
     cos2 = np.asarray(points_c, dtype=rays.dtype) @ rays  # (2, n)
@@ -257,127 +271,42 @@ def rotated_cells(
     return _grow(flagged, 1) & (den > 0)  # and their neighbours: a cloud's rim is turned too
 
 
-def fitted_sensitivity(
-    data: PixelData, theta: NDArray, zenith: float | None, mat_cl: NDArray, sky: SkyModel
-) -> tuple[float, float]:
-    """Yaw change per unit camera-fixed polarization ``sqrt(g_1^2 + g_2^2)`` [rad] of a
-    joint ML that estimates ``delta_perp`` (``theta = (A_l[, Z_l], delta_perp, eps)``,
-    ``sky`` with ``fit_delta``): that component is absorbed, what is left is the part
-    along the sunlight direction that epsilon does not absorb (docs/measurement.md §12);
-    and per unit camera-fixed mixing. Same arguments as :func:`instrumental_sensitivity`."""
-    _, jac, _, _ = ml_evaluate(data, theta, zenith, mat_cl, True, None, sky)
-    assert jac is not None
-    return _yaw_per_delta(data, jac.astype(np.float64), theta, zenith, mat_cl)
+DOP_TEST_PIXELS = 60_000
+"""Pixels of the fitted sky's DoP test (every k-th field-of-view pixel): its cells' sums
+need many more than the joint ML's subsample (docs/measurement.md §4)."""
 
 
-def model_weights(
-    inv_sigma_l2: NDArray | float,
-    rows: NDArray,
-    rays: NDArray,
-    sun_c: NDArray,
-    opt: MeasureOptions,
-) -> NDArray:
-    """Per-pixel ``1/var(r_i)`` ``(n,)`` with a model error of the AoP (docs/measurement.md
-    §4): ``var(r_i) = sigma_L,i^2 + (2 p_i sigma_zeta,i)^2``,
-    ``sigma_zeta = model_aop_std (1 + (theta / model_field_angle)^2 +
-    (model_neutral_angle / gamma)^2)``, theta the field angle, gamma the angle to the
-    nearer of the sun ``sun_c`` (3,) and the antisun (the neutral points lie within
-    about 20 deg of them).
+@dataclass(frozen=True)
+class DopTest:
+    """The pixels of the fitted sky's DoP test (:func:`fitted_sky_depolarized`).
 
-    Parameters
+    Attributes
     ----------
-    inv_sigma_l2 : (n,) or float
-        ``1/sigma_L^2`` [1/DN^2]. rows : (3, n) Stokes rows [DN]. rays : (3, n) camera rays.
-    opt : MeasureOptions
-    """
-    dt = rows.dtype
-    field = np.arccos(np.clip(rays[2], -1.0, 1.0)) * (1.0 / opt.model_field_angle)
-    cos_t = np.abs(rays[0] * sun_c[0] + rays[1] * sun_c[1] + rays[2] * sun_c[2])
-    gamma = np.arccos(np.clip(cos_t, 0.0, 1.0)) + dt.type(1e-3)
-    near = opt.model_neutral_angle / gamma
-    sigma_aop = opt.model_aop_std * (1.0 + field * field + near * near)
-    p2 = rows[1] * rows[1] + rows[2] * rows[2]
-    return np.asarray(1.0 / (1.0 / inv_sigma_l2 + 4.0 * p2 * sigma_aop**2), dtype=dt)
-
-
-def instrumental_sensitivity(
-    data: PixelData, theta: NDArray, zenith: float | None, mat_cl: NDArray, with_epsilon: bool
-) -> tuple[float, float]:
-    """Yaw change per unit camera-fixed polarization, ``sqrt(g_1^2 + g_2^2)`` [rad], and per
-    unit camera-fixed mixing of the linear Stokes components (``sqrt(g_a^2 + g_b^2)``).
-
-    Parameters
-    ----------
-    data : PixelData
-        The pixels (with their mask) the estimate used, or a subsample of them.
-    theta : (k,)
-        The estimate ``(A_l[, Z_l], eps)``.
-    zenith : float or None
-        Fixed zenith [rad], or None when ``theta`` holds it.
+    rows : (3, m)
+        Stokes rows S0, S1, S2 [DN] of about :data:`DOP_TEST_PIXELS` field-of-view pixels.
+    valid : (m,) bool
+    rays : (3, m)
+        Camera-frame unit rays.
+    cells : (m,) int
+        Their :func:`sky_cells`.
     mat_cl : (3, 3)
         Level -> camera rotation.
-    with_epsilon : bool
-        Epsilon was estimated (it absorbs part of a camera-fixed polarization).
+    ratio : float
+        Deficit ratio of a flagged cell [-].
     """
-    data = _every(data, max(1, data.s0.size // _SENSITIVITY_PIXELS))
-    _, jac, _, _ = ml_evaluate(data, theta, zenith, mat_cl, True)
-    assert jac is not None
-    j = (jac if with_epsilon else jac[:-1]).astype(np.float64)
-    return _yaw_per_delta(data, j, theta, zenith, mat_cl)
+
+    rows: NDArray
+    valid: NDArray
+    rays: NDArray
+    cells: NDArray
+    mat_cl: NDArray
+    ratio: float
 
 
-def _yaw_per_delta(
-    data: PixelData, j: NDArray, theta: NDArray, zenith: float | None, mat_cl: NDArray
-) -> tuple[float, float]:
-    """``sqrt(g_1^2 + g_2^2)`` [rad] of the linear response ``d theta = -(J J^T)^-1 J dr``
-    of the estimate (Jacobian rows ``j``, float64) to a camera-fixed polarization ``delta``,
-    and the same for a camera-fixed mixing ``dL = [[a, b], [b, -a]] L`` of the linear
-    Stokes components (docs/measurement.md §12); NaN when ``J J^T`` is singular."""
-    sun_l = _sun_level(theta, zenith)
-    xy = image_plane_evector(data, (mat_cl @ sun_l)[:, None])
-    n = data.s0.size
-    n1, n2, e2 = doubled_prediction(xy[0, :n], xy[0, n:])
-    scale = 1.0 / e2.astype(np.float64)
-    if data.mask is not None:
-        scale = scale * data.mask
-    if isinstance(data.inv_sigma, np.ndarray):
-        scale = scale * data.inv_sigma
-    s0, s1, s2 = (x.astype(np.float64) * scale for x in (data.s0, data.s1, data.s2))
-    # dr = n . dL with n = (-sin 2zeta, cos 2zeta): delta = (1, 0) and (0, 1) give dL = (S0, 0)
-    # and (0, S0); the mixing a and b give dL = (S1, -S2) and (S2, S1).
-    dr = np.stack([-n2 * s0, n1 * s0, -n2 * s1 - n1 * s2, n1 * s1 - n2 * s2])
-    try:
-        dtheta = -np.linalg.solve(j @ j.T, j @ dr.T)  # (k, 4)
-    except np.linalg.LinAlgError:
-        return float("nan"), float("nan")
-    return float(np.hypot(dtheta[0, 0], dtheta[0, 1])), float(np.hypot(dtheta[0, 2], dtheta[0, 3]))
-
-
-_SENSITIVITY_PIXELS = 4000  # a ratio of sums: a few thousand pixels give it to ~1 %
-
-
-def _every(data: PixelData, k: int) -> PixelData:
-    """Every ``k``-th pixel of ``data``."""
-    if k == 1:
-        return data
-    n = data.s0.size
-    fwd = data.forward
-    if fwd is not None:
-        fwd = np.ascontiguousarray(np.concatenate([fwd[:, :n:k], fwd[:, n::k]], axis=1))
-    return PixelData(
-        data.s0[::k],
-        data.s1[::k],
-        data.s2[::k],
-        data.c[::k],
-        fwd,
-        None if data.rays is None else np.ascontiguousarray(data.rays[:, ::k]),
-        data.inv_sigma[::k] if isinstance(data.inv_sigma, np.ndarray) else data.inv_sigma,
-        None if data.mask is None else data.mask[::k],
-    )
-
-
-def _sun_level(theta: NDArray, zenith: float | None) -> NDArray:
-    """Level-frame unit sun of ``theta = (A[, Z], eps)``."""
-    a = float(theta[0])
-    z = float(zenith if zenith is not None else theta[1])
-    return np.array([np.sin(z) * np.cos(a), np.sin(z) * np.sin(a), np.cos(z)])
+def fitted_sky_depolarized(test: DopTest, azimuth: float, zenith: float, sep: float) -> NDArray:
+    """:func:`depolarized_cells` for the fitted level-frame sun (``azimuth``, ``zenith``
+    [rad]) and neutral-point separation ``sep`` [rad]: ``(CLOUD_CELLS**2,)`` bool."""
+    points = berry_neutral_points_level(azimuth, zenith, sep)
+    points_c = (test.mat_cl @ points[0][:, 0], test.mat_cl @ points[1][:, 0])
+    return depolarized_cells(test.rows, test.valid, test.rays, test.cells, points_c,
+                             test.mat_cl[:, 2], test.ratio)  # fmt: skip

@@ -1,4 +1,4 @@
-"""The paper's Algorithm 1, reproduced on purpose with its degenerate step: a reproduction mode.
+"""The paper's Algorithm 1, reproduced on purpose with its degenerate step (reproduction only).
 
 Algorithm 1 of the paper (Eqs. 14, 10-11, 22-24; docs/model.md §8.2) divides the channels
 by their gains beta_k, estimates a per-pixel sunlight coefficient k_m from Eq. 22, subtracts
@@ -8,38 +8,42 @@ noise-free data (k_m is pure noise, amplified by k_c), and the printed one gives
 ``k_m ~ 80/(1 - d)`` and heading errors of about 90 deg (docs/errata.md §1, Eq. 22). The
 switches reproduce the printed or the scale-consistent reading.
 
-:func:`measure_paper` runs the per-image chain (:mod:`polins.compass.chain`) with these
-Stokes vectors in place of the least-squares ones, followed by the eigen solution (the
-paper's Eq. 31 with ``weighted=False``); ``polins.measure(method="paper", ...)`` dispatches
-here. ``polins.sim.paper`` uses it for the reproduction of the paper's Section 4.1.
+:func:`measure_algorithm1` composes the stages of the measurement chain
+(:mod:`polins.compass.chain`) with these Stokes vectors in place of the least-squares ones,
+followed by the eigen solution (the paper's Eq. 31 with ``weighted=False``);
+:func:`measure_baseline` runs the chain's ``"traditional"`` method as the paper's baselines
+(without the channel-gain calibration, with equal weights). :mod:`polins.sim.reproduction`
+uses both for the reproduction of the paper's Section 4.1.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.compass.chain import measure_image
+from polins.compass.chain import measure_stokes
+from polins.compass.heading import image_geometry
+from polins.compass.image import image_stokes
 from polins.compass.measurement import Measurement, MeasurementMaps, measure_options
+from polins.compass.pixels import check_raw
 from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
 
 EQ22 = ("scale-consistent", "printed")
 EQ14 = ("fixed", "printed")
-SWITCHES = ("eq22", "kc", "gain_final", "eq14")
-"""The keyword options of :func:`measure_paper` that are not ``MeasureOptions`` fields."""
 
 __all__ = [
     "EQ14",
     "EQ22",
-    "SWITCHES",
     "algorithm1_rows",
     "check_switches",
-    "measure_paper",
+    "measure_algorithm1",
+    "measure_baseline",
     "paper_algorithm1",
 ]
 
@@ -154,7 +158,7 @@ def paper_algorithm1(
     return rows.T.reshape(*ch.shape[:-1], 3), k_m.reshape(ch.shape[:-1])
 
 
-def measure_paper(
+def measure_algorithm1(
     raw: ArrayLike,
     cam: CameraModel,
     *,
@@ -164,6 +168,7 @@ def measure_paper(
     kc: float = 20.0,
     gain_final: bool = True,
     eq14: str = "fixed",
+    weighted: bool = True,
     maps: bool = False,
     **options: Any,
 ) -> tuple[Measurement, MeasurementMaps | None]:
@@ -175,11 +180,12 @@ def measure_paper(
         As for ``polins.measure``; the prior yaw sets the sunlight angle of Eqs. 10-11.
     eq22, kc, gain_final, eq14
         The switches of :func:`paper_algorithm1`.
+    weighted : bool
+        Eigen weights ``p^2/sigma_L^2``; False: the paper's equal weights of Eq. 31.
     maps : bool
         Also return the per-pixel maps (else None).
     **options
-        Fields of :class:`~polins.compass.measurement.MeasureOptions` (``weighted=False``:
-        the paper's equal weights of Eq. 31).
+        Fields of :class:`~polins.compass.measurement.MeasureOptions`.
 
     Returns
     -------
@@ -189,15 +195,44 @@ def measure_paper(
     """
     check_switches(eq22, kc, gain_final, eq14)
     opt = measure_options(**options)
-
-    def compensation(
-        channels: NDArray, cam: CameraModel, sun_c_prior: NDArray
-    ) -> tuple[NDArray, NDArray]:
-        rows, k_m = algorithm1_rows(
-            channels, cam, sun_c_prior, eq22=eq22, kc=kc, gain_final=gain_final, eq14=eq14
-        )
-        return rows, k_m / 4.0  # k_m = 4 epsilon (the paper's Eq. 12)
-
-    return measure_image(
-        raw, cam, sun_n, rot_nb_prior, opt, method="paper", maps=maps, compensation=compensation
+    arr = check_raw(raw, cam)
+    geo = image_geometry(cam, sun_n, rot_nb_prior)
+    assert geo.sun_n is not None
+    if geo.sun_n[2] <= 0.0:
+        return Measurement.refused("paper", "sun below the horizon"), None
+    img = image_stokes(arr, cam, opt, channels=True)
+    assert img.channels is not None
+    rows, k_m = algorithm1_rows(img.channels, cam, geo.mat_cn @ geo.sun_n, eq22=eq22, kc=kc,
+                                gain_final=gain_final, eq14=eq14)  # fmt: skip
+    img = dataclasses.replace(
+        img,
+        estimate=rows.astype(img.dtype),
+        valid=img.valid & np.isfinite(rows).all(axis=0),
+        epsilon_px=k_m / 4.0,  # k_m = 4 epsilon (the paper's Eq. 12)
     )
+    m, mapped = measure_stokes(img, cam, geo, opt, method="traditional", maps=maps,
+                               weighted=weighted)  # fmt: skip
+    return dataclasses.replace(m, method="paper"), mapped
+
+
+def measure_baseline(
+    raw: ArrayLike,
+    cam: CameraModel,
+    *,
+    sun_n: ArrayLike,
+    rot_nb_prior: Rotation,
+    gain_correction: bool = True,
+    weighted: bool = True,
+    **options: Any,
+) -> Measurement:
+    """The ``"traditional"`` method as the paper's baselines: without the channel-gain
+    calibration (``gain_correction=False``, the paper's uncorrected "traditional") and with
+    equal eigen weights (``weighted=False``, its Eq. 31)."""
+    opt = measure_options(**options)
+    arr = check_raw(raw, cam)
+    geo = image_geometry(cam, sun_n, rot_nb_prior)
+    assert geo.sun_n is not None
+    if geo.sun_n[2] <= 0.0:
+        return Measurement.refused("traditional", "sun below the horizon")
+    img = image_stokes(arr, cam, opt, gain_correction=gain_correction)
+    return measure_stokes(img, cam, geo, opt, method="traditional", weighted=weighted)[0]
