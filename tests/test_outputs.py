@@ -416,7 +416,7 @@ def test_cli_overrides_the_manifest_filter_table(log_dir, tmp_path, fake_loop):
                  "--scale-factors", "--imu", str(model)) == 0  # fmt: skip
     manifest_only, overridden = fake_loop
     assert (manifest_only.aiding.nhc_std, manifest_only.gating.gate_prob) == (0.05, 0.99)
-    assert manifest_only.imu.name == "mems-typical" and not manifest_only.noise.scale_factors
+    assert manifest_only.imu.name == "mems-typical" and manifest_only.noise.scale_factors == "auto"
     assert overridden.aiding.nhc_std == 0.2 and overridden.initial.align_s == 2.0
     assert overridden.gating.gate_prob == 0.99
     assert overridden.noise.scale_factors and overridden.imu.name == "fins-paper"

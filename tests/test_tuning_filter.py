@@ -2,6 +2,7 @@
 
 import dataclasses
 import math
+import re
 import warnings
 
 import numpy as np
@@ -98,6 +99,9 @@ def test_tune_recovers_identifiable_and_names_unidentifiable(drive):
     assert not before.consistent and after.consistent
     assert res.nll_after < res.nll_before - 100
     assert "accel_vrw" in res.report() and "kept at start" in res.report()
+    # the gyro ARW started 3x off: the report says it moved beyond its Cramér-Rao interval
+    assert res.moved("gyro_arw") and not res.moved("accel_vrw")
+    assert re.search(r"gyro_arw moved x0\.[234]", res.report()) and "effective one" in res.report()
 
 
 def test_unknown_parameter_is_one_line(drive):

@@ -95,3 +95,20 @@ def test_verdict_words():
     assert nis_verdict(1.0, (0.9, 1.1)) == "consistent"
     assert nis_verdict(0.7, (0.9, 1.1)).startswith("conservative")
     assert nis_verdict(1.7, (0.9, 1.1)).startswith("optimistic")
+
+
+def test_innovation_stats_count_the_independent_updates():
+    """Innovations with lag-1 autocorrelation 0.9 (an NHC at the IMU rate): n_eff from their
+    whitened autocorrelation, n (1 - rho^2) / (1 + rho^2), and a consistent verdict."""
+    from polins.tuning import innovation_stats
+
+    rng = np.random.default_rng(8)
+    n, rho = 6000, 0.9
+    nu = 0.02 * _ar1(rng, n, rho)
+    updates = pd.DataFrame({"t": np.arange(n) * 0.005, "name": "nhc", "dim": 1,
+                            "accepted": True, "innovation": [[v] for v in nu],
+                            "innovation_var": [[0.02**2]] * n})  # fmt: skip
+    st = innovation_stats(updates)["nhc"]
+    assert st.n == n and st.n_eff == pytest.approx(n * (1 - rho**2) / (1 + rho**2), rel=0.25)
+    assert st.verdict == "consistent" and st.cause == ""
+    assert not st.white and st.autocorr[0] == pytest.approx(rho, abs=0.03)

@@ -215,7 +215,10 @@ def _check_ranges(opt: MeasureOptions) -> None:
 
 _OPTION_NAMES = tuple(f.name for f in dataclasses.fields(MeasureOptions))
 _CONSTANT = "a constant of the chain (docs/measurement.md)"
-_MODEL_PART = "the model part of the sigma is measured in each image (yaw_std_model)"
+_MODEL_PART = (
+    "the model part of the sigma is measured in each image (yaw_std_model); a filter's "
+    "scale or floor on it is FuseConfig's yaw_std_scale / yaw_floor_deg"
+)
 _REPLACED = {
     "sun_exclusion_deg": "sun_exclusion [rad]",
     "horizon_fallback_deg": "horizon_fallback [rad]",

@@ -13,8 +13,9 @@ Autocorrelated innovations (the NHC and ZUPT pseudo-measurements at the IMU rate
 innovations follow the slowly varying velocity error) carry fewer independent samples than
 updates: the band of the mean NIS uses the effective number ``n_eff = n / (1 + 2 sum_k
 rho_k)`` of the NIS series' autocorrelation ``rho_k`` (summed while it exceeds the white
-band), as the variance of a mean of correlated samples. A gate that rejects ``NIS > c``
-truncates the chi-square, so the accepted updates' expected mean is ``dim F_{dim+2}(c) /
+band), as the variance of a mean of correlated samples; with the innovations at hand, the
+smaller of that and ``n / (1 + 2 sum_k rho_k^2)`` of the whitened innovations. A gate that
+rejects ``NIS > c`` truncates the chi-square, so the accepted updates' expected mean is ``dim F_{dim+2}(c) /
 F_dim(c)``, below ``dim``; the band is that truncated mean's (a scaled chi-square with the
 truncated variance). Each kind gets a verdict: consistent, conservative (``S`` too large:
 the errors are smaller than the filter thinks) or optimistic (``S`` too small), with the
@@ -155,6 +156,21 @@ def effective_samples(series: FloatArray, *, prob: float = 0.95) -> float:
     return float(np.clip(n / (1.0 + 2.0 * rho[:k].sum()), 1.0, n))
 
 
+def _gaussian_n_eff(white_nu: FloatArray, prob: float) -> float:
+    """``n / (1 + 2 sum_k rho_k^2)`` from the whitened innovations' autocorrelation ``rho_k``
+    (the squares of Gaussians correlated ``rho`` are correlated ``rho^2``), summed while
+    ``|rho_k|`` exceeds the white band: robust where a few large NIS hide the correlation
+    of the NIS series itself (zero-velocity updates, large at each stop's start)."""
+    n = white_nu.shape[0]
+    if n < 3:
+        return float(max(n, 1))
+    rho = autocorrelation(white_nu, n - 1)
+    band = norm.ppf(0.5 + prob / 2) / np.sqrt(n)
+    below = np.flatnonzero(np.abs(rho) <= band)
+    k = int(below[0]) if below.size else rho.size
+    return float(np.clip(n / (1.0 + 2.0 * np.sum(rho[:k] ** 2)), 1.0, n))
+
+
 def nis_mean_band(
     dim: int, n_eff: float, *, prob: float = 0.95, gate_prob: float | None = None
 ) -> tuple[float, tuple[float, float]]:
@@ -264,7 +280,8 @@ def innovation_stats(
         n, dim = nu.shape
         nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S, nu[..., None])[..., 0])
         a = 1.0 - prob
-        n_eff = effective_samples(nis, prob=prob)
+        white_nu = whitened(nu, S)
+        n_eff = min(effective_samples(nis, prob=prob), _gaussian_n_eff(white_nu, prob))
         expected, band = nis_mean_band(dim, n_eff, prob=prob, gate_prob=gate_prob)
         out[str(kind)] = InnovationStats(
             kind=str(kind),
@@ -272,7 +289,7 @@ def innovation_stats(
             dim=dim,
             nis_mean=float(nis.mean()),
             nis_band=band,
-            autocorr=autocorrelation(whitened(nu, S), max_lag),
+            autocorr=autocorrelation(white_nu, max_lag),
             autocorr_band=float(norm.ppf(1 - a / 2) / np.sqrt(n)),
             sigma_floor=sigma_floor(nu, S),
             n_eff=n_eff,

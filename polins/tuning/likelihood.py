@@ -158,6 +158,29 @@ class TuneResult:
     after: FusionResult
     n_evaluations: int
 
+    def moved(self, p: str, n_sigma: float = 3.0) -> bool:
+        """Whether an identified IMU term left its start by more than ``n_sigma`` Cramér-Rao
+        sigmas: the innovations ask for another value than the model file's."""
+        if p in _TABLE_PARAMS or not self.identifiable[p]:
+            return False
+        return abs(math.log(self.values[p] / self.initial[p])) > n_sigma * self.cr_sigma_log[p]
+
+    def notes(self) -> list[str]:
+        """What an identified value means when it moved far from the model file's."""
+        out = []
+        for p in self.params:
+            if self.moved(p):
+                ratio = self.values[p] / self.initial[p]
+                out.append(
+                    f"{p} moved x{ratio:.3g} from the start, beyond its Cramér-Rao interval: "
+                    "the interval is the log's precision under the filter's model, not the "
+                    "sensor's truth. Either the start (the model file) is wrong (compare with "
+                    "polins imu-model on a static record), or the filter lacks an error source "
+                    "(vibration, an unfused aiding, mounting, scale factors) that this term now "
+                    "absorbs: the tuned value is then an effective one for this vehicle"
+                )
+        return out
+
     @property
     def unidentifiable(self) -> list[str]:
         """The parameters the log cannot identify (kept at their start values)."""
@@ -172,6 +195,7 @@ class TuneResult:
             lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state})")
             if p in _TABLE_PARAMS:
                 lines.append(f"    applies to every {_TABLE_PARAMS[p]} (not an IMU term)")
+        lines += [f"  note: {n}" for n in self.notes()]
         for kind, st in self.stats_after.items():
             lines.append(f"  {kind}: mean NIS {st.nis_mean:.3g} in {st.nis_band[0]:.3g} .. "
                          f"{st.nis_band[1]:.3g} ({st.verdict})")  # fmt: skip
@@ -187,6 +211,7 @@ class TuneResult:
                 f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} "
                 f"{factor:<15} {'yes' if self.identifiable[p] else 'no: kept at start'}"
             )
+        lines += [f"note: {n}" for n in self.notes()]
         lines.append(f"negative log-likelihood {self.nll_before:.1f} -> {self.nll_after:.1f}")
         for kind, after in self.stats_after.items():
             b = self.stats_before.get(kind)
