@@ -443,8 +443,9 @@ class NavigationStream:
     def __exit__(self, *exc: object) -> None:
         if exc[0] is None:
             self.close()
-        else:
-            self._executor.shutdown(wait=False, cancel_futures=True)
+        else:  # the queued images cancelled, the running ones (one per worker) awaited:
+            # a process pool left running prints a traceback at the interpreter's exit
+            self._executor.shutdown(wait=True, cancel_futures=True)
             self._closed = True
 
     # ------------------------------------------------------------------ internals
