@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation
 import polins
 import polins.fusion
 from polins.frames import wrap_angle, yaw_from_rot_nb
+from polins.fusion.vehicle import with_standstill
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
 from polins.site import PAPER_SITE
@@ -90,11 +91,10 @@ def simulate(model: polins.ImuModel, duration: float, seed: int, aiding: str, sc
         "lon_deg": np.degrees(traj.lon[0]),
         "alt_m": traj.alt_m[0],
         "earth_rate": True,  # the simulated IMU senses the Earth rate
-        "zupt_std": 0.01,
-        "stationary": stationary,
         "output_rate_hz": 10.0,
         **extra,
     }
+    meas = with_standstill(meas, stationary, 0.01)  # zero-velocity rows at the stops
     rot0 = Rotation.from_rotvec(rng.normal(0.0, np.radians(1.0), 3)) * traj.rot_nb[0]
     return traj, imu, meas, options, rot0
 

@@ -163,20 +163,20 @@ def main() -> None:
     imu, meas, truth = drive(true_model, drive_s, rate_hz, args.seed)
     # no gate: a gate hides a too-small S by dropping the largest innovations (docs/tuning.md)
     config = FuseConfig(imu_model=true_model, site=PAPER_SITE, output_rate_hz=10.0, gate_prob="off")
-    right_meas = with_values(config, meas, {"yaw_floor_deg": FLOOR_DEG})[1]
+    right = with_values(config, meas, {"yaw_floor_deg": FLOOR_DEG})[0]  # the filter's R option
     cases = [
-        ("Q too small (ARW / 10)", dataclasses.replace(true_model, gyro_arw=base.gyro_arw),
-         right_meas, "Q"),
-        ("Q too large (ARW x 10)", dataclasses.replace(true_model, gyro_arw=true_model.gyro_arw * 10),
-         right_meas, "Q"),
-        ("R too small (the compass's claimed sigma)", true_model, meas, "R"),
-        ("R too large (1 deg)", true_model, with_values(config, meas, {"yaw_floor_deg": 1.0})[1], "R"),
+        ("Q too small (ARW / 10)", right.replace(imu_model=dataclasses.replace(
+            true_model, gyro_arw=base.gyro_arw)), "Q"),
+        ("Q too large (ARW x 10)", right.replace(imu_model=dataclasses.replace(
+            true_model, gyro_arw=true_model.gyro_arw * 10)), "Q"),
+        ("R too small (the compass's claimed sigma)", config, "R"),
+        ("R too large (1 deg)", with_values(config, meas, {"yaw_floor_deg": 1.0})[0], "R"),
     ]  # fmt: skip
-    reference = run_fusion(imu, right_meas, config=config)
+    reference = run_fusion(imu, meas, config=right)
     fig, axes = plt.subplots(2, 3, figsize=(15, 7.5), sharex=True)
     rows = []
-    for label, model, m, row in cases:
-        res = run_fusion(imu, m, config=dataclasses.replace(config, imu_model=model))
+    for label, case, row in cases:
+        res = run_fusion(imu, meas, config=case)
         colour = "C3" if "small" in label else "C0"
         draw_case(axes[0 if row == "Q" else 1], res, truth, label, colour)
         row = stats_table(innovation_stats(res.updates)).iloc[0].to_dict()

@@ -20,6 +20,7 @@ import polins
 from polins.frames import wrap_angle
 from polins.fusion import run_fusion
 from polins.fusion.config import FuseConfig
+from polins.fusion.vehicle import with_standstill
 
 BROAD = Path(__file__).parent / "data" / "broad"
 BERLIN = polins.Site(lat_deg=52.512, lon_deg=13.327, alt_m=40.0)
@@ -52,8 +53,8 @@ def trial(name):
 def run(name, **options):
     """The graph's result and, per angle, (RMS error [deg], RMS(err/sigma), % within 3 sigma)."""
     imu, meas, rest, rot0, euler, valid = trial(name)
-    opts = {"imu_model": "broad-aktos-t", "site": BERLIN, "zupt_std": 0.01,
-            "stationary": rest, "output_rate_hz": 10.0, **options}  # fmt: skip
+    opts = {"imu_model": "broad-aktos-t", "site": BERLIN, "output_rate_hz": 10.0, **options}
+    meas = with_standstill(meas, rest, 0.01)
     config = FuseConfig.from_options(**opts)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the site is known: no warning

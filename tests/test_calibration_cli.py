@@ -63,6 +63,7 @@ def sky(tmp_path_factory):
         for a, r in zip(turns, radiance, strict=True)
     ])  # fmt: skip
     _write_images(tmp / "fit", raws[::2])
+    (tmp / "fit_turns_deg.txt").write_text(",".join(f"{a:.6f}" for a in turns[::2]))
     _write_images(tmp / "held_out", raws[1::2])
     return tmp, true, turns[1::2], raws[1::2]
 
@@ -338,3 +339,44 @@ def test_calibrate_sky_rotation_with_the_clock(tmp_path, capsys):
     cam = polins.load_camera(tmp_path / "new.toml")
     d = cam.transmission_angle - true.transmission_angle
     assert np.degrees(np.abs(d - d.mean())).max() <= 0.2  # 0.41 deg without the clock
+
+
+def test_check_scores_a_turntable_sequence(sky, capsys):
+    """``check --turns-deg``: sun-free relative headings against the turns, an offset and a
+    drift taken out; the true camera scores a few hundredths of a degree with an honest
+    sigma, and turns of the wrong sign score tens of degrees."""
+    tmp, true, turns, _ = sky
+    path = tmp / "true.toml"
+    path.write_text(camera_model_toml(true.with_changes(instrumental_dop_std=0.0)))
+    turns_arg = ",".join(f"{a:.6f}" for a in turns)
+    assert main(["calibrate", "check", str(path), str(tmp / "held_out"),
+                 f"--turns-deg={turns_arg}", "--json"]) == 0  # fmt: skip
+    score = json.loads(capsys.readouterr().out)
+    assert score["n_ok"] == 12 and score["clock"] == "the image order"
+    assert score["rmse_deg"] < 0.1 and 0.3 < score["rms_err_over_sigma"] < 2.0
+    flipped = ",".join(f"{-a:.6f}" for a in turns)
+    assert main(["calibrate", "check", str(path), str(tmp / "held_out"),
+                 f"--turns-deg={flipped}"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "relative heading over 12 images: RMSE" in out
+    assert float(out.split("RMSE ")[1].split(" deg")[0]) > 10.0
+
+
+def test_sky_rotation_with_the_turntable_angles(sky, capsys):
+    """``sky-rotation --turns-deg``: the turntable's angles go into the fit; the wrong sign
+    is one line naming it."""
+    tmp, true, _, _ = sky
+    turns_arg = (tmp / "fit_turns_deg.txt").read_text()
+    assert main(["calibrate", "dark", str(tmp / "dark"), "--camera", str(tmp / "base.toml"),
+                 "--out", str(tmp / "dark2.toml")]) == 0  # fmt: skip
+    assert main(["calibrate", "sky-rotation", str(tmp / "fit"), "--camera", str(tmp / "dark2.toml"),
+                 "--out", str(tmp / "known.toml"), f"--turns-deg={turns_arg}"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "with the turns known" in out and "wrote" in out
+    cam = polins.load_camera(tmp / "known.toml")
+    np.testing.assert_allclose(cam.gain / cam.gain.mean(), true.gain / true.gain.mean(), atol=3e-3)
+    flipped = ",".join(f"{-float(a):.6f}" for a in turns_arg.split(","))
+    assert main(["calibrate", "sky-rotation", str(tmp / "fit"), "--camera", str(tmp / "dark2.toml"),
+                 "--out", str(tmp / "flipped.toml"), f"--turns-deg={flipped}"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "negate them" in err and len(err.strip().splitlines()) == 1

@@ -130,3 +130,53 @@ def test_downscaled_camera_sees_the_same_rays():
     np.testing.assert_allclose(
         (project(small, rays) + 0.5) * 4 - 0.5, project(CAM, rays), atol=1e-9
     )
+
+
+def test_a_camera_file_without_calibration_carries_the_channels_uncertainty(tmp_path):
+    """The datasheet's channels (unit gains and efficiencies, the nominal angles), no
+    [[calibration]] record and no stated instrumental_*_std: the channels as delivered,
+    gains +-1 %, angles +-0.5 deg. Calibrated values (the shipped paper camera's Table 1), a
+    record or a stated quality keep the file's values."""
+    import dataclasses
+
+    from polins.io.model_files import camera_model_toml
+    from polins.models.camera import (
+        UNCALIBRATED_ANGLE_STD_DEG,
+        UNCALIBRATED_GAIN_STD,
+        mixing_std,
+    )
+
+    paper = polins.load_camera("paper-table1")
+    assert paper.instrumental_dop_std is None and paper.instrumental_mixing_std is None
+    nominal = paper.with_changes(gain=np.ones(4), efficiency=np.ones(4),
+                                 transmission_angle=np.radians(paper.nominal_angle_deg))  # fmt: skip
+
+    def loaded(camera, name):
+        path = tmp_path / f"{name}.toml"
+        path.write_text(camera_model_toml(camera))
+        return polins.load_camera(path)
+
+    cam = loaded(nominal, "bare")
+    assert cam.instrumental_dop_std == pytest.approx(UNCALIBRATED_GAIN_STD / np.sqrt(2.0))
+    # The mixing of +-0.5 deg channel angles, against 20,000 drawn angle sets: the RMS of
+    # the symmetric traceless part of the S1/S2 mixing matrix of the least-squares Stokes.
+    rng = np.random.default_rng(0)
+    alpha0 = nominal.transmission_angle
+    std = np.radians(UNCALIBRATED_ANGLE_STD_DEG)
+    alpha = alpha0 + std * rng.standard_normal((20_000, 4))
+    rows = 0.5 * np.stack([np.ones(4), np.cos(2 * alpha0), np.sin(2 * alpha0)], -1)
+    demod = np.linalg.pinv(rows)[1:]  # (2, 4)
+    true_rows = 0.5 * np.stack([np.cos(2 * alpha), np.sin(2 * alpha)], -1)  # (N, 4, 2)
+    mix = np.einsum("ik,nkj->nij", demod, true_rows)  # (N, 2, 2), identity when exact
+    a, b = 0.5 * (mix[:, 0, 0] - mix[:, 1, 1]), 0.5 * (mix[:, 0, 1] + mix[:, 1, 0])
+    drawn = np.sqrt(0.5 * (np.mean(a**2) + np.mean(b**2)))
+    assert cam.instrumental_mixing_std == pytest.approx(drawn, rel=0.03)
+    assert cam.instrumental_mixing_std == pytest.approx(
+        mixing_std(np.ones(4), alpha0, np.ones(4), np.full(4, std), np.zeros(4))
+    )
+    dark = {"kind": "dark", "date": "2026-01-01T00:00:00+00:00", "n_images": 4,
+            "method": "dark frames"}  # fmt: skip
+    assert loaded(nominal.with_changes(calibration=(dark,)), "dark").instrumental_dop_std is None
+    stated = loaded(dataclasses.replace(nominal, instrumental_dop_std=0.0), "stated")
+    assert stated.instrumental_dop_std == 0.0 and stated.instrumental_mixing_std is None
+    assert loaded(paper, "paper").instrumental_dop_std is None

@@ -1,10 +1,13 @@
 """Every code block of README.md and docs/*.md that is meant to run, run as written.
 
 A page's ``python`` blocks share one namespace, and its ``bash``/``sh`` blocks one working
-folder, in the order of the page. A ``bash`` block runs line by line: ``polins ...`` through
-:func:`polins.cli.main` (exit status 0 expected), ``python ...`` in a subprocess. Blocks of
-other languages (``text``, ``toml``, none) are data, not run. An HTML comment right before a
-block tells this module how to run it, visibly in the page's source:
+folder, in the order of the page; python blocks run as ``__main__``. A ``bash`` block runs line
+by line: ``polins ...`` through :func:`polins.cli.main` (exit status 0 expected), ``python ...``
+in a subprocess; no shell runs them, so a line with a shell operator (``;``, ``&&``, ``|``,
+``>``, ...) fails. ``text`` and ``toml`` blocks are data, not run; a block without a language
+fails. Fences follow CommonMark (backticks or tildes, the first word of the info string is the
+language). An HTML comment right before a block tells this module how to run it, visibly in
+the page's source:
 
 ``<!-- doctest: fixture log -->``
     before the block, copy the fixture files into the working folder and (python) define the
@@ -44,10 +47,14 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 RUN_LANGUAGES = {"python", "bash", "sh"}
-DATA_LANGUAGES = {"", "text", "toml"}
+DATA_LANGUAGES = {"text", "toml"}
+SHELL_OPERATOR_CHARS = "();<>|&"
 
-FENCE = re.compile(r"^(?P<indent> *)```(?P<lang>[\w+-]*)\s*$")
+# CommonMark fences: 3+ backticks or tildes; a backtick fence's info string has no backtick
+FENCE_OPEN = re.compile(r"^(?P<indent> *)(?P<fence>`{3,}(?=[^`]*$)|~{3,})(?P<info>.*)$")
+FENCE_LIKE = re.compile(r"^ *(`{3,}|~{3,})")
 DIRECTIVE = re.compile(r"^\s*<!--\s*doctest:\s*(?P<body>.*?)\s*-->\s*$")
+SKIP = re.compile(r"^skip\b\s*(?P<reason>.*)$")
 REPLACE = re.compile(r"^replace\s+`(?P<old>[^`]+)`\s+`(?P<new>[^`]*)`$")
 
 
@@ -81,8 +88,8 @@ def _shown(page: Path) -> str:
 
 
 def _directive(block: Block, body: str, where: str) -> None:
-    if body.startswith("skip"):
-        block.skip = body[4:].strip()
+    if match := SKIP.match(body):
+        block.skip = match["reason"]
         assert block.skip, f"{where}: doctest skip needs a reason"
     elif body.startswith("fixture "):
         block.fixtures += body.split()[1:]
@@ -92,8 +99,24 @@ def _directive(block: Block, body: str, where: str) -> None:
         raise AssertionError(f"{where}: unknown doctest directive {body!r}")
 
 
+def _closing(lines: list[str], i: int, fence: str, where: str) -> int:
+    """The index of the line that closes the block opened by ``fence`` at line ``i``."""
+    close = re.compile(rf"^ *{fence[0]}{{{len(fence)},}}\s*$")
+    for end in range(i + 1, len(lines)):
+        if close.match(lines[end]):
+            return end
+        like = FENCE_LIKE.match(lines[end])
+        if like and like[1][0] == fence[0] and len(like[1]) >= len(fence):
+            raise AssertionError(f"{where}:{end + 1}: text after a closing fence")
+    raise AssertionError(f"{where}:{i + 1}: unclosed code block")
+
+
 def parse_blocks(page: Path) -> list[Block]:
-    """The fenced blocks of ``page`` with the directives in the comment lines before each."""
+    """The fenced blocks of ``page`` with the directives in the comment lines before each.
+
+    Fences follow CommonMark (three or more backticks or tildes, then an info string whose
+    first word is the language); a line that starts like a fence but is none fails.
+    """
     lines = page.read_text(encoding="utf-8").splitlines()
     blocks: list[Block] = []
     pending: list[tuple[str, int]] = []
@@ -101,17 +124,18 @@ def parse_blocks(page: Path) -> list[Block]:
     while i < len(lines):
         if match := DIRECTIVE.match(lines[i]):
             pending.append((match["body"], i + 1))
-        elif match := FENCE.match(lines[i]):
-            indent, end = len(match["indent"]), i + 1
-            while end < len(lines) and not re.match(r"^ *```\s*$", lines[end]):
-                end += 1
-            assert end < len(lines), f"{page.name}:{i + 1}: unclosed code block"
-            code = "\n".join(line[indent:] for line in lines[i + 1 : end])
-            block = Block(page, i + 2, match["lang"], code)
+        elif match := FENCE_OPEN.match(lines[i]):
+            end = _closing(lines, i, match["fence"], _shown(page))
+            indent = len(match["indent"])
+            code = "\n".join(_dedent(line, indent) for line in lines[i + 1 : end])
+            lang = (match["info"].split() or [""])[0]
+            block = Block(page, i + 2, lang, code)
             for body, at in pending:
                 _directive(block, body, f"{_shown(page)}:{at}")
             blocks.append(block)
             pending, i = [], end
+        elif FENCE_LIKE.match(lines[i]):
+            raise AssertionError(f"{_shown(page)}:{i + 1}: not a code fence: {lines[i].strip()!r}")
         elif lines[i].strip():
             assert not pending, (
                 f"{page.name}:{pending[0][1]}: a doctest directive not before a block"
@@ -119,6 +143,11 @@ def parse_blocks(page: Path) -> list[Block]:
         i += 1
     assert not pending, f"{page.name}: a doctest directive after the last block"
     return blocks
+
+
+def _dedent(line: str, indent: int) -> str:
+    """``line`` without up to ``indent`` leading spaces (the fence's indentation)."""
+    return line[min(indent, len(line) - len(line.lstrip(" "))) :]
 
 
 # ------------------------------------------------------------------------------ the fixture
@@ -260,6 +289,14 @@ def _commands(code: str) -> list[tuple[int, str]]:
     return commands
 
 
+def _shell_operators(line: str) -> list[str]:
+    """The shell operators (``;``, ``&&``, ``|``, ``>``, ``2>&1``, ...) outside quotes in
+    ``line``."""
+    lexer = shlex.shlex(line, posix=True, punctuation_chars=True)
+    lexer.whitespace_split = True
+    return [token for token in lexer if token and set(token) <= set(SHELL_OPERATOR_CHARS)]
+
+
 def _run_shell(block: Block, code: str) -> None:
     from polins.cli import main
 
@@ -268,6 +305,11 @@ def _run_shell(block: Block, code: str) -> None:
         where = f"{_shown(block.page)}:{block.line + offset}"
         if not argv:
             continue
+        if operators := _shell_operators(line):
+            raise AssertionError(
+                f"{where}: shell operator {operators[0]!r} is not run by this harness: "
+                "one command a line, or mark the block doctest skip with a reason"
+            )
         if argv[0] == "polins":
             status = main(argv[1:])
         elif argv[0] == "python":
@@ -286,7 +328,7 @@ def _run_python(block: Block, code: str, namespace: dict[str, Any]) -> None:
 
 def run_page(page: Path, cwd: Path, request) -> list[Block]:
     """Run the page's runnable blocks in order in ``cwd``; return the blocks that ran."""
-    namespace: dict[str, Any] = {"__name__": "__doc_page__"}
+    namespace: dict[str, Any] = {"__name__": "__main__"}
     ran = []
     for block in parse_blocks(page):
         if block.lang not in RUN_LANGUAGES or block.skip:
@@ -334,20 +376,79 @@ def test_page_blocks_run(page, tmp_path, monkeypatch, request):
     assert ran or all(b.skip for b in parse_blocks(page) if b.lang in RUN_LANGUAGES)
 
 
+def check_block(block: Block) -> None:
+    """A block's language says whether it runs; data blocks carry no doctest directive."""
+    assert block.lang in RUN_LANGUAGES | DATA_LANGUAGES, (
+        f"{block.where}: code block language {block.lang!r}: tag it with one of "
+        f"{sorted(RUN_LANGUAGES | DATA_LANGUAGES)}"
+    )
+    if block.lang in DATA_LANGUAGES:
+        assert not (block.skip or block.fixtures or block.replace), (
+            f"{block.where}: a doctest directive on a block that does not run"
+        )
+
+
 def test_every_block_is_run_data_or_marked():
-    """A block's language says whether it runs; an unknown one is a mistake to fix."""
+    """A block's language says whether it runs; an unknown or missing one is a mistake to fix."""
     for page in PAGES:
         for block in parse_blocks(page):
-            assert block.lang in RUN_LANGUAGES | DATA_LANGUAGES, (
-                f"{block.where}: code block language {block.lang!r}: use one of "
-                f"{sorted(RUN_LANGUAGES | DATA_LANGUAGES)}"
-            )
-            if block.lang in DATA_LANGUAGES:
-                assert not (block.skip or block.fixtures or block.replace), (
-                    f"{block.where}: a doctest directive on a block that does not run"
-                )
+            check_block(block)
     totals = pd.DataFrame(inventory()).T.sum()
     assert totals["run"] >= 10
+
+
+def test_fences_follow_commonmark(tmp_path):
+    """Info strings, tildes and longer fences open blocks; a malformed fence fails the page."""
+    page = tmp_path / "page.md"
+    page.write_text(
+        '```python title="a"\nx = 1\n```\n\nprose\n\n~~~python\ny = 2\n~~~\n\n'
+        "````markdown\n```python\nnot run\n```\n````\n\n  ```bash\n  polins sun\n  ```\n"
+    )
+    blocks = parse_blocks(page)
+    assert [(b.line, b.lang, b.code) for b in blocks] == [
+        (2, "python", "x = 1"),
+        (8, "python", "y = 2"),
+        (12, "markdown", "```python\nnot run\n```"),
+        (18, "bash", "polins sun"),
+    ]
+    with pytest.raises(AssertionError, match="'markdown'"):
+        check_block(blocks[2])
+    bad = {
+        "```text\nx\n``` and prose\n": "page.md:3: text after a closing fence",
+        "``` prose `code`\n": "page.md:1: not a code fence",
+        "~~~python\nx = 1\n```\n": "page.md:1: unclosed code block",
+    }
+    for text, message in bad.items():
+        page.write_text(text)
+        with pytest.raises(AssertionError, match=message):
+            parse_blocks(page)
+    page.write_text("```\npolins sun\n```\n")
+    with pytest.raises(AssertionError, match="language '': tag it"):
+        check_block(parse_blocks(page)[0])
+    page.write_text("<!-- doctest: skipping -->\n```bash\npolins sun\n```\n")
+    with pytest.raises(AssertionError, match="unknown doctest directive 'skipping'"):
+        parse_blocks(page)
+
+
+def test_shell_operators_fail_and_python_runs_as_main(tmp_path):
+    page = tmp_path / "page.md"
+    quoted = "python -c \"import sys; sys.exit(0 if sys.argv[1] == 'a|b' else 1)\" 'a|b'"
+    _run_shell(Block(page, 1, "bash", quoted), quoted)  # operators inside quotes are text
+    for line in [
+        'python -c "pass" ; python -c "import sys; sys.exit(3)"',
+        "polins sun && polins nope",
+        "polins sun || true",
+        "polins sun | head",
+        "polins sun > out.txt",
+        "polins sun >> out.txt",
+        "polins sun < in.txt",
+        "polins sun 2>&1",
+        "polins sun&",
+    ]:
+        with pytest.raises(AssertionError, match=r"page.md:1: shell operator .* doctest skip"):
+            _run_shell(Block(page, 1, "bash", line), line)
+    page.write_text('```python\nassert __name__ == "__main__"\n```\n')
+    assert len(run_page(page, tmp_path, None)) == 1
 
 
 def test_the_harness_reports_page_and_line(tmp_path):

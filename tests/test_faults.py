@@ -267,6 +267,6 @@ def test_rejections_are_printed_grouped_by_reason():
 
 
 def test_the_imu_gap_has_one_option():
-    with pytest.raises(TypeError, match=r"no max_imu_gap_s: the IMU gap is FuseConfig.max_gap_s"):
+    with pytest.raises(TypeError, match=r"'max_imu_gap_s' is FuseConfig's max_gap_s"):
         LoopOptions(max_imu_gap_s=0.2)
     assert FuseConfig(max_gap_s=0.5).gap_s == 0.5

@@ -20,6 +20,7 @@ import polins.fusion.graph as G
 from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.fusion.config import TIME_TOL_S, FuseConfig
 from polins.fusion.measurement import sun_measurement
+from polins.fusion.vehicle import with_standstill
 from polins.ins.state import NavState, solution_table
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import turntable, ugv_drive
@@ -340,6 +341,7 @@ def ugv_monte_carlo(runs, duration, *, aiding, seed0=100, model_name="mems-typic
             meas = pd.DataFrame({"t": traj.t[idx], "yaw": wrap_angle(yaw), "yaw_std": std})
             extra = {"nhc_std": 0.05}
         stationary = traj.t[np.linalg.norm(traj.vel_n, axis=1) < 1e-9][::40]
+        meas = with_standstill(meas, stationary, 0.01)
         rot0 = Rotation.from_rotvec(np.radians(1.0) * rng.standard_normal(3)) * traj.rot_nb[0]
         opts = {
             "imu_model": model,
@@ -347,8 +349,6 @@ def ugv_monte_carlo(runs, duration, *, aiding, seed0=100, model_name="mems-typic
             "lon_deg": np.degrees(traj.lon[0]),
             "alt_m": traj.alt_m[0],
             "earth_rate": True,
-            "zupt_std": 0.01,
-            "stationary": stationary,
             "output_rate_hz": 10.0,
             **extra,
         }
@@ -483,7 +483,7 @@ def test_bad_options_raise_clear_errors():
         graph(imu, meas, solver="lm", **opts)
     with pytest.raises(ValueError, match="self-alignment"):
         graph(imu, meas.iloc[:0], **opts)
-    with pytest.raises(ValueError, match="zupt_std"):
+    with pytest.raises(ValueError, match="zupt_std column"):  # with_standstill
         graph(imu, meas, stationary=[1.0], **opts)
     with pytest.raises(ValueError, match="imu"):
         graph(imu.iloc[::-1], meas, **opts)

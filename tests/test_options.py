@@ -56,7 +56,6 @@ OFF_CASES: dict[str, tuple[dict[str, object], Callable[[FuseConfig], bool]]] = {
     "odometer_std": ({}, lambda c: _resolved(c).odometer_sigma is None),
     "mount_std": ({"mount_std": 0.01}, lambda c: c.mount_sigma is None),
     "lever_std": ({"lever_std": 0.1}, lambda c: c.lever_sigma is None),
-    "zupt_std": ({"zupt_std": 0.01}, lambda c: c.aiding.zupt_std == OFF),
     "scale_factors": ({}, lambda c: not c.use_scale_factors),
     "use_sun": ({}, lambda c: c.gating.use_sun is False),
     "tilt_coupling": ({}, lambda c: not _resolved(c).tilt_coupling),
@@ -162,7 +161,8 @@ def test_auto_and_numbers_as_text_parse_as_in_python():
     ("name", "replacement"),
     [("cov_step_s", "COV_STEP_S"), ("time_tol_s", "TIME_TOL_S"), ("site_assumed", "no site"),
      ("integration_std", "INTEGRATION_STD"), ("max_gate_rounds", "MAX_GATE_ROUNDS"),
-     ("reset_interval_s", "RESET_INTERVAL_S"), ("nhc_rate_hz", "NHC_RATE_HZ")],
+     ("reset_interval_s", "RESET_INTERVAL_S"), ("nhc_rate_hz", "NHC_RATE_HZ"),
+     ("zupt_std", "with_standstill"), ("stationary", "with_standstill")],
 )  # fmt: skip
 def test_an_old_name_fails_with_one_line_naming_the_new(name, replacement, log_text):
     with pytest.raises(UserInputError, match=replacement):
@@ -249,3 +249,23 @@ def test_a_tuned_measurement_noise_is_applied_by_fuse_and_the_stream():
 
     base = FuseConfig("mems-typical", SITE)
     assert streamed(tuned, meas) == pytest.approx(streamed(base, own), rel=1e-12)
+
+
+def test_one_imu_gap_length_for_the_loop_and_the_filter():
+    with pytest.raises(UserInputError, match="is FuseConfig's max_gap_s") as info:
+        polins.LoopOptions(max_imu_gap_s=0.1)
+    assert "\n" not in str(info.value)
+    assert FuseConfig(max_gap_s="auto").gap_s is None and FuseConfig(max_gap_s=0.2).gap_s == 0.2
+
+
+def test_zero_velocity_at_known_times_is_rows_of_the_table():
+    """One way to ask for zero velocity at known times: ``zupt_std`` rows (no heading row)."""
+    from polins.fusion.vehicle import with_standstill
+
+    imu, meas = _static_case()
+    rows = with_standstill(meas, [2.25, 3.25, 4.25], 0.01)
+    assert list(rows["t"]) == sorted(rows["t"]) and len(rows) == len(meas) + 3
+    config = FuseConfig("mems-typical", SITE, acquire_k=1, acquire_n=1)
+    updates = run_fusion(imu, rows, config=config).updates
+    assert (updates["name"] == "zupt").sum() == 3 and updates["accepted"].all()
+    assert (updates["name"] == "yaw").sum() == len(meas)  # the zero-velocity rows are no yaw

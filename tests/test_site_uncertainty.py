@@ -16,6 +16,7 @@ from polins.frames import skew, wrap_angle
 from polins.fusion import run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.sky_states import site_frame_jacobian
+from polins.fusion.vehicle import with_standstill
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
 from polins.site import Site
@@ -90,9 +91,9 @@ def run(seed, d_site_deg, site_std_deg, kind="sun", self_align=False, backend="e
     speed = np.linalg.norm(traj.vel_n, axis=1)
     t_rest = traj.t[(speed < 1e-6) & (np.round(traj.t * 10.0, 6) % 1.0 == 0.0)]
     config = FuseConfig.from_options(
-        None, imu_model=model, site=SITE, output_rate_hz=2.0, zupt_std=0.01,
-        stationary=tuple(t_rest), **options,
-    )  # fmt: skip
+        None, imu_model=model, site=SITE, output_rate_hz=2.0, **options
+    )
+    meas = with_standstill(meas, t_rest, 0.01)
     result = run_fusion(imu, meas, backend, rot_nb0=None if self_align else rot0, config=config)
     sol = result.solution
     sol = sol[sol["t"] >= 5.0]
@@ -160,5 +161,5 @@ def test_approximate_site_with_self_alignment():
 def test_site_std_option():
     for backend in ("eskf", "graph"):  # both (the graph's: tests/test_graph_states.py)
         FuseConfig.from_options(None, site=SITE, site_std=0.01).check_backend(backend)
-    with pytest.raises(UserInputError, match="site_std must be > 0"):
+    with pytest.raises(UserInputError, match=r"site_std=-0\.01: expected a number > 0"):
         FuseConfig.from_options(None, site=SITE, site_std=-0.01)

@@ -20,6 +20,7 @@ from polins.fusion.config import FuseConfig
 from polins.fusion.items import MeasurementItem, item_model, items_from_table, measurement_items
 from polins.fusion.measurement import sun_azimuth_kernel, sun_direction_cov_b
 from polins.fusion.sky_states import ModelPart, without_bias_part
+from polins.fusion.vehicle import with_standstill
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
 from polins.site import Site
@@ -56,10 +57,10 @@ def fused(drive_out, backend="eskf", drop=(), **options):
     a drive ``(model, traj, imu, meas, t_rest)``; ``drop``: measurement columns not given."""
     model, traj, imu, meas, t_rest = drive_out
     config = FuseConfig.from_options(
-        None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01,
-        stationary=t_rest, **options,
-    )  # fmt: skip
-    return traj, run_fusion(imu, meas.drop(columns=list(drop)), backend, config=config).solution
+        None, imu_model=model, site=SITE, output_rate_hz=1.0, **options
+    )
+    meas = with_standstill(meas.drop(columns=list(drop)), t_rest, 0.01)
+    return traj, run_fusion(imu, meas, backend, config=config).solution
 
 
 @functools.cache
@@ -123,7 +124,7 @@ def test_no_clock_rows_become_sun_azimuth_items():
 def test_no_clock_false_is_refused_on_a_no_clock_table():
     model, _traj, imu, meas, _ = drive(0, 20.0)
     config = FuseConfig.from_options(None, imu_model=model, site=SITE)
-    with pytest.raises(UserInputError, match="no_clock=False"):
+    with pytest.raises(UserInputError, match="no_clock=off"):
         run_fusion(imu, meas, config=FuseConfig.from_options(config, no_clock=False))
 
 
@@ -301,9 +302,10 @@ def test_sun_update_carries_the_fits_2x2_covariance():
 def test_no_clock_streaming_matches_fuse():
     # build_filter(no_clock=True) fed row by row gives fuse's relative heading
     model, _traj, imu, meas, t_rest = drive(1, 30.0)
-    options = dict(imu_model=model, site=SITE, zupt_std=0.01, stationary=t_rest)
+    options = dict(imu_model=model, site=SITE)
+    rows = with_standstill(meas, t_rest, 0.01)
     with pytest.warns(UserWarning, match="no-clock mode"):
-        batch = run_fusion(imu, meas, config=FuseConfig.from_options(None, **options)).solution
+        batch = run_fusion(imu, rows, config=FuseConfig.from_options(None, **options)).solution
     filt = build_filter(0.0, 0.01, no_clock=True, **options)
     for row in meas.itertuples(index=False):
         sky = {c: getattr(row, c) for c in meas.columns if c != "t"}
@@ -330,11 +332,9 @@ def test_ambiguous_rows_are_axes():
     meas = meas.copy()
     meas.loc[flip, "sun_azimuth_b"] = wrap_angle(meas.loc[flip, "sun_azimuth_b"] + np.pi)
     meas["sun_azimuth_b_alt"] = np.where(amb, wrap_angle(meas["sun_azimuth_b"] + np.pi), np.nan)
-    config = FuseConfig.from_options(
-        None, imu_model=model, site=SITE, output_rate_hz=1.0, zupt_std=0.01, stationary=t_rest
-    )
+    config = FuseConfig.from_options(None, imu_model=model, site=SITE, output_rate_hz=1.0)
     with pytest.warns(UserWarning, match="no-clock mode"):
-        result = run_fusion(imu, meas, config=config)
+        result = run_fusion(imu, with_standstill(meas, t_rest, 0.01), config=config)
     assert result.updates["accepted"].mean() > 0.98
     sol = result.solution[result.solution["t"] >= 5.0]
     k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)

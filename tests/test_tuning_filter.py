@@ -123,3 +123,16 @@ def test_tune_runs_the_filter_that_fuses_with_the_odometer(drive):
     for run in (res.before, res.after):
         assert (run.updates["name"] == "odo").sum() > 0.9 * len(odometry)
     assert not (run_fusion(imu, meas, config=config).updates["name"] == "odo").any()
+
+
+def test_every_tuned_value_acts_in_the_filter_that_fuses(drive):
+    """The tuned IMU model and measurement-noise options, given to ``run_fusion`` as
+    ``polins fuse --imu ... --set ...`` gives them, reproduce the tuned run exactly."""
+    imu, meas, config = drive
+    res = tune(imu, meas, config, params=("yaw_floor_deg",))
+    options = res.fuse_options()
+    assert set(options) == {"yaw_floor_deg"} and res.identifiable["yaw_floor_deg"]
+    fused = run_fusion(imu, meas, config=config.replace(imu_model=res.config.imu, **options))
+    np.testing.assert_array_equal(fused.updates["nis"], res.after.updates["nis"])
+    assert res.stats_after["yaw"].consistent
+    assert f"--set yaw_floor_deg={options['yaw_floor_deg']:.6g}" in "\n".join(res.comment_lines())

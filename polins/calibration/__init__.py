@@ -21,6 +21,7 @@ from polins.calibration.noise import NoiseResult, calibrate_noise
 from polins.calibration.polarizer import PolarizerResult, calibrate_polarizer
 from polins.calibration.quality import CheckReport, check
 from polins.calibration.sky_rotation import (
+    SkyRotationResidualWarning,
     SkyRotationResult,
     calibrate_sky_rotation,
     fit_sky_rotation,
@@ -37,6 +38,7 @@ __all__ = [
     "IntrinsicsResult",
     "NoiseResult",
     "PolarizerResult",
+    "SkyRotationResidualWarning",
     "SkyRotationResult",
     "apply_to_camera",
     "calibrate_camera_imu",

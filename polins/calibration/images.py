@@ -19,6 +19,7 @@ from scipy import ndimage
 
 from polins.errors import UserInputError
 from polins.models import CameraModel
+from polins.models.camera import mixing_std
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -120,42 +121,6 @@ def zero_sum_basis(n: int) -> FloatArray:
     """
     q, _ = np.linalg.qr(np.vstack([np.ones(n), np.eye(n)[: n - 1]]).T)
     return q[:, 1:]
-
-
-def mixing_std(
-    gain: ArrayLike,
-    transmission_angle: ArrayLike,
-    efficiency: ArrayLike,
-    transmission_angle_std: ArrayLike,
-    efficiency_std: ArrayLike,
-) -> float:
-    """1-sigma [-] of the camera-fixed mixing of the linear Stokes components that channel
-    angles and efficiencies known to their standard errors leave (docs/measurement.md §12).
-
-    The channels ``I_k = g_k/2 (S0 + eta_k (S1 cos 2 alpha_k + S2 sin 2 alpha_k))`` are
-    inverted with the fitted values; errors ``d alpha_k``, ``d eta_k`` turn the estimated
-    ``L = (S1, S2)`` into ``(I + E) L`` with ``E = -[pinv(R) dR]`` (its linear-by-linear
-    block). A common angle offset (the rotation part of ``E``) turns every heading alike
-    and a common efficiency (its trace) scales the DoP; what bends the AoP across the sky
-    is the symmetric traceless part ``[[a, b], [b, -a]]``. With independent errors, the
-    mean square of the sigmas of ``a`` and ``b``, square-rooted.
-    """
-    g = np.asarray(gain, dtype=float)
-    alpha = np.asarray(transmission_angle, dtype=float)
-    eta = np.asarray(efficiency, dtype=float)
-    c, s = np.cos(2 * alpha), np.sin(2 * alpha)
-    response = 0.5 * g[:, None] * np.stack([np.ones_like(eta), eta * c, eta * s], -1)
-    demod = np.linalg.pinv(response)[1:]  # (2, 4): L from the channels
-    # d(row k)/d alpha_k and d(row k)/d eta_k, linear part (2,) each
-    d_rows = np.concatenate([(0.5 * g * eta)[:, None] * np.stack([-2 * s, 2 * c], -1),
-                             (0.5 * g)[:, None] * np.stack([c, s], -1)])  # fmt: skip
-    cols = np.concatenate([demod.T, demod.T])  # (8, 2): pinv(R)[1:, k] of each parameter
-    e = -cols[:, :, None] * d_rows[:, None, :]  # (8, 2, 2)
-    a = 0.5 * (e[:, 0, 0] - e[:, 1, 1])
-    b = 0.5 * (e[:, 0, 1] + e[:, 1, 0])
-    var = np.concatenate([np.asarray(transmission_angle_std, float),
-                          np.asarray(efficiency_std, float)]) ** 2  # fmt: skip
-    return float(np.sqrt(0.5 * (np.sum(a * a * var) + np.sum(b * b * var))))
 
 
 def channel_changes(

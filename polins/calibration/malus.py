@@ -14,8 +14,9 @@ construction, as docs/calibrate.md states:
 
 * the common gain (it trades against ``s_j S0_r``): the fitted gains keep the base
   camera's mean gain;
-* with unknown turns, the common angle offset (it trades against ``theta_j``): the
-  transmission angles keep the base camera's mean offset from the nominal labels;
+* with unknown turns or unknown sources, the common angle offset (it trades against
+  ``theta_j``, or against the phase of every ``L_r``): the transmission angles keep the
+  base camera's mean offset from the nominal labels;
 * with unknown sources, the common efficiency (it trades against the DoP of the sources):
   the efficiencies keep the base camera's largest efficiency.
 """
@@ -62,6 +63,8 @@ class TurnFit:
     chi2_dof : float
         Sum of squared normalised residuals per degree of freedom (about 1 when the model
         and the declared noise hold).
+    converged : bool
+        The least-squares fit met its tolerance within ``max_iterations``.
     """
 
     gain: FloatArray
@@ -76,6 +79,7 @@ class TurnFit:
     sources: FloatArray
     residuals: FloatArray
     chi2_dof: float
+    converged: bool = True
 
 
 def base_stokes(y: ArrayLike, cam: CameraModel) -> FloatArray:
@@ -102,6 +106,7 @@ def fit_turning_polarization(
     turn_start: ArrayLike | None = None,
     turn_prior_std: float | None = None,
     source_factors: ArrayLike | None = None,
+    max_iterations: int | None = None,
 ) -> TurnFit:
     """Fit channel gains, efficiencies and angles to turning polarized sources.
 
@@ -142,6 +147,9 @@ def fit_turning_polarization(
         Known change of each source's linear polarization from image to image:
         ``L_r`` becomes ``L_r f_jr`` in image j (a sky that changes as the sun moves;
         :func:`polins.calibration.sky_rotation.sun_motion_factors`). Default 1.
+    max_iterations : int, optional
+        Stop after about this many Levenberg-Marquardt iterations (each one Jacobian);
+        ``converged`` says whether it met its tolerance. None: scipy's default.
 
     Returns
     -------
@@ -179,7 +187,7 @@ def fit_turning_polarization(
     # Parameter vector: log-gain (3) | efficiency (3 log, relative; or 4 log) | angle offsets
     # (3 relative or 4) | log scale (m - 1 or m) | turns (m - 1 or m, when fitted) | sources.
     n_eta = 3 if fit_src else 4
-    n_alpha = 3 if fit_turn else 4
+    n_alpha = 3 if (fit_turn or fit_src) else 4  # fitted sources take a common angle too
     n_scale = 1 if constant_scale else (m - 1 if fit_src else m)
     if constant_scale and fit_src:
         raise ValueError("constant_scale needs known sources")
@@ -195,7 +203,7 @@ def fit_turning_polarization(
         a, b, d, ls, th, sv, _ = np.split(x, cuts)
         gain = np.exp(q @ a)
         eta = np.exp(log_eta_base - log_eta_base.mean() + q @ b) if fit_src else np.exp(b)
-        alpha = cam.transmission_angle + (q @ d if fit_turn else d)
+        alpha = cam.transmission_angle + (q @ d if n_alpha == 3 else d)
         if constant_scale:
             scale = np.full(m, np.exp(ls[0]))
         else:
@@ -255,7 +263,8 @@ def fit_turning_polarization(
         raise UserInputError(
             f"Malus fit: {y_arr.size} channel means cannot fix {x0.size} unknowns; add images"
         )
-    sol = least_squares(residual, x0, method="lm", x_scale="jac")
+    max_nfev = None if max_iterations is None else max_iterations * (x0.size + 1)
+    sol = least_squares(residual, x0, method="lm", x_scale="jac", max_nfev=max_nfev)
     gain, eta, alpha, scale, theta, s0r, lr = unpack(sol.x)
     dof = y_arr.size - x0.size
     chi2_dof = float(np.sum(sol.fun[: y_arr.size] ** 2) / dof)
@@ -269,7 +278,7 @@ def fit_turning_polarization(
 
     gain_std = gain * std_of(q, blocks[0])
     eta_std = eta * std_of(q if fit_src else np.eye(4), blocks[1])
-    alpha_std = std_of(q if fit_turn else np.eye(4), blocks[2])
+    alpha_std = std_of(q if n_alpha == 3 else np.eye(4), blocks[2])
     turn_std = np.zeros(m)
     if fit_turn:
         turn_std[-n_turn:] = np.sqrt(np.maximum(np.diag(cov[np.ix_(blocks[4], blocks[4])]), 0.0))
@@ -294,4 +303,5 @@ def fit_turning_polarization(
         sources=sources_out,
         residuals=residuals,
         chi2_dof=chi2_dof,
+        converged=bool(sol.status > 0),
     )

@@ -26,7 +26,37 @@ from polins.compass.camera import fov_mask
 from polins.compass.polarimetry import stokes_from_channels, stokes_noise_variance
 from polins.models import CameraModel
 
-__all__ = ["CheckReport", "check"]
+__all__ = ["CheckReport", "check", "mosaic_pairing"]
+
+PAIRING_RATIO = 0.5  # another pairing's residual below this fraction of the file's: flagged
+
+
+def mosaic_pairing(channels: ArrayLike, used: ArrayLike, cam: CameraModel) -> str:
+    """Check the mosaic layout from polarized data: "" when it holds, else a sentence.
+
+    Orthogonal channels sum to S0 (``I_0 + I_90 = I_45 + I_135`` for any polarization, up to
+    the channel gains), so of the three ways to pair the four mosaic positions the true one
+    leaves the smallest residual, and a wrong pairing leaves the polarized signal. ``channels``
+    ``(..., 4)`` [DN] are ordered by the file's labels, ``used`` selects the superpixels
+    (images of a polarized scene: a clear sky). Which channel of a pair is which (0 vs 90
+    deg) is not seen here: that turns every angle of polarization by 90 deg.
+    """
+    ch = np.asarray(channels, dtype=float)[np.asarray(used, dtype=bool)]
+    if ch.shape[0] == 0:
+        return ""
+    labels = np.asarray(cam.nominal_angle_deg, dtype=float)
+    pairings = [((0, 2), (1, 3)), ((0, 1), (2, 3)), ((0, 3), (1, 2))]  # the file's first
+    rms = [float(np.sqrt(np.mean((ch[:, a].sum(-1) - ch[:, b].sum(-1)) ** 2)))
+           for a, b in pairings]  # fmt: skip
+    best = int(np.argmin(rms))
+    if best == 0 or rms[best] >= PAIRING_RATIO * rms[0]:
+        return ""
+    (a0, a1), (b0, b1) = pairings[best]
+    return (
+        f"the data pair the channels labelled {labels[a0]:g} and {labels[a1]:g} deg (and "
+        f"{labels[b0]:g}, {labels[b1]:g}) as orthogonal: residual {rms[best]:.3g} DN against "
+        f"{rms[0]:.3g} DN for the file's layout; check sensor.mosaic_layout_deg"
+    )
 
 
 @dataclass(frozen=True)
@@ -49,6 +79,9 @@ class CheckReport:
     residual_dop : float
         DoP of the Stokes vector summed over all used pixels and images [-]: meaningful on
         unpolarized frames only (``unpolarized=True``), NaN otherwise.
+    layout_note : str
+        "" when the file's mosaic layout pairs the orthogonal channels as the data do; else
+        which channels the data pair (:func:`mosaic_pairing`).
     """
 
     n_images: int
@@ -58,6 +91,7 @@ class CheckReport:
     noise_ratio: float
     flagged_fraction: float
     residual_dop: float
+    layout_note: str = ""
 
     def summary(self) -> str:
         """One line per figure, for the command line."""
@@ -68,6 +102,8 @@ class CheckReport:
             "about 1 for a right calibration)",
             f"pixels beyond 4 sigma: {100 * self.flagged_fraction:.3g}%",
         ]
+        if self.layout_note:
+            lines.append(f"mosaic layout: {self.layout_note}")
         if np.isfinite(self.residual_dop):
             lines.append(
                 f"residual polarization on the unpolarized frames: DoP {100 * self.residual_dop:.3g}%"
@@ -117,6 +153,7 @@ def check(
     if unpolarized and n_used:
         total = stokes[used].sum(axis=0)
         residual_dop = float(np.hypot(total[1], total[2]) / total[0])
+    layout = "" if unpolarized else mosaic_pairing(stack.channels, used, cam)
     return CheckReport(
         n_images=stack.n_images,
         n_pixels=n_used // max(stack.n_images, 1),
@@ -125,4 +162,5 @@ def check(
         noise_ratio=rms / declared,
         flagged_fraction=flagged,
         residual_dop=residual_dop,
+        layout_note=layout,
     )

@@ -53,6 +53,7 @@ Pitfalls, and how they are handled:
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -66,7 +67,7 @@ from polins.calibration.images import (
     channel_stack,
     provenance,
 )
-from polins.calibration.malus import base_stokes, fit_turning_polarization
+from polins.calibration.malus import TurnFit, base_stokes, fit_turning_polarization
 from polins.compass.camera import doubled_aop_from_evector, fov_mask, pixel_rays_c
 from polins.errors import UserInputError
 from polins.models import CameraModel
@@ -77,11 +78,31 @@ from polins.sky.scattering import rayleigh_dop, rayleigh_evector
 FloatArray = NDArray[np.float64]
 
 ANGLE_STD_MAX_DEG = 0.25  # refuse a fit whose channel angles are this uncertain [deg]
+TURN_MISMATCH_MAX_DEG = 5.0  # given turns may differ from the ring-mean AoP by this, RMS [deg]
+GAIN_RANGE = (0.8, 1.25)  # physical channel gains relative to their mean [-]
+ANGLE_OFFSET_MAX_DEG = 10.0  # physical channel angles: offset from the labels' pattern [deg]
+EFFICIENCY_MIN = 0.5  # physical channel efficiencies [-]
+ALTERNATION_STEPS = 8  # unknown turns: channel fits and turn re-reads, at most
+TURN_SETTLED = 1e-5  # [rad] turns that move less have settled
+JOINT_ITERATIONS = 30  # the joint fit from the alternation's turns: settles in a few or wanders
+RESIDUAL_RATIO_WARN = 3.0  # residual RMS over the noise model above which the fit warns [-]
+HARMONICS = 4  # harmonics of the turn in the residual's description
+
+
+class SkyRotationResidualWarning(UserWarning):
+    """A sky-rotation fit whose residual is far above the noise model: the images hold
+    something the model lacks; the warning says what the residual looks like."""
+
 
 __all__ = [
+    "SkyRotationResidualWarning",
     "SkyRotationResult",
     "calibrate_sky_rotation",
+    "check_turns",
+    "degeneracy",
     "fit_sky_rotation",
+    "polarization_turns",
+    "residual_pattern",
     "ring_windows",
     "sun_motion_factors",
     "turn_span",
@@ -117,6 +138,12 @@ class SkyRotationResult:
         RMS of the residuals over the declared noise of a ring mean (about 1 when the
         model holds; far above: tilted or offset turn axis, changing sky, wrong dark).
     provenance : dict
+    notes : tuple of str
+        What the images identified and how the fit got there (e.g. a half turn with known
+        angles leaves the tilt terms out; a degenerate free fit refitted).
+    residual_pattern : str
+        With a residual above 3 x the noise model: what it looks like (its share at each
+        harmonic of the turn, and by ring radius); "" otherwise.
     """
 
     gain: FloatArray
@@ -132,6 +159,8 @@ class SkyRotationResult:
     residual_rms_dn: float
     noise_ratio: float
     provenance: dict[str, Any] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+    residual_pattern: str = ""
 
     def camera_changes(self) -> dict[str, Any]:
         """The camera-model fields this calibration sets."""
@@ -249,10 +278,248 @@ def sun_motion_factors(
     return np.where(usable[None, :], ring / np.where(usable, ring[0], 1.0)[None, :], 1.0)
 
 
+def polarization_turns(y: FloatArray, cam: CameraModel) -> FloatArray:
+    """Pattern turns ``theta_j`` [rad] modulo pi, relative to the first image, from the ring
+    means' angle of polarization under the base camera ``(m, R, 4)`` -> ``(m,)``.
+
+    Model-free (no channel fit): channel gain and angle errors bias each turn by up to
+    about 1-2 deg at the second harmonic of the turn, which makes it the start of the fit
+    and the measure of the span the images cover.
+    """
+    stokes = base_stokes(y, cam)
+    lin = stokes[..., 1] + 1j * stokes[..., 2]
+    return np.asarray(0.5 * np.angle((lin * np.conj(lin[:1])).sum(axis=1)), dtype=float)
+
+
+def check_turns(turns: FloatArray, hint: FloatArray) -> None:
+    """Refuse given camera turns [rad] that disagree with the images' polarization ``hint``
+    (pattern turns modulo pi, :func:`polarization_turns`): a wrong sign, or wrong angles."""
+
+    def rms_deg(theta: FloatArray) -> float:
+        d = np.mod(hint - (theta - theta[0]) + 0.5 * np.pi, np.pi) - 0.5 * np.pi
+        return float(np.degrees(np.sqrt(np.mean(d**2))))
+
+    right, flipped = rms_deg(-turns), rms_deg(turns)
+    if right <= TURN_MISMATCH_MAX_DEG:
+        return
+    if flipped <= TURN_MISMATCH_MAX_DEG:
+        raise UserInputError(
+            f"sky-rotation: the turns run against the images' polarization (RMS {right:.1f} deg; "
+            f"negated {flipped:.1f} deg): turns count from +u towards +v, counter-clockwise "
+            "seen from behind the camera looking up (docs/conventions.md); negate them"
+        )
+    raise UserInputError(
+        f"sky-rotation: the turns disagree with the images' polarization by {right:.1f} deg "
+        "RMS: check their order, units (radians) and that the sky stayed clear"
+    )
+
+
+def degeneracy(
+    gain: FloatArray, angle: FloatArray, efficiency: FloatArray, cam: CameraModel
+) -> str:
+    """Why fitted channels are not a physical polarizer array ("" when they are): gains far
+    from their mean, channels whose angles pair up or leave their nominal separation, or
+    efficiencies far below 1."""
+    rel = gain / gain.mean()
+    if np.any((rel < GAIN_RANGE[0]) | (rel > GAIN_RANGE[1])):
+        return (f"gains {np.round(rel, 2).tolist()} (relative) outside "
+                f"[{GAIN_RANGE[0]:g}, {GAIN_RANGE[1]:g}]")  # fmt: skip
+    off = np.degrees(angle - np.radians(cam.nominal_angle_deg))
+    off = np.mod(off - off.mean() + 90.0, 180.0) - 90.0
+    if np.abs(off).max() > ANGLE_OFFSET_MAX_DEG:
+        ang = np.round(np.degrees(angle), 1).tolist()
+        return (f"channel angles {ang} deg leave the nominal separation by up to "
+                f"{np.abs(off).max():.0f} deg (channels pairing up)")  # fmt: skip
+    if np.any(efficiency < EFFICIENCY_MIN):
+        return f"efficiencies {np.round(efficiency, 2).tolist()} below {EFFICIENCY_MIN:g}"
+    return ""
+
+
+def residual_pattern(residuals: FloatArray, sigma: FloatArray, theta: FloatArray,
+                     radius: FloatArray) -> str:  # fmt: skip
+    """What a fit's residual ``(m, R, 4)`` looks like, in one sentence: its share of power at
+    each harmonic 0-4 of the pattern turn ``theta`` ``(m,)`` [rad] (per ring and channel,
+    over the images; the rest is at higher harmonics or noise), and how it varies with the
+    ring radius ``(R,)`` [-]."""
+    z = residuals / np.broadcast_to(sigma, residuals.shape)
+    n_harm = min(HARMONICS, (theta.size - 1) // 2)
+    design = np.column_stack(
+        [np.ones_like(theta)]
+        + [f(k * theta) for k in range(1, n_harm + 1) for f in (np.cos, np.sin)]
+    )
+    # Orthonormal in the order of the harmonics (the turns need not cover the circle evenly):
+    # each harmonic's share is the power it adds to the lower ones.
+    basis, _ = np.linalg.qr(design)
+    power = (basis.T @ z.reshape(z.shape[0], -1)) ** 2  # (2K + 1, R * 4)
+    total = float(np.sum(z**2))
+    shares = [float(power[0].sum()) / total] + [
+        float(power[2 * k - 1 : 2 * k + 1].sum()) / total for k in range(1, n_harm + 1)
+    ]
+    by_ring = np.sqrt(np.mean(z**2, axis=(0, 2)))
+    parts = ", ".join(f"{100 * s:.0f} % at harmonic {k}" for k, s in enumerate(shares))
+    return (
+        f"residual {np.sqrt(np.mean(z**2)):.1f} x the noise model; {parts} of the turn; "
+        f"by ring radius {np.round(radius, 3).tolist()}: {np.round(by_ring, 1).tolist()} x"
+    )
+
+
+@dataclass(frozen=True)
+class _RingData:
+    """Ring means of a sequence and what the fits need of them."""
+
+    y: FloatArray  # (m, R, 4) [DN]
+    sigma: FloatArray  # (m, R, 4) [DN]
+    weight: FloatArray  # (R, n)
+    radius: FloatArray  # (R,)
+    signal: FloatArray  # (m, n, 4) [DN]
+
+
+def _ring_data(
+    raws: Sequence[ArrayLike] | ArrayLike, cam: CameraModel, n_rings: int, ifov_correction: bool
+) -> _RingData:
+    stack = channel_stack(raws, cam, min_images=4, what="sky-rotation")
+    windows, centres = ring_windows(cam, n_rings)
+    channels = centred_channels(stack.channels, cam) if ifov_correction else stack.channels
+    m = stack.n_images
+    signal = (channels - cam.dark_offset_dn).reshape(m, -1, 4)
+    weight = windows.reshape(n_rings, -1)  # (R, n)
+    saturated = stack.saturated.any(axis=0).ravel()
+    keep = np.flatnonzero(~np.any((weight > 0) & saturated, axis=1) & (weight.sum(axis=1) >= 8))
+    if keep.size < 2:
+        raise UserInputError(
+            "sky-rotation: fewer than two rings free of saturation in the field of view"
+        )
+    weight = weight[keep]
+    norm = weight.sum(axis=1)  # (R,)
+    y = np.einsum("rn,mnk->mrk", weight, signal) / norm[None, :, None]
+    n_eff = norm**2 / (weight**2).sum(axis=1)  # effective number of pixels of a window
+    var_pix = cam.read_noise_dn**2 + (
+        np.maximum(y, 0.0) / cam.conversion_gain_e_per_dn
+        if np.isfinite(cam.conversion_gain_e_per_dn)
+        else 0.0
+    )
+    sigma = np.broadcast_to(np.sqrt(var_pix / n_eff[None, :, None]), y.shape)
+    return _RingData(y, np.array(sigma), weight, centres[keep], signal)
+
+
+def _sun_factors(
+    cam: CameraModel, weight: FloatArray, m: int, times_utc: TimeLike | None,
+    site: Site | None, axis_n: ArrayLike,
+) -> NDArray[np.complex128] | None:  # fmt: skip
+    if (times_utc is None) != (site is None):
+        raise UserInputError("sky-rotation: the sun's motion needs both times_utc and site")
+    if times_utc is None or site is None:
+        return None
+    times = to_utc_index(times_utc)
+    if times.size != m:
+        raise UserInputError(
+            f"sky-rotation: times_utc needs {m} timezone-aware times (one per image), got "
+            f"{times.size}"
+        )
+    sun = sun_position(times, site.lat_deg, site.lon_deg, site.alt_m)
+    return sun_motion_factors(cam, weight, sun_vector_n(sun.azimuth, sun.zenith), axis_n)
+
+
+def _angle_std_deg(fit: TurnFit) -> float:
+    return float(np.degrees(fit.angle_std.max()))
+
+
+def _fit_known_turns(
+    data: _RingData, cam: CameraModel, turns: FloatArray, tilt_terms: bool,
+    factors: NDArray[np.complex128] | None,
+) -> tuple[TurnFit, bool, list[str]]:  # fmt: skip
+    """Fit with the camera turns known [rad]: the fit, whether it has the tilt terms, notes
+    on what the turns identify."""
+    theta = -np.asarray(turns, dtype=float)
+    plain = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
+    span = np.degrees(np.ptp(np.unwrap(turns)))
+    notes = [f"with the turns known ({span:.0f} deg): gains to {np.max(plain.gain_std):.2g}, "
+             f"channel angles to {_angle_std_deg(plain):.2g} deg, efficiencies to "
+             f"{np.max(plain.efficiency_std):.2g} (their common value and the common angle "
+             "offset are conventions: docs/calibrate.md)"]  # fmt: skip
+    if not tilt_terms:
+        return plain, False, notes
+    tilted = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, tilt_terms=True,
+                                      source_factors=factors)  # fmt: skip
+    fit, tilt_used = _tilt_or_not(plain, tilted, span, notes)
+    return fit, tilt_used, notes
+
+
+def _tilt_or_not(
+    plain: TurnFit, tilted: TurnFit, span: float, notes: list[str]
+) -> tuple[TurnFit, bool]:
+    """The fit with the tilt terms when they leave the channel angles determined, else the
+    one without them, with a note saying so."""
+    if _angle_std_deg(tilted) <= ANGLE_STD_MAX_DEG:
+        return tilted, True
+    notes.append(
+        f"turns over {span:.0f} deg cannot tell a tilt of the turn axis from the channel angles "
+        f"(their std with the tilt terms: {_angle_std_deg(tilted):.2g} deg; efficiencies "
+        f"{np.max(tilted.efficiency_std):.2g}): fitted without them, which holds for a turn "
+        "axis along the optical axis (a 0.5 deg tilt costs about 1 deg of channel angle); "
+        "turn through a full circle to fit the tilt"
+    )
+    return plain, False
+
+
+def _fit_unknown_turns(
+    data: _RingData, cam: CameraModel, hint: FloatArray, tilt_terms: bool,
+    factors: NDArray[np.complex128] | None,
+) -> tuple[TurnFit, bool, list[str]]:  # fmt: skip
+    """Fit with the turns unknown, alternating from the ring-mean AoP ``hint``: the channels
+    fitted with the turns held, then the turns re-read from the ring-mean AoP under the
+    fitted channels, until the turns settle; then the joint fit with the turns free from
+    there. Where turn errors trade against channel errors (seen on a narrow field about the
+    zenith), the joint fit wanders, into a degenerate polarizer array (channels pairing up)
+    or without settling, and the fit is refused with the reason (give the turns). A
+    degenerate result is never returned."""
+    theta = hint
+    for _ in range(ALTERNATION_STEPS):
+        fit = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
+        why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
+        if why:
+            raise UserInputError(
+                f"sky-rotation: no physical channel calibration fits these images ({why}); "
+                f"{residual_pattern(fit.residuals, data.sigma, theta, data.radius)}"
+            )
+        fitted = cam.with_changes(gain=fit.gain, transmission_angle=fit.angle,
+                                  efficiency=fit.efficiency)  # fmt: skip
+        new = polarization_turns(data.y, fitted)
+        step = np.mod(new - theta + 0.5 * np.pi, np.pi) - 0.5 * np.pi
+        theta = theta + step
+        if np.abs(step).max() < TURN_SETTLED:
+            break
+    notes: list[str] = []
+    joint = fit_turning_polarization(data.y, data.sigma, cam, turn_start=theta,
+                                     source_factors=factors,
+                                     max_iterations=JOINT_ITERATIONS)  # fmt: skip
+    why = degeneracy(joint.gain, joint.angle, joint.efficiency, cam)
+    if not (joint.converged and not why):
+        raise UserInputError(
+            "sky-rotation: the turns cannot be fitted from these images: with them free the fit "
+            + (f"goes to a degenerate array ({why})" if why else "does not settle")
+            + ", so turn errors trade against channel errors. Give the turns (turns=..., "
+            "polins calibrate sky-rotation --turns-deg)"
+        )
+    fit, theta = joint, joint.turn
+    if not tilt_terms:
+        return fit, False, notes
+    # The tilt terms start from the fit without them, its turns on the right branch.
+    branch = turns_modulo_2pi(data.signal, data.weight, cam)
+    turn_start = theta + np.pi * np.round((branch - theta) / np.pi)
+    tilted = fit_turning_polarization(
+        data.y, data.sigma, cam, tilt_terms=True, turn_start=turn_start,
+        turn_prior_std=np.radians(1.0), source_factors=factors,
+    )  # fmt: skip
+    fit, tilt_used = _tilt_or_not(fit, tilted, float(np.degrees(turn_span(-theta))), notes)
+    return fit, tilt_used, notes
+
+
 def fit_sky_rotation(
     raws: Sequence[ArrayLike] | ArrayLike,
     cam: CameraModel,
     *,
+    turns: ArrayLike | None = None,
     n_rings: int = 12,
     min_span_deg: float = 90.0,
     tilt_terms: bool = True,
@@ -266,12 +533,19 @@ def fit_sky_rotation(
     Parameters
     ----------
     raws : array_like, (m, H, W)
-        Raw mosaics [DN] of a clear sky, the camera turned about its optical axis by
-        unknown angles between them: 12 or more spread over a full turn (at least 4 over
-        ``min_span_deg`` with ``tilt_terms=False``).
+        Raw mosaics [DN] of a clear sky, the camera turned about its optical axis between
+        them: 12 or more spread over a full turn (at least 4 over ``min_span_deg`` with
+        ``tilt_terms=False`` or with the turns known).
     cam : CameraModel
         Base camera: dark offsets (known), intrinsics (the rings), noise model, and the
         conventions for the unidentifiable common gain, angle offset and efficiency.
+    turns : array_like, (m,), optional
+        The camera's turns about its optical axis [rad] (a turntable's angles), counted like
+        image angles, from +u towards +v (docs/conventions.md): counter-clockwise seen from
+        above for a camera looking up with image columns along body x. None: fitted. Turns
+        that disagree with the images' polarization (a wrong sign) are refused. With them, a
+        half turn fixes the gains and angles; a tilt of the turn axis then needs a full
+        turn, and without one the fit says so and leaves the tilt terms out.
     n_rings : int
         Number of rings [-].
     min_span_deg : float
@@ -298,74 +572,74 @@ def fit_sky_rotation(
     Returns
     -------
     SkyRotationResult
+        With ``notes`` on what the images identify, and ``residual_pattern`` describing the
+        residual when it is more than 3 x the noise model (also warned as
+        :class:`SkyRotationResidualWarning`).
 
     Raises
     ------
     UserInputError
-        Fewer than 4 images, wrong shapes, turns spanning too little, no usable ring, or
-        turns that leave the channel angles uncertain by more than 0.25 deg.
+        Fewer than 4 images, wrong shapes or turns, turns spanning too little, no usable
+        ring, channels that fit only as a degenerate (unphysical) polarizer array, or turns
+        that leave the channel angles uncertain by more than 0.25 deg.
     """
-    stack = channel_stack(raws, cam, min_images=4, what="sky-rotation")
-    windows, centres = ring_windows(cam, n_rings)
-    channels = centred_channels(stack.channels, cam) if ifov_correction else stack.channels
-    signal = channels - cam.dark_offset_dn  # (m, Hs, Ws, 4)
-    weight = windows.reshape(n_rings, -1)  # (R, n)
-    saturated = stack.saturated.any(axis=0).ravel()
-    keep = np.flatnonzero(~np.any((weight > 0) & saturated, axis=1) & (weight.sum(axis=1) >= 8))
-    if keep.size < 2:
+    data = _ring_data(raws, cam, n_rings, ifov_correction)
+    m = data.y.shape[0]
+    factors = _sun_factors(cam, data.weight, m, times_utc, site, axis_n)
+    hint = polarization_turns(data.y, cam)
+    known = turns is not None
+    if known:
+        turns_arr = np.asarray(turns, dtype=float).ravel()
+        if turns_arr.shape != (m,) or not np.all(np.isfinite(turns_arr)):
+            raise UserInputError(f"sky-rotation: turns needs {m} finite angles [rad], one per "
+                                 f"image, got {turns_arr.size}")  # fmt: skip
+        check_turns(turns_arr, hint)
+        _check_span(np.degrees(turn_span(turns_arr)), min_span_deg)
+        fit, tilt_used, notes = _fit_known_turns(data, cam, turns_arr, tilt_terms, factors)
+    else:
+        _check_span(np.degrees(turn_span(-hint)), 0.5 * min_span_deg)  # hopeless before a fit
+        fit, tilt_used, notes = _fit_unknown_turns(data, cam, hint, tilt_terms, factors)
+    span = np.degrees(turn_span(-fit.turn))
+    _check_span(span, min_span_deg)
+    why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
+    if why:
+        raise UserInputError(f"sky-rotation: the fit is not a physical polarizer array ({why})")
+    if _angle_std_deg(fit) > ANGLE_STD_MAX_DEG:
+        advice = ", or pass tilt_terms=False if the axis is the optical axis" if tilt_used else ""
         raise UserInputError(
-            "sky-rotation: fewer than two rings free of saturation in the field of view"
+            f"sky-rotation: the images cannot fix the channel angles (std {_angle_std_deg(fit):.2g}"
+            f" deg{', a tilt of the turn axis included' if tilt_used else ''}); record more "
+            f"images spread over a full turn{advice}"
         )
-    m = stack.n_images
-    weight = weight[keep]
-    norm = weight.sum(axis=1)  # (R,)
-    y = np.einsum("rn,mnk->mrk", weight, signal.reshape(m, -1, 4)) / norm[None, :, None]
-    n_eff = norm**2 / (weight**2).sum(axis=1)  # effective number of pixels of a window
-    var_pix = cam.read_noise_dn**2 + (
-        np.maximum(y, 0.0) / cam.conversion_gain_e_per_dn
-        if np.isfinite(cam.conversion_gain_e_per_dn)
-        else 0.0
-    )
-    sigma = np.sqrt(var_pix / n_eff[None, :, None])
+    return _result(fit, data, cam, m, span, tilt_used, factors is not None, ifov_correction,
+                   known, notes)  # fmt: skip
 
-    factors = None
-    if (times_utc is None) != (site is None):
-        raise UserInputError("sky-rotation: the sun's motion needs both times_utc and site")
-    if times_utc is not None and site is not None:
-        times = to_utc_index(times_utc)
-        if times.size != m:
-            raise UserInputError(
-                f"sky-rotation: times_utc needs {m} timezone-aware times (one per image), got "
-                f"{times.size}"
-            )
-        sun = sun_position(times, site.lat_deg, site.lon_deg, site.alt_m)
-        sun_n = sun_vector_n(sun.azimuth, sun.zenith)
-        factors = sun_motion_factors(cam, weight, sun_n, axis_n)
-    fit = fit_turning_polarization(y, sigma, cam, source_factors=factors)
-    if tilt_terms:  # start from the fit without them, its turns on the right branch
-        hint = turns_modulo_2pi(signal.reshape(m, -1, 4), weight, cam)
-        turn_start = fit.turn + np.pi * np.round((hint - fit.turn) / np.pi)
-        fit = fit_turning_polarization(
-            y, sigma, cam, tilt_terms=True, turn_start=turn_start, turn_prior_std=np.radians(1.0),
-            source_factors=factors,
-        )  # fmt: skip
-    turn = -fit.turn  # the pattern turns by -phi when the camera turns by +phi
-    span = np.degrees(turn_span(turn))
-    if span + 0.5 < min_span_deg:  # half a degree of slack for the fitted turns
+
+def _check_span(span: float, min_span_deg: float) -> None:
+    """Refuse turns spanning less than ``min_span_deg`` [deg] (half a degree of slack)."""
+    if span + 0.5 < min_span_deg:
         raise UserInputError(
             f"sky-rotation: the turns span only {span:.0f} deg (modulo 180); turn the camera "
             f"through at least {min_span_deg:.0f} deg"
         )
-    angle_std = float(np.degrees(fit.angle_std.max()))
-    if angle_std > ANGLE_STD_MAX_DEG:
-        advice = ", or pass tilt_terms=False if the axis is the optical axis" if tilt_terms else ""
-        raise UserInputError(
-            f"sky-rotation: the images cannot fix the channel angles (std {angle_std:.2g} deg"
-            f"{', a tilt of the turn axis included' if tilt_terms else ''}); record more "
-            f"images spread over a full turn{advice}"
-        )
+
+
+def _result(
+    fit: TurnFit, data: _RingData, cam: CameraModel, m: int, span: float, tilt_used: bool,
+    clock: bool, ifov_correction: bool, known: bool, notes: list[str],
+) -> SkyRotationResult:  # fmt: skip
     rms = float(np.sqrt(np.mean(fit.residuals**2)))
-    noise_ratio = float(np.sqrt(np.mean((fit.residuals / sigma) ** 2)))
+    noise_ratio = float(np.sqrt(np.mean((fit.residuals / data.sigma) ** 2)))
+    pattern = ""
+    if noise_ratio > RESIDUAL_RATIO_WARN:
+        pattern = residual_pattern(fit.residuals, data.sigma, fit.turn, data.radius)
+        warnings.warn(
+            f"sky-rotation: the model does not explain these images ({pattern}); the "
+            "standard errors are scaled by it (docs/calibrate.md#sky-rotation)",
+            SkyRotationResidualWarning,
+            stacklevel=3,
+        )
+    turn = -fit.turn  # the pattern turns by -phi when the camera turns by +phi
     return SkyRotationResult(
         gain=fit.gain,
         gain_std=fit.gain_std,
@@ -375,19 +649,22 @@ def fit_sky_rotation(
         efficiency_std=fit.efficiency_std,
         turn=np.mod(turn - turn[0] + 0.5 * np.pi, np.pi) - 0.5 * np.pi,
         scale=fit.scale,
-        ring_radius=centres[keep],
+        ring_radius=data.radius,
         residuals=fit.residuals,
         residual_rms_dn=rms,
         noise_ratio=noise_ratio,
+        notes=tuple(notes),
+        residual_pattern=pattern,
         provenance=provenance(
             "sky-rotation",
             "ring means of clear-sky images turning about the optical axis, Malus-law fit"
-            + (" with axis-tilt terms" if tilt_terms else "")
-            + (", the sun's motion from the ephemeris" if factors is not None else "")
+            + (" with the turns known" if known else "")
+            + (" with axis-tilt terms" if tilt_used else "")
+            + (", the sun's motion from the ephemeris" if clock else "")
             + (", channels interpolated to the superpixel centres" if ifov_correction else "")
             + " (docs/calibrate.md#sky-rotation)",
             m,
-            n_rings=int(keep.size),
+            n_rings=int(data.radius.size),
             turn_span_deg=round(float(span), 1),
             residual_rms_dn=float(f"{rms:.3g}"),
             noise_ratio=float(f"{noise_ratio:.3g}"),
@@ -395,8 +672,10 @@ def fit_sky_rotation(
     )
 
 
-def calibrate_sky_rotation(raws: Sequence[ArrayLike] | ArrayLike, cam: CameraModel) -> CameraModel:
+def calibrate_sky_rotation(
+    raws: Sequence[ArrayLike] | ArrayLike, cam: CameraModel, turns: ArrayLike | None = None
+) -> CameraModel:
     """The camera ``cam`` with the channel gains, transmission angles and efficiencies fitted
     to a sky-rotation sequence (:func:`fit_sky_rotation`, whose result holds the residuals,
-    uncertainties and provenance)."""
-    return replace(cam, **fit_sky_rotation(raws, cam).camera_changes())
+    uncertainties and provenance); ``turns`` [rad]: the camera's known turns, or None."""
+    return replace(cam, **fit_sky_rotation(raws, cam, turns=turns).camera_changes())

@@ -26,7 +26,14 @@ import numpy as np
 
 from polins.cli.common import ArgumentError, check, finite
 
-__all__ = ["CLI_KINDS", "cmd_calibrate", "cmd_check", "read_images", "summary_lines"]
+__all__ = [
+    "CLI_KINDS",
+    "cmd_calibrate",
+    "cmd_check",
+    "frame_clock",
+    "read_images",
+    "summary_lines",
+]
 
 CLI_KINDS = ("dark", "noise", "flat", "polarizer", "sky-rotation", "intrinsics")
 """The kinds ``polins calibrate`` runs from images (camera-imu runs on a log folder)."""
@@ -89,16 +96,32 @@ def _board(text: str) -> tuple[int, int]:
     return board
 
 
-def _angles_deg(text: str) -> np.ndarray:
+def _angles_deg(text: str, option: str = "--angles-deg") -> np.ndarray:
     try:
         values = np.array([float(v) for v in text.replace(" ", "").split(",") if v != ""])
     except ValueError:
-        raise ArgumentError(
-            f"--angles-deg {text!r}: expected numbers separated by commas"
-        ) from None
+        raise ArgumentError(f"{option} {text!r}: expected numbers separated by commas") from None
     check(values.size > 0 and bool(np.all(np.isfinite(values))),
-          f"--angles-deg {text!r}: expected finite numbers separated by commas")  # fmt: skip
+          f"{option} {text!r}: expected finite numbers separated by commas")  # fmt: skip
     return values
+
+
+def _turns(text: str | None, n_images: int) -> np.ndarray | None:
+    """``--turns-deg`` as radians, one per image (or None)."""
+    if text is None:
+        return None
+    turns = np.radians(_angles_deg(text, "--turns-deg"))
+    check(turns.size == n_images, f"--turns-deg: {turns.size} angles for {n_images} images")
+    return turns
+
+
+def frame_clock(files: Sequence[Path]) -> tuple[np.ndarray, str]:
+    """The images' clock for a turntable score: the frame counter at the end of every file
+    name (a hexadecimal number of 8 digits or more after the last ``_``), else their order."""
+    tails = [f.stem.rsplit("_", 1)[-1] for f in files]
+    if all(len(t) >= 8 and all(c in "0123456789abcdefABCDEF" for c in t) for t in tails):
+        return np.array([int(t, 16) for t in tails], dtype=float), "the file names' frame counter"
+    return np.arange(len(files), dtype=float), "the image order"
 
 
 def _sky_clock(args: argparse.Namespace, n_images: int) -> dict[str, Any]:
@@ -148,7 +171,9 @@ def _estimate(kind: str, raws: np.ndarray, base: Any, args: argparse.Namespace) 
     if kind == "sky-rotation":
         check(args.rings >= 2, f"--rings {args.rings}: expected an integer >= 2")
         clock = _sky_clock(args, len(raws))
-        return cal.fit_sky_rotation(raws, base, n_rings=args.rings, min_span_deg=args.min_span_deg,
+        turns = _turns(args.turns_deg, len(raws))
+        return cal.fit_sky_rotation(raws, base, turns=turns, n_rings=args.rings,
+                                    min_span_deg=args.min_span_deg,
                                     tilt_terms=not args.aligned_axis,
                                     ifov_correction=not args.no_ifov_correction, **clock)  # fmt: skip
     if kind == "intrinsics":
@@ -241,8 +266,18 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     base = load_camera(args.camera)
     files = image_files(args.images)
     raws = read_images(files, base.shape, base.bit_depth)
-    result = _estimate(kind, raws, base, args)
+    import warnings
+
+    from polins.calibration import SkyRotationResidualWarning
+
+    with warnings.catch_warnings():  # printed below, and written into the file's comments
+        warnings.simplefilter("ignore", SkyRotationResidualWarning)
+        result = _estimate(kind, raws, base, args)
     cam, notes = _new_camera(base, result, args)
+    notes = [*getattr(result, "notes", ()), *notes]
+    if getattr(result, "residual_pattern", ""):
+        notes.append(f"warning: the model does not explain these images ({result.residual_pattern});"
+                     " the standard errors (and the file's instrumental_*_std) are scaled by it")  # fmt: skip
     prov = result.provenance
     folders = sorted({str(f.parent) for f in files})
     comments = [
@@ -252,6 +287,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         f"{prov['n_images']} of {len(files)} images used, from {', '.join(folders)}",
         f"date (UTC): {prov['date']}",
         *summary_lines(result, cam),
+        *notes,
         "the [[calibration]] entries at the end record every step of this file",
     ]
     written = write_camera_file(cam, out, comments=comments, maps_dir=args.maps_dir)
@@ -270,7 +306,10 @@ def cmd_check(args: argparse.Namespace) -> int:
     from polins.models import load_camera
 
     cam = load_camera(args.camera_file)
-    raws = read_images(image_files(args.images), cam.shape, cam.bit_depth)
+    files = image_files(args.images)
+    raws = read_images(files, cam.shape, cam.bit_depth)
+    if args.turns_deg is not None:
+        return _check_turntable(cam, raws, files, args)
     report = check_camera(cam, raws, unpolarized=args.unpolarized)
     if args.json:
         figures = {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
@@ -280,6 +319,31 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"camera {cam.name} ({cam.path})"
               + (", with per-pixel maps" if cam.has_pixel_maps else ""))  # fmt: skip
         print(report.summary())
+    return 0
+
+
+def _check_turntable(cam: Any, raws: np.ndarray, files: Sequence[Path],
+                     args: argparse.Namespace) -> int:  # fmt: skip
+    """``check --turns-deg``: relative headings of a turntable sequence against its turns."""
+    from polins.calibration.turntable import score_turntable
+
+    turns = _turns(args.turns_deg, len(raws))
+    assert turns is not None  # the caller checked --turns-deg
+    clock, how = frame_clock(files)
+    score = score_turntable(raws, cam, turns, clock, method=args.method)
+    if args.json:
+        out = {"camera": str(cam.path), "rmse_deg": float(np.degrees(score.rmse)),
+               "rms_err_over_sigma": score.rms_z, "max_err_over_sigma": score.max_z,
+               "n_ok": score.n_ok, "ms_per_image": score.ms_per_image, "clock": how,
+               "error_deg": [None if not np.isfinite(e) else float(np.degrees(e))
+                             for e in score.error]}  # fmt: skip
+        print(json.dumps(out, indent=2))
+        return 0
+    print(f"camera {cam.name} ({cam.path}), method {args.method}: sun-free headings of "
+          f"{len(raws)} images against --turns-deg, an offset and a drift linear in {how} "
+          "taken out (modulo 180 deg)")  # fmt: skip
+    print(score.summary())
+    print("errors [deg]: " + ", ".join(f"{np.degrees(e):.2f}" for e in score.error))
     return 0
 
 
@@ -406,6 +470,10 @@ def add_calibrate(sub: Any) -> None:
     p.add_argument("--lat", type=finite, default=None, help="site latitude [deg]")
     p.add_argument("--lon", type=finite, default=None, help="site longitude [deg]")
     p.add_argument("--alt", type=finite, default=0.0, help="site height [m]")
+    p.add_argument("--turns-deg", default=None, metavar="A1,A2,...",
+                   help="the camera's turn about its optical axis at each image [deg] (a "
+                   "turntable's angles; +u towards +v: counter-clockwise seen from above for a "
+                   "camera looking up); None: fitted")  # fmt: skip
     p.add_argument("--rings", type=int, default=12, help="ring windows about the axis")
     p.add_argument("--min-span-deg", type=finite, default=90.0,
                    help="refuse turns spanning less [deg] (modulo 180)")  # fmt: skip
@@ -443,5 +511,11 @@ def add_calibrate(sub: Any) -> None:
                    help="raw mosaics (PNG/TIFF, full size), or folders of them")  # fmt: skip
     p.add_argument("--unpolarized", action="store_true",
                    help="the images show unpolarized light: report the residual polarization")  # fmt: skip
+    p.add_argument("--turns-deg", default=None, metavar="A1,A2,...",
+                   help="a turntable sequence: the camera's turn at each image [deg]; prints "
+                   "the relative-heading RMSE and RMS(err/sigma), an offset and a drift "
+                   "(the sun's motion) taken out")  # fmt: skip
+    p.add_argument("--method", choices=("compensated", "traditional"), default="compensated",
+                   help="with --turns-deg: the measurement method")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(handler=cmd_check)

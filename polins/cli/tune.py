@@ -44,9 +44,12 @@ def cmd_tune(args: argparse.Namespace) -> int:
                   odometry=log.odometry)  # fmt: skip
     model = dataclasses.replace(result.config.imu, name=out.stem,
                                 description=f"{log.imu_model.name} tuned on {args.manifest}")  # fmt: skip
-    write_text_atomic(out, imu_model_toml(model, comments=result.comment_lines()))
+    sets = "".join(f" --set {k}={v:.6g}" for k, v in result.fuse_options().items())
+    command = f"polins fuse {args.manifest} --imu {out}{sets} --out RUN"
+    write_text_atomic(out, imu_model_toml(model, comments=[*result.comment_lines(),
+                                                           f"fuse with: {command}"]))  # fmt: skip
     print(result.report())
-    print(f"wrote {out}")
+    print(f"wrote {out}; fuse with the tuned values:\n  {command}")
     return 0
 
 

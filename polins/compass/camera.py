@@ -5,7 +5,9 @@ Projection uses OpenCV (``cv2.fisheye`` Kannala-Brandt, or the standard pinhole 
 distortion). The Kannala-Brandt inverse is the Newton iteration of docs/model.md §5 in numpy
 (OpenCV's ``cv2.fisheye.undistortPoints`` flags a few converged points near 80 deg as failed,
 and its normalised coordinates ``tan(theta)`` break down at 90 deg); the pinhole inverse is
-``cv2.undistortPoints`` with a tight termination criterion.
+``cv2.undistortPoints`` with a tight termination criterion (without distortion, the
+normalised coordinates directly: the iteration cost about 1 s for a 640 x 360 superpixel
+camera's first image).
 """
 
 from __future__ import annotations
@@ -90,10 +92,14 @@ def unproject(cam: CameraModel, uv: ArrayLike) -> FloatArray:
         return np.stack(
             [np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1
         )
-    pts = np.ascontiguousarray(uv.reshape(-1, 1, 2))
-    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
-    xy = cv2.undistortPoints(pts, cam.camera_matrix, cam.distortion, None, None, criteria=criteria)
-    xy = np.asarray(xy, dtype=float).reshape(*uv.shape[:-1], 2)
+    if not np.any(cam.distortion):  # an ideal pinhole: the normalised coordinates themselves
+        xy = np.stack([(uv[..., 0] - cx) / fx, (uv[..., 1] - cy) / fy], axis=-1)
+    else:
+        pts = np.ascontiguousarray(uv.reshape(-1, 1, 2))
+        criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+        xy = cv2.undistortPoints(pts, cam.camera_matrix, cam.distortion, None, None,
+                                 criteria=criteria)  # fmt: skip
+        xy = np.asarray(xy, dtype=float).reshape(*uv.shape[:-1], 2)
     rays = np.concatenate([xy, np.ones((*xy.shape[:-1], 1))], axis=-1)
     return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 

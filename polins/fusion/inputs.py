@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 from polins.compass.measurement import Measurement
 from polins.errors import UserInputError
 from polins.frames import euler_from_rot_nb
-from polins.fusion.config import OFF, FuseConfig, config_with_site, scaled_measurement_noise
+from polins.fusion.config import FuseConfig, config_with_site, scaled_measurement_noise
 from polins.fusion.faults import (
     FusionEvent,
     GyroHeadingCheck,
@@ -306,7 +306,7 @@ class Prepared:
     imu : ImuArrays
         The accepted IMU samples and the ``"gap"`` items of the IMU gaps.
     items : list of MeasurementItem
-        The measurement rows, odometer speeds and ``stationary`` zero-velocity times; those
+        The measurement rows (zero-velocity rows among them) and odometer speeds; those
         with an unusable value or inside an IMU gap invalid, with their reason.
     events : list of FusionEvent
         Dropped IMU samples, IMU gaps and the measurements skipped inside them.
@@ -352,10 +352,6 @@ def prepare(
     items = items_from_table(meas, use_sun=cfg.gating.use_sun, heading_bias=cfg.heading_bias)
     if odometry is not None and cfg.odometer_sigma is not None:  # "off": ignored
         items += odometer_items(odometry, cfg.odometer_sigma)
-    if cfg.aiding.zupt_std != OFF:
-        t0, t1 = arrays.t[0], arrays.t[-1]
-        items += [MeasurementItem(float(ts), "zupt", float(cfg.aiding.zupt_std))
-                  for ts in cfg.aiding.stationary if t0 <= ts <= t1]  # fmt: skip
     items, in_gaps = skip_in_gaps(arrays.gap_spans, items)
     return Prepared(cfg, arrays, items, [*arrays.events, *in_gaps], rot_nb0)
 

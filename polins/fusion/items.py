@@ -238,6 +238,9 @@ def items_from_table(
     zupt_l, sun_ok_l, yaw_ok_l, zupt_ok_l = (
         zupt_std.tolist(), sun_ok.tolist(), yaw_ok.tolist(), zupt_ok.tolist()
     )  # fmt: skip
+    # a zero-velocity row (zupt_std, no heading and no sun values) is no heading row
+    heading_l = (np.isnan(zupt_std) | ~(np.isnan(yaw) & np.isnan(yaw_std)
+                 & np.all(np.isnan(sun_b), axis=1))).tolist()  # fmt: skip
     n_ok_l, prior_ok_l = n_ok.tolist(), prior_ok.tolist()
     items: list[MeasurementItem] = []
     for i in range(n):
@@ -257,7 +260,7 @@ def items_from_table(
                     model_std=model_l[i],
                 )
             )
-        elif has_yaw:
+        elif has_yaw and heading_l[i]:
             ok = yaw_ok_l[i]
             items.append(
                 MeasurementItem(
@@ -274,7 +277,7 @@ def items_from_table(
                     model_std=model_l[i],
                 )
             )
-        elif has_sun:
+        elif has_sun and heading_l[i]:
             reason = _invalid_reason("sun", math.nan, sun_std_l[i])
             items.append(MeasurementItem(ti, "sun", math.nan, valid=False, reason=reason))
         if has_zupt and not math.isnan(zupt_l[i]):

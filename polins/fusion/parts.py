@@ -41,6 +41,11 @@ ODOMETER_STD = 0.05  # [m/s] wheel-odometer speed 1-sigma when odometry is given
 AUTO, OFF = "auto", "off"
 
 _NOT_OPTIONS: dict[str, str] = {
+    "zupt_std": "is not an option: give zero-velocity rows at the standstill times (a zupt_std "
+    "column of the measurements, polins.fusion.vehicle.with_standstill), or "
+    "vehicle='ground' / 'static' (standstill_std)",
+    "stationary": "is not an option: give zero-velocity rows at the standstill times (a "
+    "zupt_std column of the measurements, polins.fusion.vehicle.with_standstill)",
     "site_assumed": "is set by polins when no site is given (FuseConfig.site)",
     "time_tol_s": "is an implementation constant (polins.fusion.config.TIME_TOL_S)",
     "cov_step_s": "is an implementation constant (polins.fusion.config.COV_STEP_S)",
@@ -135,16 +140,9 @@ class Aiding:
         "positive",
         special=(OFF,),
     )
-    zupt_std: float | str = _opt(
-        OFF, "zero-velocity 1-sigma at the stationary times [m/s]", "positive", special=(OFF,)
-    )
-    stationary: tuple[float, ...] = _opt((), "times at which the vehicle stands still [s]",
-                                         "times")  # fmt: skip
 
     def __post_init__(self) -> None:
         _coerce_fields(self)
-        if self.stationary and self.zupt_std == OFF:
-            raise UserInputError("stationary times need zupt_std [m/s]")
 
 
 @dataclass(frozen=True)

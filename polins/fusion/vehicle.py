@@ -2,7 +2,7 @@
 
 The vehicle kind (``FuseConfig.vehicle``, docs/filter.md "Ground-vehicle aiding") decides
 the pseudo-measurements the IMU samples bring with them, at the non-holonomic cadence
-(every ``round(1 / (nhc_rate_hz dt))``-th sample, sample index >= 1):
+(every ``round(1 / (NHC_RATE_HZ dt))``-th sample, sample index >= 1):
 
 * ``"ground"``: the non-holonomic constraint (``nhc_std``, default 0.05 m/s) and a
   zero-velocity update where the standstill detector fires (``standstill_std``, default
@@ -10,8 +10,11 @@ the pseudo-measurements the IMU samples bring with them, at the non-holonomic ca
 * ``"static"``: a zero-velocity update at every epoch;
 * ``"free"``: none (unless ``nhc_std`` / ``standstill_std`` are given).
 
+Known standstill times are zero-velocity rows of the measurements table (a ``zupt_std``
+column, :func:`with_standstill`): the one way to ask for zero velocity at given times.
+
 The standstill detector (:func:`standstill_statistic`) tests, over a trailing window of
-``n`` samples (``standstill_window_s``), the hypothesis "at rest": the gyro measures only
+``n`` samples (``STANDSTILL_WINDOW_S``), the hypothesis "at rest": the gyro measures only
 white noise (plus its turn-on bias and the Earth rate) and the specific force is constant
 plus white noise. Its statistic ::
 
@@ -269,6 +272,20 @@ def scaled_odometer(item: MeasurementItem, errors: Mapping[str, FloatArray]) -> 
     return dataclasses.replace(item, speed=item.speed / div, std=item.std / div)
 
 
+def with_standstill(measurements: pd.DataFrame | None, t: ArrayLike, std: float) -> pd.DataFrame:
+    """The measurements table with zero-velocity updates at the known standstill times ``t``
+    [s]: column ``zupt_std`` = ``std`` [m/s] on the row of each time (a new row, the other
+    columns NaN, where the table has none), in time order; a row's own ``zupt_std`` is kept.
+    The way to give zero-velocity updates at known times (docs/filter.md §5.4)."""
+    rows = pd.DataFrame({"t": np.asarray(t, dtype=float), "zupt_std": float(std)})
+    if measurements is None or len(measurements) == 0:
+        return rows
+    out = measurements.merge(rows, on="t", how="outer", suffixes=("", "_new"), sort=True)
+    if "zupt_std_new" in out:
+        out["zupt_std"] = out["zupt_std"].fillna(out.pop("zupt_std_new"))
+    return out
+
+
 __all__ = [
     "STANDSTILL_PROB",
     "VehicleAiding",
@@ -281,5 +298,6 @@ __all__ = [
     "standstill_variances",
     "vehicle_items",
     "window_samples",
+    "with_standstill",
     "yaw_consider_update",
 ]

@@ -1,7 +1,8 @@
 """Options of the navigation loop: how images are measured and when, what the loop keeps in memory.
 
-The filter itself is configured by one :class:`polins.fusion.config.FuseConfig`; the loop's
-``update`` choice sets its ``use_sun`` (and, unless given, ``tilt_coupling``) through
+The filter itself is configured by one :class:`polins.fusion.config.FuseConfig` (its
+``max_gap_s`` is also the loop's IMU gap length); the loop's ``update`` choice sets its
+``use_sun`` (and, with ``tilt_coupling="auto"``, the tilt coupling) through
 :meth:`LoopOptions.filter_config`.
 """
 
@@ -15,6 +16,9 @@ from polins.errors import UnknownOptionError, UserInputError
 from polins.fusion.config import FuseConfig
 
 UPDATES = ("yaw", "sun")
+_NOT_LOOP_OPTIONS = {
+    "max_imu_gap_s": "is FuseConfig's max_gap_s (one IMU gap length for the loop and the filter)"
+}
 
 
 @dataclass(frozen=True)
@@ -60,11 +64,9 @@ class LoopOptions:
     max_table_rows: int = 1_000_000
 
     def __new__(cls, *args: Any, **kwargs: Any) -> LoopOptions:
-        if "max_imu_gap_s" in kwargs:  # one IMU-gap option for every path
-            raise UnknownOptionError(
-                "LoopOptions has no max_imu_gap_s: the IMU gap is FuseConfig.max_gap_s "
-                "(config=FuseConfig(max_gap_s=...), [filter] max_gap_s)"
-            )
+        for name in kwargs:
+            if name in _NOT_LOOP_OPTIONS:
+                raise UnknownOptionError(f"LoopOptions: {name!r} {_NOT_LOOP_OPTIONS[name]}")
         return super().__new__(cls)
 
     def __post_init__(self) -> None:

@@ -122,7 +122,7 @@ class NavigationStream:
     epoch_utc : timezone-aware time
         UTC time of ``t = 0`` (for the sun position).
     rot_nb0 : Rotation, optional
-        Initial attitude; None: self-alignment (static start for ``config.align_s``, yaw from
+        Initial attitude; None: self-alignment (static start for ``align_s``, yaw from
         the first measurement). Images during the levelling window are skipped.
     options : LoopOptions
         Options of the loop (image stage, lags, buffers).

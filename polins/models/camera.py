@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.models.maps import load_pixel_map
@@ -46,9 +46,13 @@ __all__ = [
     "CALIBRATION_KINDS",
     "EFFICIENCY_MAP_MAX",
     "MAP_FIELDS",
+    "UNCALIBRATED_ANGLE_STD_DEG",
+    "UNCALIBRATED_GAIN_STD",
     "CameraModel",
     "calibration_entry",
     "load_camera",
+    "mixing_std",
+    "uncalibrated_instrumental_std",
 ]
 
 CALIBRATION_KINDS = (
@@ -62,6 +66,13 @@ CALIBRATION_KINDS = (
 )
 """The kinds of a ``[[calibration]]`` entry (the estimators of :mod:`polins.calibration`)."""
 
+UNCALIBRATED_GAIN_STD = 0.01
+"""1-sigma relative channel-gain error [-] of a camera file without a calibration record
+(docs/own-camera.md): a DoFP sensor's channels as delivered differ by 1-2 %."""
+
+UNCALIBRATED_ANGLE_STD_DEG = 0.5
+"""1-sigma channel-angle error [deg] of a camera file without a calibration record."""
+
 MAP_FIELDS = {
     "gain_map": "gain_map_npy",
     "transmission_angle_map": "transmission_angle_map_rad_npy",
@@ -72,6 +83,55 @@ MAP_FIELDS = {
 EFFICIENCY_MAP_MAX = 1.1
 """Largest per-pixel efficiency a map may hold: a fitted map scatters about its channel's
 efficiency (<= 1) by its noise, and clipping it at 1 would bias it."""
+
+
+def mixing_std(
+    gain: ArrayLike,
+    transmission_angle: ArrayLike,
+    efficiency: ArrayLike,
+    transmission_angle_std: ArrayLike,
+    efficiency_std: ArrayLike,
+) -> float:
+    """1-sigma [-] of the camera-fixed mixing of the linear Stokes components that channel
+    angles and efficiencies known to their standard errors leave (docs/measurement.md §12).
+
+    The channels ``I_k = g_k/2 (S0 + eta_k (S1 cos 2 alpha_k + S2 sin 2 alpha_k))`` are
+    inverted with the fitted values; errors ``d alpha_k``, ``d eta_k`` turn the estimated
+    ``L = (S1, S2)`` into ``(I + E) L`` with ``E = -[pinv(R) dR]`` (its linear-by-linear
+    block). A common angle offset (the rotation part of ``E``) turns every heading alike
+    and a common efficiency (its trace) scales the DoP; what bends the AoP across the sky
+    is the symmetric traceless part ``[[a, b], [b, -a]]``. With independent errors, the
+    mean square of the sigmas of ``a`` and ``b``, square-rooted.
+    """
+    g = np.asarray(gain, dtype=float)
+    alpha = np.asarray(transmission_angle, dtype=float)
+    eta = np.asarray(efficiency, dtype=float)
+    c, s = np.cos(2 * alpha), np.sin(2 * alpha)
+    response = 0.5 * g[:, None] * np.stack([np.ones_like(eta), eta * c, eta * s], -1)
+    demod = np.linalg.pinv(response)[1:]  # (2, 4): L from the channels
+    # d(row k)/d alpha_k and d(row k)/d eta_k, linear part (2,) each
+    d_rows = np.concatenate([(0.5 * g * eta)[:, None] * np.stack([-2 * s, 2 * c], -1),
+                             (0.5 * g)[:, None] * np.stack([c, s], -1)])  # fmt: skip
+    cols = np.concatenate([demod.T, demod.T])  # (8, 2): pinv(R)[1:, k] of each parameter
+    e = -cols[:, :, None] * d_rows[:, None, :]  # (8, 2, 2)
+    a = 0.5 * (e[:, 0, 0] - e[:, 1, 1])
+    b = 0.5 * (e[:, 0, 1] + e[:, 1, 0])
+    var = np.concatenate([np.asarray(transmission_angle_std, float),
+                          np.asarray(efficiency_std, float)]) ** 2  # fmt: skip
+    return float(np.sqrt(0.5 * (np.sum(a * a * var) + np.sum(b * b * var))))
+
+
+def uncalibrated_instrumental_std(
+    gain: ArrayLike, transmission_angle: ArrayLike, efficiency: ArrayLike
+) -> tuple[float, float]:
+    """``(instrumental_dop_std, instrumental_mixing_std)`` [-] of channels known only to
+    :data:`UNCALIBRATED_GAIN_STD` and :data:`UNCALIBRATED_ANGLE_STD_DEG` (docs/measurement.md
+    §12): a relative gain error ``s`` per channel leaves ``s / sqrt(2)`` of polarization per
+    Stokes component, the angle errors the mixing of :func:`mixing_std`."""
+    eta = np.asarray(efficiency, dtype=float)
+    angle_std = np.full(4, np.radians(UNCALIBRATED_ANGLE_STD_DEG))
+    mixing = mixing_std(gain, transmission_angle, eta, angle_std, np.zeros(4))
+    return float(UNCALIBRATED_GAIN_STD / np.sqrt(2.0)), mixing
 
 
 def _utc_date(v: Any) -> str:
@@ -446,6 +506,24 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
             maps[name].setflags(write=False)
     _check_maps(path, maps, pol)
     roi_limit, roi_polygons = _roi(d.get("roi", {}))
+    instrumental: dict[str, float | None] = {
+        k: pol.get(k) for k in ("instrumental_dop_std", "instrumental_mixing_std")
+    }
+    nominal_channels = (
+        np.all(pol["gain"] == 1.0)
+        and np.all(pol["efficiency"] == 1.0)
+        and np.all(pol["transmission_angle_deg"] == nominal)
+    )
+    if (
+        nominal_channels
+        and not d.get("calibration")
+        and all(v is None for v in instrumental.values())
+    ):
+        # The datasheet's channels, no record, no stated quality: the channels as delivered.
+        dop_std, mix_std = uncalibrated_instrumental_std(
+            pol["gain"], np.radians(pol["transmission_angle_deg"]), pol["efficiency"]
+        )
+        instrumental = {"instrumental_dop_std": dop_std, "instrumental_mixing_std": mix_std}
     return CameraModel(
         name=d["name"],
         description=d["description"],
@@ -461,8 +539,7 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
         gain=pol["gain"],
         efficiency=pol["efficiency"],
         dark_offset_dn=pol["dark_offset_dn"],
-        instrumental_dop_std=pol.get("instrumental_dop_std"),
-        instrumental_mixing_std=pol.get("instrumental_mixing_std"),
+        **instrumental,
         read_noise_dn=d["noise"]["read_noise_dn"],
         conversion_gain_e_per_dn=d["noise"]["conversion_gain_e_per_dn"],
         projection=lens["projection"],
@@ -475,5 +552,7 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
         roi_max_field_angle=roi_limit,
         roi_polygons=roi_polygons,
         calibration=tuple(d.get("calibration", [])),  # plain dicts: a model pickles
-        **maps,
+        gain_map=maps.get("gain_map"),
+        transmission_angle_map=maps.get("transmission_angle_map"),
+        efficiency_map=maps.get("efficiency_map"),
     )

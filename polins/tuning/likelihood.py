@@ -73,28 +73,21 @@ def check_params(params: Sequence[str]) -> tuple[str, ...]:
 def with_values(
     config: FuseConfig, measurements: pd.DataFrame, values: Mapping[str, float]
 ) -> tuple[FuseConfig, pd.DataFrame]:
-    """The configuration and measurements table with the noise ``values`` (:data:`PARAMETERS`).
+    """The configuration with the noise ``values`` (:data:`PARAMETERS`); the table unchanged.
 
-    IMU terms replace the model's (``dataclasses.replace`` of the frozen ``ImuModel``);
-    a sigma column is first multiplied by its scale, then its floor is added in quadrature.
+    IMU terms replace the model's (``dataclasses.replace`` of the frozen ``ImuModel``); the
+    measurement-noise terms are the filter's own options (``yaw_std_scale``,
+    ``yaw_floor_deg``, ``sun_std_scale``, ``sun_floor_deg``, :class:`FuseConfig`), so the
+    tuned values act in ``polins fuse`` (``--set``, a manifest's ``[filter]``) as in the
+    tuning. The measurements are returned as given.
     """
     imu_values: dict[str, Any] = {k: float(v) for k, v in values.items() if k not in _TABLE_PARAMS}
     if imu_values:
         model = dataclasses.replace(config.imu, **imu_values)
-        config = dataclasses.replace(config, imu_model=model)
-    if any(k in _TABLE_PARAMS for k in values):
-        measurements = measurements.copy()
-        for col in ("yaw_std", "sun_std"):
-            if col not in measurements.columns:
-                continue
-            std = measurements[col].to_numpy(dtype=float)
-            for name, value in values.items():
-                if _SCALE_COLUMNS.get(name) == col:
-                    std = std * value
-            for name, value in values.items():
-                if _FLOOR_COLUMNS.get(name) == col:
-                    std = np.hypot(std, math.radians(value))
-            measurements[col] = std
+        config = config.replace(imu_model=model)
+    noise = {k: float(v) for k, v in values.items() if k in _TABLE_PARAMS}
+    if noise:
+        config = config.replace(**noise)
     return config, measurements
 
 
@@ -181,6 +174,10 @@ class TuneResult:
                 )
         return out
 
+    def fuse_options(self) -> dict[str, float]:
+        """The tuned measurement-noise values, as ``polins fuse --set`` / ``[filter]`` options."""
+        return {p: self.values[p] for p in self.params if p in _TABLE_PARAMS}
+
     @property
     def unidentifiable(self) -> list[str]:
         """The parameters the log cannot identify (kept at their start values)."""
@@ -194,7 +191,8 @@ class TuneResult:
                      if self.identifiable[p] else "NOT identifiable from this log: kept")  # fmt: skip
             lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state})")
             if p in _TABLE_PARAMS:
-                lines.append(f"    applies to every {_TABLE_PARAMS[p]} (not an IMU term)")
+                lines.append(f"    a filter option on every {_TABLE_PARAMS[p]}, not an IMU term: "
+                             f"polins fuse --set {p}={self.values[p]:.6g}")  # fmt: skip
         lines += [f"  note: {n}" for n in self.notes()]
         for kind, st in self.stats_after.items():
             lines.append(f"  {kind}: mean NIS {st.nis_mean:.3g} in {st.nis_band[0]:.3g} .. "
@@ -231,12 +229,13 @@ class TuneResult:
 def _start_values(
     config: FuseConfig, params: tuple[str, ...], initial: Mapping[str, float]
 ) -> dict[str, float]:
-    """Start values: ``initial``, else the IMU model's, a floor of 0.05 deg, a scale of 1."""
+    """Start values: ``initial``, else the IMU model's or the configuration's (a floor of 0,
+    which the logarithmic search cannot start from, starts at 0.05 deg)."""
     start: dict[str, float] = {}
     for p in params:
         value = initial.get(p)
         if value is None and p in _TABLE_PARAMS:
-            value = _FLOOR_START_DEG if p in _FLOOR_COLUMNS else 1.0
+            value = float(getattr(config.noise, p)) or _FLOOR_START_DEG
         elif value is None:
             value = float(getattr(config.imu, p))
         if not (math.isfinite(value) and value > 0):

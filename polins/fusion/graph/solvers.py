@@ -267,7 +267,7 @@ def solve_incremental(
 ) -> Estimates:
     """ISAM2 (causal estimates) or the incremental fixed-lag smoother (lagged estimates).
 
-    ``solver`` overrides ``prob.config.solver``; ``rejected`` (if given) receives the
+    ``solver`` overrides ``prob.config.graph.solver``; ``rejected`` (if given) receives the
     gated factors: index into ``prob.meas`` -> (NIS, reason); ``scale=False`` leaves the
     scale-factor variables out.
     """
