@@ -107,7 +107,8 @@ def cmd_fuse(args: argparse.Namespace) -> int:
                             settle_s=args.settle, gate_prob=config.gate_probability)  # fmt: skip
         verdict = run_verdict(summary, result.events, args.max_image_failures,
                               t_imu=log.imu["t"].to_numpy(dtype=float),
-                              t_images=np.asarray(log.images.t, dtype=float))  # fmt: skip
+                              t_images=np.asarray(log.images.t, dtype=float),
+                              measurements=result.measurements)  # fmt: skip
         summary["status"] = verdict or "ok"
         write_report(out.path, result.solution, result.measurements, result.events, summary,
                      truth=log.truth, plots=not args.no_plots,
