@@ -27,13 +27,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from polins.calibration.images import zero_sum_basis
 from polins.errors import UserInputError
 from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
+ComplexArray = NDArray[np.complex128]
 
 GAUGE_WEIGHT = 1e4  # weight of the residuals that fix the flat directions of the tilt terms
 
@@ -158,7 +159,61 @@ def fit_turning_polarization(
     y_arr = np.asarray(y, dtype=float)
     m, n_src, _ = y_arr.shape
     sig = np.broadcast_to(np.asarray(sigma, dtype=float), y_arr.shape)
-    q = zero_sum_basis(4)
+    start = _start_values(y_arr, cam, turn, sources, turn_start)
+    if constant_scale and sources is None:
+        raise ValueError("constant_scale needs known sources")
+    if tilt_terms and sources is not None:
+        raise ValueError("tilt_terms needs fitted sources")
+    params = _TurnParameters.of(
+        cam,
+        start,
+        (m, n_src),
+        fit_turn=turn is None,
+        constant_scale=constant_scale,
+        tilt_terms=tilt_terms,
+        source_factors=source_factors,
+    )
+    x0 = params.start_vector(start)
+    if y_arr.size <= x0.size:
+        raise UserInputError(
+            f"Malus fit: {y_arr.size} channel means cannot fix {x0.size} unknowns; add images"
+        )
+    max_nfev = None if max_iterations is None else max_iterations * (x0.size + 1)
+    sol = least_squares(
+        params.residual,
+        x0,
+        method="lm",
+        x_scale="jac",
+        max_nfev=max_nfev,
+        args=(y_arr, sig, turn_prior_std),
+    )
+    return _turn_fit(params, sol, y_arr)
+
+
+@dataclass(frozen=True)
+class _StartValues:
+    """Start values of the Malus fit from the base camera's Stokes vectors: the turns
+    ``theta0`` [rad], the reference sources ``ref_s0`` [DN], ``ref_lin`` [DN] (given, or
+    the first image's), the exposure scales ``s0_scale`` [-] and, for fitted sources, their
+    start vector ``src_x0`` (S0 | Re L | Im L; empty for known sources)."""
+
+    theta0: FloatArray
+    ref_s0: FloatArray
+    ref_lin: ComplexArray
+    s0_scale: FloatArray
+    src_x0: FloatArray
+    fit_src: bool
+
+
+def _start_values(
+    y_arr: FloatArray,
+    cam: CameraModel,
+    turn: ArrayLike | None,
+    sources: ArrayLike | None,
+    turn_start: ArrayLike | None,
+) -> _StartValues:
+    """The start values of :func:`fit_turning_polarization` (its parameters)."""
+    n_src = y_arr.shape[1]
     fit_turn, fit_src = turn is None, sources is None
     stokes0 = base_stokes(y_arr, cam)  # (m, R, 3)
     lin0 = stokes0[..., 1] + 1j * stokes0[..., 2]
@@ -178,99 +233,164 @@ def fit_turning_polarization(
             - float(np.asarray(turn_start, dtype=float)[0]) * fit_src
         )
     s0_scale = stokes0[..., 0].sum(axis=1) / ref_s0.sum()
+    src_x0 = np.zeros(0)
     if fit_src:
         s0_scale = s0_scale / s0_scale[0]
         rot = np.exp(-2j * theta0)[:, None]
         src_s0 = (stokes0[..., 0] / s0_scale[:, None]).mean(axis=0)
         src_lin = (lin0 * rot / s0_scale[:, None]).mean(axis=0)
+        src_x0 = np.concatenate([src_s0, src_lin.real, src_lin.imag])
+    return _StartValues(theta0, ref_s0, ref_lin, s0_scale, src_x0, fit_src)
 
-    # Parameter vector: log-gain (3) | efficiency (3 log, relative; or 4 log) | angle offsets
-    # (3 relative or 4) | log scale (m - 1 or m) | turns (m - 1 or m, when fitted) | sources.
-    n_eta = 3 if fit_src else 4
-    n_alpha = 3 if (fit_turn or fit_src) else 4  # fitted sources take a common angle too
-    n_scale = 1 if constant_scale else (m - 1 if fit_src else m)
-    if constant_scale and fit_src:
-        raise ValueError("constant_scale needs known sources")
-    n_turn = (m - 1 if fit_src else m) if fit_turn else 0
-    if tilt_terms and not fit_src:
-        raise ValueError("tilt_terms needs fitted sources")
-    n_tilt = 6 * n_src if tilt_terms else 0
-    sizes = [3, n_eta, n_alpha, n_scale, n_turn, 3 * n_src if fit_src else 0, n_tilt]
-    cuts = np.cumsum(sizes)[:-1]
-    log_eta_base = np.log(cam.efficiency)
 
-    def unpack(x: FloatArray) -> tuple[FloatArray, ...]:
-        a, b, d, ls, th, sv, _ = np.split(x, cuts)
+@dataclass(frozen=True)
+class _TurnParameters:
+    """The parameter vector of the Malus fit and the channel means it predicts.
+
+    Parameter vector: log-gain (3) | efficiency (3 log, relative; or 4 log) | angle offsets
+    (3 relative or 4) | log scale (m - 1 or m, or 1 constant) | turns (m - 1 or m, when
+    fitted) | sources (3 R, when fitted) | tilt terms (6 R, optional).
+    """
+
+    cam: CameraModel
+    start: _StartValues
+    m: int
+    n_src: int
+    fit_turn: bool
+    constant_scale: bool
+    tilt_terms: bool
+    n_alpha: int
+    cuts: NDArray[np.int_]
+    q: FloatArray
+    log_eta_base: FloatArray
+    factors: ComplexArray
+
+    @classmethod
+    def of(
+        cls,
+        cam: CameraModel,
+        start: _StartValues,
+        shape: tuple[int, int],
+        *,
+        fit_turn: bool,
+        constant_scale: bool,
+        tilt_terms: bool,
+        source_factors: ArrayLike | None,
+    ) -> _TurnParameters:
+        """The parameters for ``shape`` = (m images, R sources)."""
+        m, n_src = shape
+        fit_src = start.fit_src
+        n_eta = 3 if fit_src else 4
+        n_alpha = 3 if (fit_turn or fit_src) else 4  # fitted sources take a common angle too
+        n_scale = 1 if constant_scale else (m - 1 if fit_src else m)
+        n_turn = (m - 1 if fit_src else m) if fit_turn else 0
+        n_tilt = 6 * n_src if tilt_terms else 0
+        sizes = [3, n_eta, n_alpha, n_scale, n_turn, 3 * n_src if fit_src else 0, n_tilt]
+        factors = (
+            np.ones((m, n_src), dtype=complex)
+            if source_factors is None
+            else np.broadcast_to(np.asarray(source_factors, dtype=complex), (m, n_src))
+        )
+        return cls(
+            cam,
+            start,
+            m,
+            n_src,
+            fit_turn,
+            constant_scale,
+            tilt_terms,
+            n_alpha,
+            np.cumsum(sizes)[:-1],
+            zero_sum_basis(4),
+            np.log(cam.efficiency),
+            factors,
+        )
+
+    @property
+    def n_tilt(self) -> int:
+        """Number of tilt-term parameters."""
+        return 6 * self.n_src if self.tilt_terms else 0
+
+    def start_vector(self, start: _StartValues) -> FloatArray:
+        """The parameter vector at the start values."""
+        fit_src, s0_scale, theta0 = start.fit_src, start.s0_scale, start.theta0
+        return np.concatenate(
+            [
+                np.zeros(3),
+                np.zeros(3) if fit_src else self.log_eta_base,
+                np.zeros(self.n_alpha),
+                np.log(np.maximum(s0_scale[1:] if fit_src else s0_scale, 1e-9))
+                if not self.constant_scale
+                else np.log([max(float(np.mean(s0_scale)), 1e-9)]),
+                (theta0[1:] if fit_src else theta0) if self.fit_turn else np.zeros(0),
+                start.src_x0,
+                np.zeros(self.n_tilt),
+            ]
+        )
+
+    def unpack(self, x: FloatArray) -> tuple[FloatArray, ...]:
+        """Gains, efficiencies, angles [rad], exposure scales, turns [rad], source S0 and
+        source L of the parameter vector ``x``."""
+        fit_src, q, log_eta_base = self.start.fit_src, self.q, self.log_eta_base
+        a, b, d, ls, th, sv, _ = np.split(x, self.cuts)
         gain = np.exp(q @ a)
         eta = np.exp(log_eta_base - log_eta_base.mean() + q @ b) if fit_src else np.exp(b)
-        alpha = cam.transmission_angle + (q @ d if n_alpha == 3 else d)
-        if constant_scale:
-            scale = np.full(m, np.exp(ls[0]))
+        alpha = self.cam.transmission_angle + (q @ d if self.n_alpha == 3 else d)
+        if self.constant_scale:
+            scale = np.full(self.m, np.exp(ls[0]))
         else:
             scale = np.exp(np.concatenate([[0.0], ls]) if fit_src else ls)
-        theta = (np.concatenate([[0.0], th]) if fit_src else th) if fit_turn else theta0
+        theta = (
+            (np.concatenate([[0.0], th]) if fit_src else th) if self.fit_turn else self.start.theta0
+        )
         if fit_src:
+            n_src = self.n_src
             s0r, lr = sv[:n_src], sv[n_src : 2 * n_src] + 1j * sv[2 * n_src :]
         else:
-            s0r, lr = ref_s0, ref_lin
+            s0r, lr = self.start.ref_s0, self.start.ref_lin
         return gain, eta, alpha, scale, theta, s0r, lr
 
-    factors = (
-        np.ones((m, n_src), dtype=complex)
-        if source_factors is None
-        else np.broadcast_to(np.asarray(source_factors, dtype=complex), (m, n_src))
-    )
-
-    def model(x: FloatArray) -> FloatArray:
-        gain, eta, alpha, scale, theta, s0r, lr = unpack(x)
+    def model(self, x: FloatArray) -> FloatArray:
+        """The dark-subtracted channel means (m, R, 4) [DN] of the parameter vector ``x``."""
+        gain, eta, alpha, scale, theta, s0r, lr = self.unpack(x)
         turn_1 = np.exp(1j * theta)[:, None]  # (m, 1)
-        lin = lr[None, :] * factors * turn_1**2  # (m, R)
+        lin = lr[None, :] * self.factors * turn_1**2  # (m, R)
         s0 = np.broadcast_to(s0r[None, :], lin.shape)
-        if tilt_terms:
-            tb = x[cuts[-1] :].reshape(6, n_src)
+        if self.tilt_terms:
+            tb = x[self.cuts[-1] :].reshape(6, self.n_src)
             s0 = s0 + ((tb[0] + 1j * tb[1]) * turn_1).real
             lin = lin + (tb[2] + 1j * tb[3]) * turn_1 + (tb[4] + 1j * tb[5]) * turn_1**3
         pol = (lin[..., None] * np.exp(-2j * alpha)).real  # (m, R, 4)
         return 0.5 * scale[:, None, None] * gain * (s0[..., None] + eta * pol)
 
-    def residual(x: FloatArray) -> FloatArray:
-        r = ((model(x) - y_arr) / sig).ravel()
-        _, _, _, scale, theta, _, _ = unpack(x)
+    def residual(
+        self, x: FloatArray, y_arr: FloatArray, sig: FloatArray, turn_prior_std: float | None
+    ) -> FloatArray:
+        """Normalised residuals of the channel means, the turn prior and the gauge terms."""
+        r = ((self.model(x) - y_arr) / sig).ravel()
+        _, _, _, scale, theta, _, _ = self.unpack(x)
         extra = []
-        if turn_prior_std is not None and fit_turn:
-            extra.append((theta - theta0) / turn_prior_std)
-        if tilt_terms:
+        if turn_prior_std is not None and self.fit_turn:
+            extra.append((theta - self.start.theta0) / turn_prior_std)
+        if self.tilt_terms:
             # Exposure scales that wobble as 1 + Re(c exp(i theta_j)) trade exactly against
             # the tilt terms too: fix that flat direction (the channels do not depend on it).
-            wobble = np.sum(np.log(scale) * np.exp(1j * theta)) / m * GAUGE_WEIGHT
+            wobble = np.sum(np.log(scale) * np.exp(1j * theta)) / self.m * GAUGE_WEIGHT
             extra.append(np.array([wobble.real, wobble.imag]))
         return np.concatenate([r, *extra]) if extra else r
 
-    x0 = np.concatenate(
-        [
-            np.zeros(3),
-            np.zeros(3) if fit_src else log_eta_base,
-            np.zeros(n_alpha),
-            np.log(np.maximum(s0_scale[1:] if fit_src else s0_scale, 1e-9))
-            if not constant_scale
-            else np.log([max(float(np.mean(s0_scale)), 1e-9)]),
-            (theta0[1:] if fit_src else theta0) if fit_turn else np.zeros(0),
-            np.concatenate([src_s0, src_lin.real, src_lin.imag]) if fit_src else np.zeros(0),
-            np.zeros(n_tilt),
-        ]
-    )
-    if y_arr.size <= x0.size:
-        raise UserInputError(
-            f"Malus fit: {y_arr.size} channel means cannot fix {x0.size} unknowns; add images"
-        )
-    max_nfev = None if max_iterations is None else max_iterations * (x0.size + 1)
-    sol = least_squares(residual, x0, method="lm", x_scale="jac", max_nfev=max_nfev)
-    gain, eta, alpha, scale, theta, s0r, lr = unpack(sol.x)
-    dof = y_arr.size - x0.size
+
+def _turn_fit(params: _TurnParameters, sol: OptimizeResult, y_arr: FloatArray) -> TurnFit:
+    """The :class:`TurnFit` of a solved Malus fit: standard errors from the Jacobian
+    scaled by chi2/dof, then the conventions for what the data cannot fix (module
+    docstring)."""
+    cam, q, m, fit_src = params.cam, params.q, params.m, params.start.fit_src
+    gain, eta, alpha, scale, theta, s0r, lr = params.unpack(sol.x)
+    dof = y_arr.size - sol.x.size
     chi2_dof = float(np.sum(sol.fun[: y_arr.size] ** 2) / dof)
     jac = sol.jac
     cov = np.linalg.pinv(jac.T @ jac) * max(chi2_dof, 1e-12)
-    blocks = np.split(np.arange(x0.size), cuts)
+    blocks = np.split(np.arange(sol.x.size), params.cuts)
 
     def std_of(jac_block: FloatArray, idx: NDArray[np.int_]) -> FloatArray:
         c = cov[np.ix_(idx, idx)]
@@ -278,15 +398,16 @@ def fit_turning_polarization(
 
     gain_std = gain * std_of(q, blocks[0])
     eta_std = eta * std_of(q if fit_src else np.eye(4), blocks[1])
-    alpha_std = std_of(q if n_alpha == 3 else np.eye(4), blocks[2])
+    alpha_std = std_of(q if params.n_alpha == 3 else np.eye(4), blocks[2])
     turn_std = np.zeros(m)
-    if fit_turn:
+    if params.fit_turn:
+        n_turn = blocks[4].size
         turn_std[-n_turn:] = np.sqrt(np.maximum(np.diag(cov[np.ix_(blocks[4], blocks[4])]), 0.0))
 
     # Conventions for what the data cannot fix (module docstring).
     g_factor = float(np.mean(cam.gain) / np.mean(gain))
     e_factor = float(np.max(cam.efficiency) / np.max(eta)) if fit_src else 1.0
-    residuals = (model(sol.x) - y_arr) * -1.0
+    residuals = (params.model(sol.x) - y_arr) * -1.0
     sources_out = np.stack(
         [s0r / g_factor, (lr / g_factor / e_factor).real, (lr / g_factor / e_factor).imag], -1
     )

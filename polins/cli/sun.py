@@ -11,11 +11,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from polins.cli.common import add_method_arg, add_site_args, angle, check, finite
+
+if TYPE_CHECKING:
+    from polins.compass.measurement import Measurement
 
 __all__ = ["add_heading", "add_sun", "cmd_heading", "cmd_sun", "sun_report"]
 
@@ -53,15 +56,9 @@ def cmd_sun(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_heading(args: argparse.Namespace) -> int:
-    from polins.compass.measure import measure
-    from polins.frames import rot_nb_from_euler
-    from polins.io import write_text_atomic
-    from polins.io.images import bit_depth_warning, read_image
-    from polins.models import load_camera
-    from polins.site import Site, to_utc_index
-    from polins.sky.ephemeris import sun_position, sun_vector_n
-
+def _check_heading_args(args: argparse.Namespace) -> bool:
+    """Check the arguments of ``polins heading`` before any work; returns whether a time
+    and place are given (else the sun is measured in the body frame only)."""
     angle("--roll", args.roll, -180.0, 180.0)
     angle("--pitch", args.pitch, -90.0, 90.0)
     angle("--yaw-prior", args.yaw_prior, -360.0, 360.0)
@@ -74,8 +71,52 @@ def cmd_heading(args: argparse.Namespace) -> int:
     check(all(site) or not any(site),
           "--time, --lat and --lon go together (or leave all three out: sun in the body "
           "frame only)")  # fmt: skip
+    return all(site)
+
+
+def _print_measurement(m: Measurement, has_site: bool) -> None:
+    """The text report of a measurement that gave a heading (or a body-frame sun)."""
+    sun_b = ", ".join(f"{x:+.6f}" for x in m.sun_b)
+    if m.reason:
+        print(f"note              {m.reason}")
+    if has_site:
+        print(f"heading           {m.heading_deg:.4f} deg  (compass, clockwise from North)")
+        print(
+            f"sigma             {np.degrees(m.yaw_std):.4f} deg  (filter; measurement only "
+            f"{np.degrees(m.yaw_std_meas):.5f} deg)"
+        )
+        print(f"yaw (ENU)         {np.degrees(m.yaw):.4f} deg  (counter-clockwise from East)")
+    print(
+        f"sun azimuth (body) {np.degrees(m.sun_azimuth_b):.4f} +- "
+        f"{np.degrees(m.sun_azimuth_b_std):.4f} deg  (FLU, counter-clockwise from x; "
+        f"branch: {m.sun_branch})"
+    )
+    if np.isfinite(m.sun_azimuth_b_alt):
+        print(f"  or              {np.degrees(m.sun_azimuth_b_alt):.4f} deg  (180 deg ambiguous)")
+    if np.isfinite(m.sun_elevation_b):
+        print(f"sun elevation (body) {np.degrees(m.sun_elevation_b):.4f} deg")
+    print(f"sun (body)        [{sun_b}]")
+    if np.isfinite(m.epsilon_std):
+        print(f"epsilon           {m.epsilon:.5f} +- {m.epsilon_std:.5f}")
+    print(
+        f"pixels            {m.n_pixels}  (eigen-gap {m.eigen_gap:.3f}, "
+        f"residual RMS {m.residual_rms:.2f})"
+    )
+
+
+def cmd_heading(args: argparse.Namespace) -> int:
+    from polins.compass.measure import measure
+    from polins.frames import rot_nb_from_euler
+    from polins.io import write_text_atomic
+    from polins.io.images import bit_depth_warning, read_image
+    from polins.models import load_camera
+    from polins.site import Site, to_utc_index
+    from polins.sky.ephemeris import sun_position, sun_vector_n
+
+    has_site = _check_heading_args(args)
+    path = Path(args.image)
     cam = load_camera(args.camera)
-    if all(site):
+    if has_site:
         Site(args.lat, args.lon, args.alt)
         to_utc_index(args.time)
     raw = read_image(path, shape=cam.shape)  # the reader of `polins fuse`: same image types
@@ -87,7 +128,7 @@ def cmd_heading(args: argparse.Namespace) -> int:
     )
     report: dict[str, object] = {"image": str(path), "camera": cam.name}
     prior = None if args.sun_azimuth_prior is None else np.radians(args.sun_azimuth_prior)
-    if all(site):
+    if has_site:
         sun = sun_position(args.time, args.lat, args.lon, args.alt)
         sun_n = sun_vector_n(sun.azimuth, sun.zenith)
         m = measure(raw, cam, sun_n=sun_n, rot_nb_prior=rot, method=args.method)
@@ -110,36 +151,9 @@ def cmd_heading(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report, indent=2))
     elif not m.ok:
-        print(f"no {'heading' if all(site) else 'sun'} ({args.method}): {m.reason}")
+        print(f"no {'heading' if has_site else 'sun'} ({args.method}): {m.reason}")
     else:
-        sun_b = ", ".join(f"{x:+.6f}" for x in m.sun_b)
-        if m.reason:
-            print(f"note              {m.reason}")
-        if all(site):
-            print(f"heading           {m.heading_deg:.4f} deg  (compass, clockwise from North)")
-            print(
-                f"sigma             {np.degrees(m.yaw_std):.4f} deg  (filter; measurement only "
-                f"{np.degrees(m.yaw_std_meas):.5f} deg)"
-            )
-            print(f"yaw (ENU)         {np.degrees(m.yaw):.4f} deg  (counter-clockwise from East)")
-        print(
-            f"sun azimuth (body) {np.degrees(m.sun_azimuth_b):.4f} +- "
-            f"{np.degrees(m.sun_azimuth_b_std):.4f} deg  (FLU, counter-clockwise from x; "
-            f"branch: {m.sun_branch})"
-        )
-        if np.isfinite(m.sun_azimuth_b_alt):
-            print(
-                f"  or              {np.degrees(m.sun_azimuth_b_alt):.4f} deg  (180 deg ambiguous)"
-            )
-        if np.isfinite(m.sun_elevation_b):
-            print(f"sun elevation (body) {np.degrees(m.sun_elevation_b):.4f} deg")
-        print(f"sun (body)        [{sun_b}]")
-        if np.isfinite(m.epsilon_std):
-            print(f"epsilon           {m.epsilon:.5f} +- {m.epsilon_std:.5f}")
-        print(
-            f"pixels            {m.n_pixels}  (eigen-gap {m.eigen_gap:.3f}, "
-            f"residual RMS {m.residual_rms:.2f})"
-        )
+        _print_measurement(m, has_site)
     return 0 if m.ok else 1
 
 

@@ -384,18 +384,9 @@ class LogLike(Protocol):
     def site(self) -> Site: ...
 
 
-def config_from_manifest(
-    manifest: Mapping[str, Mapping[str, Any]],
-    imu_model: ImuModel | str | Path,
-    site: Site | None,
-    path: str | Path = "manifest.toml",
-) -> FuseConfig:
-    """The configuration of a log's manifest (:func:`polins.io.parse_manifest`'s tables):
-    the IMU model and the site, the ``[vehicle]`` table's options (degrees converted; a
-    sigma of 0 is off; an odometer file without ``odometer_std`` gets ``"auto"``), then
-    the ``[filter]`` table's options by their flat names. A bad key or value is a one-line
-    ``UserInputError`` naming the manifest, the table and the key."""
-    vehicle = manifest.get("vehicle", {})
+def _vehicle_options(vehicle: Mapping[str, Any], path: str | Path) -> dict[str, Any]:
+    """The :class:`FuseConfig` options of a manifest's ``[vehicle]`` table (degrees
+    converted to radians; a sigma of 0 is off)."""
     opts: dict[str, Any] = {}
     if "kind" in vehicle:
         if vehicle["kind"] not in VEHICLE_KINDS:
@@ -414,22 +405,43 @@ def config_from_manifest(
         opts["lever_std"] = float(vehicle["lever_std"]) or OFF
     if "odometer" in vehicle and "odometer_std" in vehicle:
         opts["odometer_std"] = vehicle["odometer_std"]
+    return opts
+
+
+def _check_filter_key(key: str, path: str | Path) -> None:
+    """A key of a manifest's ``[filter]`` table is a flat option name (not the IMU model
+    or the site, which are ``[log]``'s)."""
+    if key in ("imu_model", "site", *_SITE_KEYS):
+        raise UserInputError(
+            f"{path}: unknown key 'filter.{key}' (the IMU model and the site are [log]'s)"
+        )
+    if key not in OPTION_FIELDS:
+        error = str(unknown_option(key))
+        close = difflib.get_close_matches(key, option_names(), n=1)
+        hint = f"; did you mean 'filter.{close[0]}'?" if close else ""
+        detail = error if "unknown" not in error else f"unknown key 'filter.{key}'{hint}"
+        raise UserInputError(f"{path}: {detail}")
+
+
+def config_from_manifest(
+    manifest: Mapping[str, Mapping[str, Any]],
+    imu_model: ImuModel | str | Path,
+    site: Site | None,
+    path: str | Path = "manifest.toml",
+) -> FuseConfig:
+    """The configuration of a log's manifest (:func:`polins.io.parse_manifest`'s tables):
+    the IMU model and the site, the ``[vehicle]`` table's options (degrees converted; a
+    sigma of 0 is off; an odometer file without ``odometer_std`` gets ``"auto"``), then
+    the ``[filter]`` table's options by their flat names. A bad key or value is a one-line
+    ``UserInputError`` naming the manifest, the table and the key."""
+    opts = _vehicle_options(manifest.get("vehicle", {}), path)
     try:
         base = FuseConfig(imu_model, site, **opts)
     except UserInputError as exc:
         raise UserInputError(f"{path}: table [vehicle]: {exc}") from None
     table = manifest.get("filter", {})
     for key in table:
-        if key in ("imu_model", "site", *_SITE_KEYS):
-            raise UserInputError(
-                f"{path}: unknown key 'filter.{key}' (the IMU model and the site are [log]'s)"
-            )
-        if key not in OPTION_FIELDS:
-            error = str(unknown_option(key))
-            close = difflib.get_close_matches(key, option_names(), n=1)
-            hint = f"; did you mean 'filter.{close[0]}'?" if close else ""
-            detail = error if "unknown" not in error else f"unknown key 'filter.{key}'{hint}"
-            raise UserInputError(f"{path}: {detail}")
+        _check_filter_key(key, path)
     try:
         return base.replace(**table)
     except UserInputError as exc:

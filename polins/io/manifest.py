@@ -168,55 +168,52 @@ def _unknown(path: Path, key: str, allowed: Iterable[str]) -> ManifestError:
     )
 
 
-def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
-    """Read and validate a manifest; returns ``{section: {key: value}}`` (defaults filled).
-
-    Raises
-    ------
-    FileNotFoundError
-        No such file.
-    ManifestError
-        Not TOML, unknown/missing key, wrong type or unit; the message names the key.
-    """
-    path = Path(path)
-    if path.is_dir():
-        path = path / MANIFEST_NAME
+def _read_toml(path: Path) -> dict[str, Any]:
+    """The TOML tables of the manifest file ``path``."""
     if not path.is_file():
         raise FileNotFoundError(f"manifest not found: {path}")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is accepted
+        return tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is accepted
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ManifestError(f"{path}: not valid TOML: {exc}") from None
-    out: dict[str, dict[str, Any]] = {}
+
+
+def _check_section_names(path: Path, data: dict[str, Any]) -> None:
+    """Every top-level entry is a known section and a table."""
     for section, content in data.items():
         if section not in _MANIFEST_SCHEMA and section != "filter":
             raise _unknown(path, section, [*_MANIFEST_SCHEMA, "filter"])
         if not isinstance(content, dict):
             raise ManifestError(f"{path}: '{section}' must be a table [{section}]")
-    for section, schema in _MANIFEST_SCHEMA.items():
-        content = data.get(section)
-        if content is None:
-            if section in _REQUIRED_SECTIONS:
-                raise ManifestError(f"{path}: missing table [{section}]")
-            content = {}
-        for key in content:
-            if key not in schema:
-                raise _unknown(path, f"{section}.{key}", schema)
-        values: dict[str, Any] = {}
-        for key, (required, check) in schema.items():
-            if key not in content:
-                if required:
-                    raise ManifestError(f"{path}: missing key '{section}.{key}'")
-                continue
-            try:
-                values[key] = check(content[key])
-            except (TypeError, ValueError) as exc:
-                raise ManifestError(
-                    f"{path}: key '{section}.{key}' = {content[key]!r}: {exc}"
-                ) from None
-        out[section] = values
-    out["log"].setdefault("alt_m", 0.0)
-    out["log"].setdefault("description", "")
+
+
+def _section_values(
+    path: Path,
+    section: str,
+    schema: dict[str, tuple[bool, Callable[[Any], Any]]],
+    content: dict[str, Any],
+) -> dict[str, Any]:
+    """The checked values of one section: unknown keys, missing keys and bad values raise."""
+    for key in content:
+        if key not in schema:
+            raise _unknown(path, f"{section}.{key}", schema)
+    values: dict[str, Any] = {}
+    for key, (required, check) in schema.items():
+        if key not in content:
+            if required:
+                raise ManifestError(f"{path}: missing key '{section}.{key}'")
+            continue
+        try:
+            values[key] = check(content[key])
+        except (TypeError, ValueError) as exc:
+            raise ManifestError(
+                f"{path}: key '{section}.{key}' = {content[key]!r}: {exc}"
+            ) from None
+    return values
+
+
+def _check_sources(path: Path, out: dict[str, dict[str, Any]]) -> None:
+    """The data sources: either a ROS bag (with optional [ros]) or IMU log + images."""
     files = out["files"]
     if "bag" in files:
         clash = [k for k in ("imu", "images") if k in files]
@@ -233,6 +230,34 @@ def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
                 )
     if out["ros"] and "bag" not in files:
         raise ManifestError(f"{path}: table [ros] is only used with 'files.bag'")
+
+
+def parse_manifest(path: str | Path) -> dict[str, dict[str, Any]]:
+    """Read and validate a manifest; returns ``{section: {key: value}}`` (defaults filled).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    ManifestError
+        Not TOML, unknown/missing key, wrong type or unit; the message names the key.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / MANIFEST_NAME
+    data = _read_toml(path)
+    _check_section_names(path, data)
+    out: dict[str, dict[str, Any]] = {}
+    for section, schema in _MANIFEST_SCHEMA.items():
+        content = data.get(section)
+        if content is None:
+            if section in _REQUIRED_SECTIONS:
+                raise ManifestError(f"{path}: missing table [{section}]")
+            content = {}
+        out[section] = _section_values(path, section, schema, content)
+    out["log"].setdefault("alt_m", 0.0)
+    out["log"].setdefault("description", "")
+    _check_sources(path, out)
     out["filter"] = dict(data.get("filter", {}))  # FuseConfig options: polins.fusion.config
     return out
 

@@ -426,6 +426,121 @@ def _check_maps(path: Path, maps: dict[str, FloatArray], pol: Mapping[str, Any])
                 )
 
 
+def _key_error(path: Path, key: str, why: str) -> ModelFileError:
+    """The one-line error for a bad ``key`` of the camera file ``path``."""
+    return ModelFileError(f"{path}: key '{key}': {why}")
+
+
+def _channel_layout(path: Path, s: Mapping[str, Any], pol: Mapping[str, Any]) -> NDArray[np.int_]:
+    """Check the sensor and the polarizer channels; returns the channel index of each
+    mosaic position (2 x 2)."""
+    if s["width_px"] % 2 or s["height_px"] % 2:
+        raise _key_error(path, "sensor.width_px", "a 2x2 DoFP mosaic needs even width and height")
+    nominal = pol["nominal_angle_deg"]
+    layout = s["mosaic_layout_deg"]
+    if sorted(layout.ravel().tolist()) != sorted(nominal.tolist()):
+        raise _key_error(
+            path,
+            "sensor.mosaic_layout_deg",
+            f"unknown mosaic layout {layout.tolist()}: it must hold each of the polarizer "
+            f"nominal angles {nominal.tolist()} exactly once",
+        )
+    channel_at = np.array([[int(np.flatnonzero(nominal == a)[0]) for a in row] for row in layout])
+    if np.any(pol["gain"] <= 0) or np.any((pol["efficiency"] <= 0) | (pol["efficiency"] > 1)):
+        raise _key_error(
+            path, "polarizer.gain/efficiency", "gains must be > 0 and efficiencies in (0, 1]"
+        )
+    if np.any(np.abs(pol["transmission_angle_deg"] - nominal) > 20.0):
+        raise _key_error(
+            path,
+            "polarizer.transmission_angle_deg",
+            "more than 20 deg from the nominal labels: degrees expected, and the angles must "
+            "follow the image-plane convention (+x_c towards +y_c)",
+        )
+    if s["saturation_dn"] > 2 ** s["bit_depth"] - 1:
+        raise _key_error(path, "sensor.saturation_dn", f"above the {s['bit_depth']}-bit range")
+    return channel_at
+
+
+def _check_lens(path: Path, s: Mapping[str, Any], lens: Mapping[str, Any]) -> None:
+    """Check the lens: distortion length, field of view in degrees, focal length in
+    superpixels consistent with the sensor size."""
+    n_dist = {"kannala-brandt": (4,), "pinhole": (4, 5, 8)}[lens["projection"]]
+    if lens["distortion"].shape[0] not in n_dist:
+        raise _key_error(
+            path, "lens.distortion", f"{lens['projection']} takes {n_dist} coefficients"
+        )
+    if not 0 < lens["fov_max_deg"] < (100.0 if lens["projection"] == "kannala-brandt" else 90.0):
+        raise _key_error(
+            path, "lens.fov_max_deg", "must be in (0, 100) deg for a fisheye, (0, 90) pinhole"
+        )
+    if lens["fov_max_deg"] < 10.0:  # a sky camera sees tens of degrees
+        raise _key_error(
+            path,
+            "lens.fov_max_deg",
+            f"{lens['fov_max_deg']:g} deg is implausible "
+            f"for a sky camera: degrees expected (in radians it would be "
+            f"{np.degrees(lens['fov_max_deg']):.1f} deg)",
+        )
+    theta = np.radians(lens["fov_max_deg"])  # image radius of the field of view vs the sensor
+    r_fov = lens["fx_superpixel"] * (
+        theta if lens["projection"] == "kannala-brandt" else np.tan(theta)
+    )
+    ratio = r_fov / (0.25 * np.hypot(s["width_px"], s["height_px"]))  # half-diagonal, superpixels
+    if not 0.05 <= ratio <= 20.0:
+        raise _key_error(
+            path,
+            "lens.fx_superpixel",
+            f"the field of view "
+            f"({lens['fov_max_deg']:g} deg) spans {ratio:.3g} x the sensor's "
+            "half-diagonal: the focal length must be in superpixels (2 x 2 "
+            "pixels) and agree with the sensor size",
+        )
+
+
+def _pixel_maps(
+    path: Path, pol: Mapping[str, Any], superpixel_shape: tuple[int, int]
+) -> dict[str, FloatArray]:
+    """The per-pixel maps named in ``[polarizer]`` (read-only), read relative to the
+    TOML's folder and checked."""
+    maps: dict[str, FloatArray] = {}
+    for name, key in MAP_FIELDS.items():
+        if key in pol:
+            map_path = path.parent / pol[key]  # an absolute path stays absolute
+            maps[name] = load_pixel_map(
+                map_path, superpixel_shape, what=f"{path}: key 'polarizer.{key}'"
+            )
+            maps[name].setflags(write=False)
+    _check_maps(path, maps, pol)
+    return maps
+
+
+def _instrumental_std(d: Mapping[str, Any]) -> dict[str, float | None]:
+    """The instrumental DoP and mixing 1-sigma: as stated, or, for the datasheet's
+    channels with no calibration record and no stated quality, those of the channels as
+    delivered."""
+    pol = d["polarizer"]
+    instrumental: dict[str, float | None] = {
+        k: pol.get(k) for k in ("instrumental_dop_std", "instrumental_mixing_std")
+    }
+    nominal_channels = (
+        np.all(pol["gain"] == 1.0)
+        and np.all(pol["efficiency"] == 1.0)
+        and np.all(pol["transmission_angle_deg"] == pol["nominal_angle_deg"])
+    )
+    if (
+        nominal_channels
+        and not d.get("calibration")
+        and all(v is None for v in instrumental.values())
+    ):
+        # The datasheet's channels, no record, no stated quality: the channels as delivered.
+        dop_std, mix_std = uncalibrated_instrumental_std(
+            pol["gain"], np.radians(pol["transmission_angle_deg"]), pol["efficiency"]
+        )
+        instrumental = {"instrumental_dop_std": dop_std, "instrumental_mixing_std": mix_std}
+    return instrumental
+
+
 def load_camera(name_or_path: str | Path) -> CameraModel:
     """Load a camera model: a shipped name (``"paper-table1"``) or a path to a TOML file.
 
@@ -442,52 +557,12 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
     """
     path, d = read_model(name_or_path, "cameras", _CAMERA_SCHEMA)
     s, pol, lens = d["sensor"], d["polarizer"], d["lens"]
-
-    def fail(key: str, why: str) -> ModelFileError:
-        return ModelFileError(f"{path}: key '{key}': {why}")
-
-    if s["width_px"] % 2 or s["height_px"] % 2:
-        raise fail("sensor.width_px", "a 2x2 DoFP mosaic needs even width and height")
     nominal = pol["nominal_angle_deg"]
-    layout = s["mosaic_layout_deg"]
-    if sorted(layout.ravel().tolist()) != sorted(nominal.tolist()):
-        raise fail(
-            "sensor.mosaic_layout_deg",
-            f"unknown mosaic layout {layout.tolist()}: it must hold each of the polarizer "
-            f"nominal angles {nominal.tolist()} exactly once",
-        )
-    channel_at = np.array([[int(np.flatnonzero(nominal == a)[0]) for a in row] for row in layout])
-    if np.any(pol["gain"] <= 0) or np.any((pol["efficiency"] <= 0) | (pol["efficiency"] > 1)):
-        raise fail("polarizer.gain/efficiency", "gains must be > 0 and efficiencies in (0, 1]")
-    if np.any(np.abs(pol["transmission_angle_deg"] - nominal) > 20.0):
-        raise fail(
-            "polarizer.transmission_angle_deg",
-            "more than 20 deg from the nominal labels: degrees expected, and the angles must "
-            "follow the image-plane convention (+x_c towards +y_c)",
-        )
-    if s["saturation_dn"] > 2 ** s["bit_depth"] - 1:
-        raise fail("sensor.saturation_dn", f"above the {s['bit_depth']}-bit range")
-    n_dist = {"kannala-brandt": (4,), "pinhole": (4, 5, 8)}[lens["projection"]]
-    if lens["distortion"].shape[0] not in n_dist:
-        raise fail("lens.distortion", f"{lens['projection']} takes {n_dist} coefficients")
-    if not 0 < lens["fov_max_deg"] < (100.0 if lens["projection"] == "kannala-brandt" else 90.0):
-        raise fail("lens.fov_max_deg", "must be in (0, 100) deg for a fisheye, (0, 90) pinhole")
-    if lens["fov_max_deg"] < 10.0:  # a sky camera sees tens of degrees
-        raise fail("lens.fov_max_deg", f"{lens['fov_max_deg']:g} deg is implausible for a sky "
-                   f"camera: degrees expected (in radians it would be "
-                   f"{np.degrees(lens['fov_max_deg']):.1f} deg)")  # fmt: skip
-    theta = np.radians(lens["fov_max_deg"])  # image radius of the field of view vs the sensor
-    r_fov = lens["fx_superpixel"] * (
-        theta if lens["projection"] == "kannala-brandt" else np.tan(theta)
-    )
-    ratio = r_fov / (0.25 * np.hypot(s["width_px"], s["height_px"]))  # half-diagonal, superpixels
-    if not 0.05 <= ratio <= 20.0:
-        raise fail("lens.fx_superpixel", f"the field of view ({lens['fov_max_deg']:g} deg) spans "
-                   f"{ratio:.3g} x the sensor's half-diagonal: the focal length must be in "
-                   "superpixels (2 x 2 pixels) and agree with the sensor size")  # fmt: skip
+    channel_at = _channel_layout(path, s, pol)
+    _check_lens(path, s, lens)
     mat_bc = d["mount"]["mat_bc"]
     if not np.allclose(mat_bc @ mat_bc.T, np.eye(3), atol=1e-6) or np.linalg.det(mat_bc) < 0:
-        raise fail("mount.mat_bc", "not a proper rotation matrix")
+        raise _key_error(path, "mount.mat_bc", "not a proper rotation matrix")
     camera_matrix = np.array(
         [
             [lens["fx_superpixel"], 0.0, lens["cx_superpixel"]],
@@ -495,35 +570,9 @@ def load_camera(name_or_path: str | Path) -> CameraModel:
             [0.0, 0.0, 1.0],
         ]
     )
-    superpixel_shape = (s["height_px"] // 2, s["width_px"] // 2)
-    maps: dict[str, FloatArray] = {}
-    for name, key in MAP_FIELDS.items():
-        if key in pol:
-            map_path = path.parent / pol[key]  # an absolute path stays absolute
-            maps[name] = load_pixel_map(
-                map_path, superpixel_shape, what=f"{path}: key 'polarizer.{key}'"
-            )
-            maps[name].setflags(write=False)
-    _check_maps(path, maps, pol)
+    maps = _pixel_maps(path, pol, (s["height_px"] // 2, s["width_px"] // 2))
     roi_limit, roi_polygons = _roi(d.get("roi", {}))
-    instrumental: dict[str, float | None] = {
-        k: pol.get(k) for k in ("instrumental_dop_std", "instrumental_mixing_std")
-    }
-    nominal_channels = (
-        np.all(pol["gain"] == 1.0)
-        and np.all(pol["efficiency"] == 1.0)
-        and np.all(pol["transmission_angle_deg"] == nominal)
-    )
-    if (
-        nominal_channels
-        and not d.get("calibration")
-        and all(v is None for v in instrumental.values())
-    ):
-        # The datasheet's channels, no record, no stated quality: the channels as delivered.
-        dop_std, mix_std = uncalibrated_instrumental_std(
-            pol["gain"], np.radians(pol["transmission_angle_deg"]), pol["efficiency"]
-        )
-        instrumental = {"instrumental_dop_std": dop_std, "instrumental_mixing_std": mix_std}
+    instrumental = _instrumental_std(d)
     return CameraModel(
         name=d["name"],
         description=d["description"],

@@ -32,6 +32,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -319,6 +320,121 @@ def channel_intensity(stokes: FloatArray, cam: CameraModel, channel: int) -> Flo
     )
 
 
+def _check_render_args(
+    cam: CameraModel,
+    sun_n: ArrayLike,
+    rot_nb: Rotation,
+    *,
+    dop_max: float,
+    radiance: float,
+    epsilon: float,
+    noise_std: float,
+    rng: np.random.Generator | None,
+    sun_disc_deg: float,
+    shot_noise: bool,
+) -> FloatArray:
+    """Check the arguments of :func:`render_raw`; returns the unit sun vector ``sun_n``."""
+    if not isinstance(cam, CameraModel):
+        raise TypeError(f"cam must be a polins CameraModel, got {type(cam).__name__}")
+    s_n = _unit_sun_n(sun_n)
+    if not isinstance(rot_nb, Rotation) or not rot_nb.single:
+        raise ValueError("rot_nb must be one scipy Rotation (body -> ENU), not a stack")
+    if not 0.0 <= dop_max <= 1.0:
+        raise ValueError(f"dop_max={dop_max} outside [0, 1]")
+    if not radiance > 0:
+        raise ValueError(f"radiance={radiance} must be > 0 [DN]")
+    if not 0.0 <= epsilon < 0.5:
+        raise ValueError(f"epsilon={epsilon} outside [0, 0.5)")
+    if not noise_std >= 0:
+        raise ValueError(f"noise_std={noise_std} must be >= 0 [DN]")
+    if rng is not None and not isinstance(rng, np.random.Generator):
+        raise TypeError(
+            "rng must be a numpy.random.Generator (np.random.default_rng(seed)) or None"
+        )
+    if not sun_disc_deg >= 0:
+        raise ValueError(f"sun_disc_deg={sun_disc_deg} must be >= 0")
+    if shot_noise and rng is not None and not np.isfinite(cam.conversion_gain_e_per_dn):
+        raise ValueError(
+            f"shot_noise needs a finite noise.conversion_gain_e_per_dn in camera {cam.name!r}"
+        )
+    return s_n
+
+
+def _unit_sun_n(sun_n: ArrayLike) -> FloatArray:
+    """``sun_n`` checked (a finite, non-zero ENU 3-vector) and normalised."""
+    s_n = np.asarray(sun_n, dtype=float)
+    if s_n.shape != (3,) or not np.all(np.isfinite(s_n)) or not np.linalg.norm(s_n) > 0:
+        raise ValueError(f"sun_n must be a finite ENU 3-vector, got {sun_n!r}")
+    return s_n / np.linalg.norm(s_n)
+
+
+@dataclass(frozen=True)
+class _SkyView:
+    """What one camera sees of one sky: the camera attitude ``mat_nc``, the unit sun
+    ``sun_n``, the direct-sunlight coefficient ``eps`` (0 when the sun is hidden), the
+    cosine of the saturated sun disc's radius (``None``: no disc) and the sky options of
+    :func:`sky_stokes`."""
+
+    mat_nc: FloatArray
+    sun_n: FloatArray
+    eps: float
+    cos_disc: float | None
+    scene: dict[str, Any]
+
+    def sample(self, rays_c: FloatArray) -> tuple[FloatArray, BoolArray]:
+        """Stokes vectors (with direct sunlight) along camera rays, and which rays fall on
+        the sun disc."""
+        stokes, blocked = sky_stokes(rays_c, self.mat_nc, self.sun_n, **self.scene)
+        sun_c = self.mat_nc.T @ self.sun_n
+        with np.errstate(invalid="ignore"):
+            disc = (
+                (rays_c @ sun_c >= self.cos_disc) & ~blocked if self.cos_disc is not None else None
+            )
+        return add_direct_sunlight(stokes, sun_c, self.eps), (
+            disc if disc is not None else np.zeros(blocked.shape, dtype=bool)
+        )
+
+
+def _mosaic_signal(cam: CameraModel, view: _SkyView, ifov: bool) -> tuple[FloatArray, BoolArray]:
+    """The noise-free mosaic signal [DN] and its saturated (sun-disc) pixels: each channel
+    sampled at the superpixel centre, or with ``ifov`` at its own pixel."""
+    h, w = cam.shape
+    signal = np.empty((h, w))
+    saturated = np.zeros((h, w), dtype=bool)
+    if not ifov:
+        stokes, disc = view.sample(pixel_rays_c(cam))
+    for r0 in (0, 1):
+        for c0 in (0, 1):
+            if ifov:
+                stokes, disc = view.sample(mosaic_rays_c(cam, r0, c0))
+            signal[r0::2, c0::2] = channel_intensity(stokes, cam, int(cam.channel_at[r0, c0]))
+            saturated[r0::2, c0::2] = disc
+    return signal, saturated
+
+
+def _add_sensor_noise(
+    signal: FloatArray,
+    cam: CameraModel,
+    rng: np.random.Generator,
+    noise_std: float,
+    shot_noise: bool,
+) -> FloatArray:
+    """``signal`` [DN] with Poisson photon noise above the dark offset (``shot_noise``),
+    then Gaussian read noise of ``noise_std`` [DN]."""
+    h, w = cam.shape
+    if shot_noise:
+        offset = np.empty((h, w))
+        for r0 in (0, 1):
+            for c0 in (0, 1):
+                offset[r0::2, c0::2] = cam.dark_offset_dn[int(cam.channel_at[r0, c0])]
+        gain_e = cam.conversion_gain_e_per_dn
+        electrons = rng.poisson(np.maximum(signal - offset, 0.0) * gain_e)
+        signal = electrons / gain_e + offset
+    if noise_std > 0:
+        signal = signal + noise_std * rng.standard_normal((h, w))
+    return signal
+
+
 # ----------------------------------------------------------------------------- renderer
 def render_raw(
     cam: CameraModel,
@@ -397,39 +513,15 @@ def render_raw(
     ndarray, (H, W) = cam.shape
         Raw mosaic, ``uint16`` in ``[0, cam.saturation_dn]``.
     """
-    if not isinstance(cam, CameraModel):
-        raise TypeError(f"cam must be a polins CameraModel, got {type(cam).__name__}")
-    s_n = np.asarray(sun_n, dtype=float)
-    if s_n.shape != (3,) or not np.all(np.isfinite(s_n)) or not np.linalg.norm(s_n) > 0:
-        raise ValueError(f"sun_n must be a finite ENU 3-vector, got {sun_n!r}")
-    s_n = s_n / np.linalg.norm(s_n)
-    if not isinstance(rot_nb, Rotation) or not rot_nb.single:
-        raise ValueError("rot_nb must be one scipy Rotation (body -> ENU), not a stack")
-    if not 0.0 <= dop_max <= 1.0:
-        raise ValueError(f"dop_max={dop_max} outside [0, 1]")
-    if not radiance > 0:
-        raise ValueError(f"radiance={radiance} must be > 0 [DN]")
-    if not 0.0 <= epsilon < 0.5:
-        raise ValueError(f"epsilon={epsilon} outside [0, 0.5)")
-    if not noise_std >= 0:
-        raise ValueError(f"noise_std={noise_std} must be >= 0 [DN]")
-    if rng is not None and not isinstance(rng, np.random.Generator):
-        raise TypeError(
-            "rng must be a numpy.random.Generator (np.random.default_rng(seed)) or None"
-        )
-    if not sun_disc_deg >= 0:
-        raise ValueError(f"sun_disc_deg={sun_disc_deg} must be >= 0")
-    if shot_noise and rng is not None and not np.isfinite(cam.conversion_gain_e_per_dn):
-        raise ValueError(
-            f"shot_noise needs a finite noise.conversion_gain_e_per_dn in camera {cam.name!r}"
-        )
+    s_n = _check_render_args(
+        cam, sun_n, rot_nb, dop_max=dop_max, radiance=radiance, epsilon=epsilon,
+        noise_std=noise_std, rng=rng, sun_disc_deg=sun_disc_deg, shot_noise=shot_noise,
+    )  # fmt: skip
     ground = 0.15 * radiance if ground_radiance is None else float(ground_radiance)
     model = cam.polarization_model if polarization_model is None else polarization_model
 
     mat_nc = (rot_nb * cam.rot_bc).as_matrix()
-    sun_c = mat_nc.T @ s_n
     sun_visible = s_n[2] > 0.0 and not occluded(s_n, occluders)
-    eps = epsilon if sun_visible else 0.0
     scene = dict(
         polarization_model=model,
         dop_max=dop_max,
@@ -441,43 +533,16 @@ def render_raw(
         ground_radiance=ground,
         clouds=clouds,
     )
-    cos_disc = np.cos(np.radians(sun_disc_deg))
-
-    def sample(rays_c: FloatArray) -> tuple[FloatArray, BoolArray]:
-        stokes, blocked = sky_stokes(rays_c, mat_nc, s_n, **scene)  # type: ignore[arg-type]
-        with np.errstate(invalid="ignore"):
-            disc = (
-                (rays_c @ sun_c >= cos_disc) & ~blocked
-                if sun_visible and sun_disc_deg > 0
-                else None
-            )
-        return add_direct_sunlight(stokes, sun_c, eps), (
-            disc if disc is not None else np.zeros(blocked.shape, dtype=bool)
-        )
-
-    h, w = cam.shape
-    signal = np.empty((h, w))
-    saturated = np.zeros((h, w), dtype=bool)
-    if not ifov:
-        stokes, disc = sample(pixel_rays_c(cam))
-    for r0 in (0, 1):
-        for c0 in (0, 1):
-            if ifov:
-                stokes, disc = sample(mosaic_rays_c(cam, r0, c0))
-            signal[r0::2, c0::2] = channel_intensity(stokes, cam, int(cam.channel_at[r0, c0]))
-            saturated[r0::2, c0::2] = disc
-
+    sky_view = _SkyView(
+        mat_nc=mat_nc,
+        sun_n=s_n,
+        eps=epsilon if sun_visible else 0.0,
+        cos_disc=np.cos(np.radians(sun_disc_deg)) if sun_visible and sun_disc_deg > 0 else None,
+        scene=scene,
+    )
+    signal, saturated = _mosaic_signal(cam, sky_view, ifov)
     if rng is not None:
-        if shot_noise:
-            offset = np.empty((h, w))
-            for r0 in (0, 1):
-                for c0 in (0, 1):
-                    offset[r0::2, c0::2] = cam.dark_offset_dn[int(cam.channel_at[r0, c0])]
-            gain_e = cam.conversion_gain_e_per_dn
-            electrons = rng.poisson(np.maximum(signal - offset, 0.0) * gain_e)
-            signal = electrons / gain_e + offset
-        if noise_std > 0:
-            signal = signal + noise_std * rng.standard_normal((h, w))
+        signal = _add_sensor_noise(signal, cam, rng, noise_std, shot_noise)
     signal[saturated] = cam.saturation_dn
     np.clip(signal, 0.0, cam.saturation_dn, out=signal)
     if not quantize:
