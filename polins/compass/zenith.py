@@ -22,6 +22,7 @@ the jackknife over mirror-pair sectors, the camera-fixed part) is the smaller.
 from __future__ import annotations
 
 import dataclasses
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +32,7 @@ from polins.compass.branch import sun_angle_variances
 from polins.compass.heading import Geometry
 from polins.compass.image import ImageStokes
 from polins.compass.measurement import MeasureOptions
+from polins.compass.pixels import PixelSet
 from polins.compass.skypixels import SkyPixels
 from polins.compass.solution import Solution
 
@@ -68,18 +70,28 @@ class ZenithMean:
     g_mixing: float
 
 
+@lru_cache(maxsize=8)
+def _edge_pixels(pixels: PixelSet) -> NDArray:
+    """Positions in ``pixels`` of the field's edge pixels (next to the border, an occlusion
+    or outside the field)."""
+    fov = pixels.to_image(np.ones(pixels.size), fill=0.0) > 0.5
+    edge_img = fov & ~binary_erosion(fov, border_value=0)
+    return pixels.to_image(np.arange(pixels.size), fill=-1.0)[edge_img].astype(np.intp)
+
+
 def zenith_cone(img: ImageStokes, mat_lc: NDArray) -> NDArray | None:
     """Field-of-view pixels ``(n,)`` bool inside the largest cone about the level zenith
     that lies inside the field (its edge and occlusions), or None when the zenith is
     outside the field."""
-    pixels = img.cache.pixels
-    up = (mat_lc[2] @ img.cache.rays).astype(np.float64)  # cosine of the zenith angle
-    fov = pixels.to_image(np.ones(pixels.size), fill=0.0) > 0.5
-    edge_img = fov & ~binary_erosion(fov, border_value=0)
-    edge = pixels.to_image(np.arange(pixels.size), fill=-1.0)[edge_img].astype(int)
-    if edge.size == 0 or int(np.argmax(up)) in set(edge.tolist()):
+    rays = img.cache.rays
+    up = mat_lc[2].astype(rays.dtype) @ rays  # cosine of the zenith angle
+    edge = _edge_pixels(img.cache.pixels)
+    if edge.size == 0:
         return None
-    return up > float(np.max(up[edge]))
+    up_edge = float(np.max(up[edge]))
+    if not float(np.max(up)) > up_edge:  # the zenith is on the edge or outside
+        return None
+    return up > up_edge
 
 
 def _doubled_rows(basis: NDArray, mat_lc: NDArray) -> tuple[NDArray, NDArray]:
@@ -188,13 +200,14 @@ def zenith_solution(
     if cone is None:
         return None
     mask = cone & px.valid
-    if np.count_nonzero(mask) < opt.min_pixels:
+    idx = np.flatnonzero(mask)
+    if idx.size < opt.min_pixels:
         return None
     inv = img.inv_sigma_l2
-    inv_m = inv[mask] if isinstance(inv, np.ndarray) else inv
-    rays_l = mat_lc @ img.cache.rays[:, mask].astype(np.float64)
-    zm = zenith_mean(img.estimate[:, mask], inv_m, img.cache.basis[:, :, mask], mat_lc,
-                     img.noise_ratio, np.arctan2(rays_l[1], rays_l[0]))  # fmt: skip
+    inv_m = inv.take(idx) if isinstance(inv, np.ndarray) else inv
+    rays_l = mat_lc[:2] @ img.cache.rays.take(idx, axis=1).astype(np.float64)
+    zm = zenith_mean(img.estimate.take(idx, axis=1), inv_m, img.cache.basis.take(idx, axis=2),
+                     mat_lc, img.noise_ratio, np.arctan2(rays_l[1], rays_l[0]))  # fmt: skip
     std_zm = float(np.hypot(instrumental[0] * zm.g_delta, instrumental[1] * zm.g_mixing))
     std_sol = total_std(sol.var_yaw, sol.var_jack, std_instrumental, model_scale)
     if not total_std(zm.var_azimuth, zm.var_jack, std_zm, model_scale) < std_sol:
