@@ -35,6 +35,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 import polins
+import polins.fusion
 from polins.frames import wrap_angle
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
@@ -63,21 +64,18 @@ def run(model, traj, imu, errors, truth, meas, aided: bool) -> dict:
     """Fuse and compare with the truth at the 10 Hz output rows."""
     t0 = time.perf_counter()
     if aided:
-        sol = polins.fuse(imu, meas, imu_model=model, **SITE, output_rate_hz=10.0)
+        config = polins.fusion.FuseConfig.from_options(imu_model=model, **SITE, output_rate_hz=10.0)
+        res = polins.fusion.run_fusion(imu, meas, config=config)
     else:
         # initial attitude: the truth with an error drawn from the stated 0.1 deg sigma
         att_std0 = np.radians(0.1)
         rng = np.random.default_rng(len(model.name))
         rot_nb0 = Rotation.from_rotvec(rng.normal(0.0, att_std0, 3)) * traj.rot_nb[0]
-        sol = polins.fuse(
-            imu,
-            None,
-            rot_nb0=rot_nb0,
-            att_std0=att_std0,
-            imu_model=model,
-            **SITE,
-            output_rate_hz=10.0,
+        config = polins.fusion.FuseConfig.from_options(
+            att_std0=att_std0, imu_model=model, **SITE, output_rate_hz=10.0
         )
+        res = polins.fusion.run_fusion(imu, None, rot_nb0=rot_nb0, config=config)
+    sol = res.solution
     seconds = time.perf_counter() - t0
     k = np.searchsorted(truth["t"].to_numpy(), sol["t"].to_numpy() - 1e-9)
     err = {
@@ -85,7 +83,7 @@ def run(model, traj, imu, errors, truth, meas, aided: bool) -> dict:
         "roll": sol["roll"].to_numpy() - truth["roll"].to_numpy()[k],
         "pitch": sol["pitch"].to_numpy() - truth["pitch"].to_numpy()[k],
     }
-    upd = sol.attrs["updates"]
+    upd = res.updates
     nis = upd.loc[(upd["name"] == "yaw") & np.isfinite(upd["nis"]), "nis"]
     ok = np.isfinite(err["yaw"]) & (sol["t"].to_numpy() >= 5.0)
     ratio = err["yaw"][ok] / sol["yaw_std"].to_numpy()[ok]

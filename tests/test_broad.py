@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 import polins
 from polins.frames import wrap_angle
+from polins.fusion import FuseConfig, run_fusion
 
 BROAD = Path(__file__).parent / "data" / "broad"
 SITE = {"lat_deg": 52.512, "lon_deg": 13.327, "alt_m": 40.0}
@@ -68,10 +69,9 @@ def score(sol: pd.DataFrame, truth: pd.DataFrame):
 @pytest.mark.parametrize("trial", ["02", "15"])
 def test_broad_trials_are_accurate_and_consistent_with_the_defaults(trial):
     imu, meas, truth, rot0 = broad_trial(trial)
-    sol = polins.fuse(
-        imu, meas, imu_model="broad-aktos-t", rot_nb0=rot0, output_rate_hz=2.0, **SITE
-    )
-    upd = sol.attrs["updates"]
+    config = FuseConfig.from_options(imu_model="broad-aktos-t", output_rate_hz=2.0, **SITE)
+    res = run_fusion(imu, meas, rot_nb0=rot0, config=config)
+    sol, upd = res.solution, res.updates
     zupt = upd[upd["name"] == "zupt"]
     assert zupt["accepted"].mean() > 0.99  # no lock-out of the rests after the motion
     for angle, (rms, within3, err_deg) in score(sol, truth).items():

@@ -1,6 +1,7 @@
 """Polarization compass: raw image -> sun vector -> heading, covariance and refusals
 (docs/model.md §9-10, 12), on images from the independent renderer tests/render_simple.py."""
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -23,6 +24,7 @@ from polins.compass.measure import (
 )
 from polins.compass.pixels import mosaic_channels
 from polins.compass.polarimetry import stokes_from_channels
+from polins.errors import UserInputError
 from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.sim.algorithm1 import measure_algorithm1, measure_baseline
 
@@ -318,6 +320,19 @@ def test_refusals_and_input_errors():
     )
     overhead = polins.sun_vector_n(1.0, np.radians(3.0))
     assert "zenith" in measure(raw, CAM4, sun_n=overhead, rot_nb_prior=rot).reason
+    # The paper's baselines and Algorithm 1 refuse the same suns as the chain.
+    for sun in (below, overhead):
+        for m in (
+            measure_baseline(raw, CAM4, sun_n=sun, rot_nb_prior=rot, weighted=False),
+            measure_algorithm1(raw, CAM4, sun_n=sun, rot_nb_prior=rot)[0],
+        ):
+            assert not m.ok
+            assert m.reason == measure(raw, CAM4, sun_n=sun, rot_nb_prior=rot).reason
+    for f in (measure_baseline, measure_algorithm1):
+        with pytest.raises(UserInputError, match=f"^{f.__name__} needs sun_n and rot_nb_prior$"):
+            f(raw, CAM4, sun_n=None, rot_nb_prior=rot)
+        with pytest.raises(UserInputError, match=f"^{f.__name__} needs sun_n and rot_nb_prior$"):
+            f(raw, CAM4, sun_n=SUN_N, rot_nb_prior=None)
     dark = np.zeros(CAM4.shape, dtype=np.uint16)
     assert "too few valid pixels" in measure(dark, CAM4, sun_n=SUN_N, rot_nb_prior=rot).reason
     gated = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=_level(40.0), yaw_gate=np.radians(5.0))
@@ -375,6 +390,27 @@ def test_refusals_and_input_errors():
         MeasureOptions(loss="l1")
     d = measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot).as_dict()
     assert d["ok"] is True and len(d["sun_b"]) == 3 and d["epsilon"] is not None
+
+
+def test_options_are_checked_however_constructed():
+    # A replaced option is named with its replacement also when MeasureOptions is built
+    # directly or replaced; a boolean is not a number (False is not "off", True no 1 rad gate).
+    for old, new in [("kappa", "yaw_std_model"), ("sun_exclusion_deg", r"sun_exclusion \[rad\]")]:
+        with pytest.raises(TypeError, match=f"^unknown measure option.*{old} -> [^;]*{new}"):
+            MeasureOptions(**{old: 1})
+        with pytest.raises(TypeError, match=f"{old} -> [^;]*{new}"):
+            dataclasses.replace(MeasureOptions(), **{old: 1})
+    rot = _level(10.0)
+    raw = render(CAM4, SUN_N, rot)
+    for flag in (False, True):
+        with pytest.raises(ValueError, match=f"^yaw_gate={flag}: expected a number or 'off'$"):
+            measure(raw, CAM4, sun_n=SUN_N, rot_nb_prior=rot, yaw_gate=flag)
+        with pytest.raises(ValueError, match=f"^dop_min={flag}: expected a number$"):
+            MeasureOptions(dop_min=flag)
+    assert (
+        MeasureOptions(yaw_gate=0.1).gate == 0.1
+        and MeasureOptions(min_pixels=600).min_pixels == 600
+    )
 
 
 def test_nan_pixels_are_masked_not_propagated():
@@ -516,6 +552,11 @@ def test_cli_heading_user_errors(tmp_path, capsys):
     assert main(["heading", str(text), *site]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "notes.png" in err and "Traceback" not in err
+    # The paper's Algorithm 1 is no method of any command: the same one line as in Python.
+    for command in ("heading", "fuse", "tune"):
+        assert main([command, "--method", "paper"]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "polins.sim.algorithm1" in err
 
 
 # ----------------------------------------------------------------------------- cross-check
@@ -705,6 +746,22 @@ def test_stages_compose_to_measure():
             assert dataclasses.is_dataclass(stage)
             with pytest.raises(dataclasses.FrozenInstanceError):
                 stage.__setattr__(dataclasses.fields(stage)[0].name, None)
+    # A stage leaves its inputs alone: a second run on the same stages gives the same result.
+    opt = MeasureOptions(max_field_angle=0.5)
+    geo = image_geometry(CAM4, SUN_N, rot)
+    img = image_stokes(check_raw(raw, CAM4), CAM4, opt)
+    img_copy = {f.name: np.copy(getattr(img, f.name)) for f in dataclasses.fields(img)
+                if isinstance(getattr(img, f.name), np.ndarray)}  # fmt: skip
+    px = sky_pixels(img, CAM4, geo, opt)
+    valid_full = px.select_full.valid.copy()
+    sol = solve_image(img, CAM4, px, geo, opt, "compensated")
+    for name, value in img_copy.items():
+        np.testing.assert_array_equal(getattr(img, name), value, err_msg=name)
+    np.testing.assert_array_equal(px.select_full.valid, valid_full)
+    assert np.count_nonzero(px.valid) < np.count_nonzero(img.valid)
+    px2 = sky_pixels(img, CAM4, geo, opt)
+    np.testing.assert_array_equal(px2.valid, px.valid)
+    assert solve_image(img, CAM4, px2, geo, opt, "compensated").var_yaw == sol.var_yaw
     dark = np.zeros_like(raw)
     refused = measure(dark, CAM4, sun_n=SUN_N, rot_nb_prior=rot)
     assert not refused.ok and refused.reason.startswith("too few valid pixels")

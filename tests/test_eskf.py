@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 import polins
 from polins.errors import UserInputError
 from polins.frames import rot_nb_from_euler, wrap_angle, yaw_from_rot_nb
-from polins.fusion import build_filter
+from polins.fusion import build_filter, run_fusion
 from polins.fusion.config import FuseConfig, config_with_site
 from polins.fusion.eskf import ESKF, Block, Layout, discretize, error_blocks, rts_smooth
 from polins.fusion.eskf.dynamics import StepNominal, step_nominal
@@ -49,6 +49,11 @@ YAW_STD = np.radians(0.3)
 def perturb(rot, vel, dx):
     """The error-state convention: rot_true = exp(dtheta) rot, vel_true = vel + dv."""
     return Rotation.from_rotvec(dx[0:3]) * rot, vel + dx[3:6]
+
+
+def fused(imu, meas, rot_nb0=None, **options):
+    """``polins.fuse``'s run with its whole result (``run_fusion``)."""
+    return run_fusion(imu, meas, rot_nb0=rot_nb0, config=FuseConfig.from_options(**options))
 
 
 @functools.cache
@@ -88,10 +93,10 @@ def monte_carlo(model_name, runs, duration, first_seed=100, **options):
     acc, nis = {}, []
     for r in range(runs):
         model, _, imu, errors, truth, meas = scenario(model_name, first_seed + r, duration)
-        sol = polins.fuse(imu, meas, imu_model=model, output_rate_hz=1.0, **SITE, **options)
-        for key, v in normalized_errors(sol, truth, errors).items():
+        res = fused(imu, meas, imu_model=model, output_rate_hz=1.0, **SITE, **options)
+        for key, v in normalized_errors(res.solution, truth, errors).items():
             acc.setdefault(key, []).append(v)
-        upd = sol.attrs["updates"]
+        upd = res.updates
         nis.append(upd.loc[(upd["name"] == "yaw") & np.isfinite(upd["nis"]), "nis"].to_numpy())
         scenario.cache_clear()
     rms = {key: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for key, v in acc.items()}
@@ -523,8 +528,8 @@ def test_fuse_options_site_and_result():
     res = polins.fusion.run_fusion(imu, meas, config=cfg)
     sol = polins.fuse(imu, meas, imu_model=model, **SITE)
     pd.testing.assert_frame_equal(res.solution, sol)
-    pd.testing.assert_frame_equal(res.updates, sol.attrs["updates"])
-    assert res.backend == "eskf" and res.filtered is None and res.info["imu_model"] == model.name
+    assert res.backend == "eskf" and res.filtered is None and res.config.imu.name == model.name
+    assert not sol.attrs  # the solution is a plain table; the result holds the rest
     with pytest.raises(UserInputError, match="did you mean 'nhc_std'"):
         polins.fuse(imu, meas, nhc_sd=0.1, **SITE)
     with pytest.raises(UserInputError, match="applies to the graph backend only"):
@@ -539,20 +544,20 @@ def test_gating_logs_rejections(caplog):
     meas = meas.copy()
     meas.loc[40, "yaw"] = wrap_angle(meas.loc[40, "yaw"] + 0.5)
     with caplog.at_level(logging.INFO, logger="polins.fusion"):
-        sol = polins.fuse(imu, meas, imu_model=model, **SITE, output_rate_hz=1.0)
-    upd = sol.attrs["updates"]
+        upd = fused(imu, meas, imu_model=model, **SITE, output_rate_hz=1.0).updates
     row = upd.iloc[(upd["t"] - meas.loc[40, "t"]).abs().argmin()]
     assert not row["accepted"] and row["nis"] > 100 and row["reason"].startswith("NIS")
     assert "gate" in caplog.text and "rejected" in caplog.text
     assert {"t", "name", "dim", "nis", "accepted", "reason"} <= set(upd.columns)
     # without a gate the outlier is used
-    sol = polins.fuse(imu, meas, imu_model=model, **SITE, output_rate_hz=1.0, gate_prob="off")
-    assert sol.attrs["updates"]["accepted"].all()
+    upd = fused(imu, meas, imu_model=model, **SITE, output_rate_hz=1.0, gate_prob="off").updates
+    assert upd["accepted"].all()
 
 
 def test_self_alignment_and_solution_columns():
     model, _, imu, errors, truth, meas = scenario("mems-typical", 10, 20.0)
-    sol = polins.fuse(imu, meas, imu_model=model, **SITE, output_rate_hz=10.0)
+    res = fused(imu, meas, imu_model=model, **SITE, output_rate_hz=10.0)
+    sol = res.solution
     for col in (
         "t roll pitch yaw heading_deg roll_std pitch_std yaw_std bgx bgy bgz bax bay baz "
         "ve vn vu lat_deg lon_deg alt_m pe_std pn_std pu_std qw qx qy qz bgx_std baz_std"
@@ -560,7 +565,7 @@ def test_self_alignment_and_solution_columns():
         assert col in sol.columns, col
     # yaw unknown until three headings agree (t = 0.2, 0.4, 0.6 s), then aligned
     assert np.isnan(sol["yaw"].iloc[5]) and np.isfinite(sol["yaw"].iloc[6])
-    first = sol.attrs["updates"].iloc[0]
+    first = res.updates.iloc[0]
     assert first["reason"] == "used for the yaw acquisition (3 of 3 agree)"
     assert first["t"] == pytest.approx(0.2) and first["accepted"]
     # levelling: tilt error at the start ~ accelerometer bias / g, inside 3 sigma
@@ -585,9 +590,10 @@ def test_sun_vector_updates_observe_tilt():
     sun_b = (noise * traj.rot_nb[k].inv()).apply(sun_n)
     frame = meas.assign(**{f"sun_b{c}": sun_b[:, i] for i, c in enumerate("xyz")})
     frame = frame.assign(**{f"sun_n{c}": sun_n[i] for i, c in enumerate("xyz")}, sun_std=1e-3)
-    sol = polins.fuse(imu, frame, imu_model=model, **SITE, output_rate_hz=1.0, scale_factors=True)
-    assert sol.attrs["updates"]["reason"].iloc[0].startswith("used for the yaw acquisition")
-    assert (sol.attrs["updates"]["name"] == "sun").sum() > 250
+    res = fused(imu, frame, imu_model=model, **SITE, output_rate_hz=1.0, scale_factors=True)
+    sol = res.solution
+    assert res.updates["reason"].iloc[0].startswith("used for the yaw acquisition")
+    assert (res.updates["name"] == "sun").sum() > 250
     k = np.searchsorted(truth["t"].to_numpy(), sol["t"].to_numpy() - 1e-9)
     est = Rotation.from_quat(sol[["qx", "qy", "qz", "qw"]].to_numpy())
     dtheta = (traj.rot_nb[k] * est.inv()).as_rotvec()[10:]  # nav-frame attitude error
@@ -606,10 +612,10 @@ def test_smoother_reduces_error():
     ratios = []
     for seed in (21, 22, 23):
         model, _, imu, errors, truth, meas = scenario("mems-typical", seed, 60.0)
-        sol = polins.fuse(
+        res = fused(
             imu, meas, imu_model=model, **SITE, output_rate_hz=1.0, smooth=True, scale_factors=True
         )
-        filt = sol.attrs["filtered"]
+        sol, filt = res.solution, res.filtered
         assert (sol["yaw_std"].iloc[5:-1] < filt["yaw_std"].iloc[5:-1]).all()
         k = np.searchsorted(truth["t"].to_numpy(), sol["t"].to_numpy() - 1e-9)
         for key, df in (("filtered", filt), ("smoothed", sol)):

@@ -63,9 +63,13 @@ def test_gaps_are_reported():
     # skips the measurements inside and inflates the covariance (tests/test_robustness.py)
     df = _imu().drop(index=range(100, 140)).reset_index(drop=True)
     arrays = validate_imu(df)
-    assert arrays.gaps.tolist() == [99] and arrays.t[100] - arrays.t[99] == pytest.approx(0.205)
+    assert arrays.gap_spans == ((arrays.t[99], arrays.t[100]),)
+    assert arrays.t[100] - arrays.t[99] == pytest.approx(0.205)
+    (gap,) = arrays.gaps  # the "gap" item at the sample after it, the gap's length as std
+    assert gap.kind == "gap" and gap.t == arrays.t[100] and gap.std == pytest.approx(0.205)
+    assert [e.kind for e in arrays.events] == ["imu-gap"]
     # an explicit, larger limit bridges it
-    assert validate_imu(df, max_gap_s=0.5).gaps.size == 0
+    assert validate_imu(df, max_gap_s=0.5).gaps == ()
 
 
 def test_unit_mistakes_detected():
@@ -158,7 +162,40 @@ def test_fuse_reports_input_errors():
     imu.loc[3, "t"] = np.nan
     with pytest.raises(ValueError, match="t is NaN"):
         polins.fuse(imu, None, rot_nb0=polins.rot_nb_from_euler(0, 0, 0), lat_deg=45.0, lon_deg=0)
-    with pytest.raises(UserInputError, match=r"unknown filter option 'nhc_sdt'"):
+    with pytest.raises(
+        UserInputError, match=r"unknown filter option .nhc_sdt. \(did you mean .nhc_std.\?\)"
+    ):
         polins.fuse(_imu(), None, lat_deg=45.0, lon_deg=0.0, nhc_sdt=0.1)
     with pytest.raises(ValueError, match="backend='kalman'"):
         polins.fuse(_imu(), None, backend="kalman")
+
+
+def test_measurements_become_the_rows_fuse_takes():
+    from scipy.spatial.transform import Rotation
+
+    from polins.compass.measurement import Measurement
+
+    sun_b = np.array([0.6, 0.0, 0.8])
+    good = Measurement(ok=True, reason="", method="compensated", yaw=0.3, yaw_std=0.01,
+                       yaw_std_meas=0.008, heading_deg=72.8, sun_b=sun_b, sun_l=sun_b,
+                       sun_c=sun_b, sun_std=0.01, epsilon=np.nan, epsilon_std=np.nan,
+                       n_pixels=5000, eigen_gap=0.9, residual_rms=1.0)  # fmt: skip
+    refused = Measurement.refused("compensated", "too few valid pixels")
+    prior = Rotation.from_euler("ZYX", [0.3, 0.02, -0.01])
+    table = polins.measurement_table([good, refused], [1.0, 2.0], rot_nb_prior=prior)
+    assert table["t"].tolist() == [1.0, 2.0] and table["yaw"].iloc[0] == 0.3
+    assert "sun_bx" not in table  # no sun_n: yaw rows
+    np.testing.assert_allclose(table[["prior_yaw", "prior_pitch", "prior_roll"]].iloc[1],
+                               [0.3, 0.02, -0.01])  # fmt: skip
+    items = items_from_table(validate_measurements(table), use_sun=False)
+    yaws = [it for it in items if it.kind == "yaw"]
+    assert [it.valid for it in yaws] == [True, False] and yaws[0].std == 0.01
+    # with the sun vector each image was measured with: 2-DOF sun rows
+    sun_n = [0.0, 0.6, 0.8]
+    table = polins.measurement_table(good, 1.0, sun_n=sun_n)
+    assert table[["sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny", "sun_nz"]].iloc[0].tolist() == [
+        0.6, 0.0, 0.8, *sun_n]  # fmt: skip
+    (item,) = [it for it in items_from_table(validate_measurements(table)) if it.kind == "sun"]
+    np.testing.assert_allclose(item.sun_b, sun_b)
+    with pytest.raises(ValueError, match="2 measurements but 1 times"):
+        polins.measurement_table([good, good], [1.0])

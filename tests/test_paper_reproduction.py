@@ -13,6 +13,7 @@ from polins.sim.render import direction_n, occluded
 from polins.sim.reproduction import (
     ESTIMATORS,
     PAPER_OCCLUDER,
+    Estimator,
     Scenario,
     gain_pseudo_polarization,
     paper_scenarios,
@@ -58,6 +59,16 @@ def test_setup_matches_table1():
     assert 0.05 < np.degrees(np.arccos(np.clip(sun_late[0] @ sun_n[0], -1, 1))) < 0.5
     # Table 1 gains: a camera-fixed pseudo-polarization of about 0.6% of S0 (docs/errata.md §3).
     assert gain_pseudo_polarization(scenario_camera(sc)) == pytest.approx(0.0060, abs=0.0003)
+
+
+def test_estimator_refuses_a_switch_its_method_does_not_take():
+    # The baselines' switches go with "traditional" (and "weighted" with "paper"); on
+    # "compensated" they would be ignored, so the estimator is refused.
+    assert Estimator("p", "p", "paper", (("weighted", False),)).method == "paper"
+    for method, options in [("compensated", (("weighted", False),)),
+                            ("paper", (("gain_correction", False),))]:  # fmt: skip
+        with pytest.raises(ValueError, match=f"^Estimator 'x': .* method='{method}'"):
+            Estimator("x", "x", method, options)
 
 
 def test_occluder_geometry():

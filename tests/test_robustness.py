@@ -206,7 +206,6 @@ def test_imu_gap_with_images_inside():
     model, _, imu, truth, meas = drive(5)
     gapped = imu[(imu["t"] < 7.0) | (imu["t"] > 10.0)]
     res = fuse(gapped, meas, model)
-    ev = res.events
     check_gap_skipped(res, meas)
     sol = res.solution
     assert not sol["t"].between(7.001, 9.999).any()
@@ -215,10 +214,8 @@ def test_imu_gap_with_images_inside():
     # the smoother runs across the inflated step
     _, _, z = yaw_z(fuse(gapped, meas, model, smooth=True).solution, truth)
     assert np.isfinite(z[t > 0.7]).all() and np.abs(z[t > 0.7]).max() < 3.5
-    # a gap up to max_gap_s is bridged without an event; fuse() carries the events too
-    sol = polins.fuse(gapped, meas, imu_model=model, site=SITE, max_gap_s=3.5)
-    assert "imu-gap" not in sol.attrs["events"]["kind"].tolist()
-    assert polins.fuse(gapped, meas, imu_model=model, site=SITE).attrs["events"].equals(ev)
+    # a gap up to max_gap_s is bridged without an event
+    assert "imu-gap" not in fuse(gapped, meas, model, max_gap_s=3.5).events["kind"].tolist()
 
 
 def test_impossible_imu_samples_are_dropped():
@@ -286,7 +283,7 @@ def test_slow_turns_in_deg_per_s_are_caught_by_the_headings():
     deg = imu.assign(**{c: np.degrees(imu[c]) for c in ("gx", "gy", "gz")})
     assert np.percentile(np.linalg.norm(deg[["gx", "gy", "gz"]], axis=1), 99) < 35.0
     validate_imu(deg, model=model)  # the full-scale check alone lets it through
-    with pytest.raises(ValueError, match=r"turns 5\d times as much .* looks like deg/s"):
+    with pytest.raises(ValueError, match=r"turns 5\d(\.\d)? times as much .* looks like deg/s"):
         fuse(deg, meas, model)
     res = fuse(imu, meas, model)
     assert np.isfinite(res.solution["yaw"].iloc[2:]).all()  # set by the first consensus

@@ -134,10 +134,12 @@ def test_data_faults_return_false_and_report_events_never_raise():
     assert not nav.add_imu(t + 0.005, [np.nan, 0, 0], [0, 0, 9.8])  # imu-nonfinite
     assert not nav.add_imu(t, imu[0, 1:4], imu[0, 4:7])  # imu-out-of-order
     assert nav.add_imu(t + 0.5, imu[0, 1:4], imu[0, 4:7])  # imu-gap, propagated across
-    assert nav.add_measurement(t + 0.4, yaw=0.0, yaw_std=0.01)
-    assert not nav.add_measurement(t + 0.3, yaw=0.0, yaw_std=0.01)  # image-out-of-order
+    assert not nav.add_measurement(t + 0.4, yaw=0.0, yaw_std=0.01)  # measurement-in-gap
+    assert nav.add_measurement(t + 0.55, yaw=0.0, yaw_std=0.01)
+    assert not nav.add_measurement(t + 0.52, yaw=0.0, yaw_std=0.01)  # image-out-of-order
     kinds = list(nav.drain_events()["kind"])
-    assert kinds == ["imu-nonfinite", "imu-out-of-order", "imu-gap", "image-out-of-order"]
+    assert kinds == ["imu-nonfinite", "imu-out-of-order", "imu-gap", "measurement-in-gap",
+                     "image-out-of-order"]  # fmt: skip
     assert nav.drain_events().empty  # drained
     assert nav.counts["imu-gap"] == 1  # the totals stay
     for k in range(1, 200):  # the IMU runs on, > max_image_delay_s

@@ -13,6 +13,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from polins.compass.measurement import METHODS, check_method
 from polins.errors import UserInputError
 
 __all__ = [
@@ -21,11 +22,13 @@ __all__ = [
     "Handler",
     "HelpFormatter",
     "Parser",
+    "add_method_arg",
     "add_site_args",
     "angle",
     "check",
     "finite",
     "fraction",
+    "method",
 ]
 
 Handler = Callable[[argparse.Namespace], int]
@@ -83,6 +86,22 @@ def add_site_args(p: argparse.ArgumentParser, required: bool = True) -> None:
     p.add_argument("--lat", type=finite, required=required, help="latitude [deg, North positive]")
     p.add_argument("--lon", type=finite, required=required, help="longitude [deg, East positive]")
     p.add_argument("--alt", type=finite, default=0.0, help="height above the ellipsoid [m]")
+
+
+def method(text: str) -> str:
+    """argparse type: a method of ``polins.measure``, with the one line of
+    :func:`polins.compass.measurement.check_method` (it names where ``"paper"`` lives)."""
+    try:
+        check_method(text)
+    except UserInputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def add_method_arg(p: argparse.ArgumentParser) -> None:
+    """``--method``: the heading estimator of ``polins.measure``."""
+    p.add_argument("--method", type=method, default=METHODS[0],
+                   metavar="{" + ",".join(METHODS) + "}", help="heading estimator")  # fmt: skip
 
 
 class Parser(argparse.ArgumentParser):

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from polins.cli.common import ArgumentError, angle, check, finite, fraction
+from polins.cli.common import ArgumentError, add_method_arg, angle, check, finite, fraction
 from polins.errors import UserInputError
 from polins.io.outputs import check_output_folder
 
@@ -107,7 +107,8 @@ def cmd_fuse(args: argparse.Namespace) -> int:
                             settle_s=args.settle, gate_prob=config.gate_probability)  # fmt: skip
         verdict = run_verdict(summary, result.events, args.max_image_failures,
                               t_imu=log.imu["t"].to_numpy(dtype=float),
-                              t_images=np.asarray(log.images.t, dtype=float))  # fmt: skip
+                              t_images=np.asarray(log.images.t, dtype=float),
+                              measurements=result.measurements)  # fmt: skip
         summary["status"] = verdict or "ok"
         write_report(out.path, result.solution, result.measurements, result.events, summary,
                      truth=log.truth, plots=not args.no_plots,
@@ -174,10 +175,7 @@ def add_fuse(sub: Any) -> None:
     p.add_argument("--smooth", action="store_true", help="RTS smoother (ESKF backend)")
     p.add_argument("--workers", type=int, default=None,
                    help="image processes, >= 1 (default: all cores)")  # fmt: skip
-    p.add_argument(
-        "--method", choices=["compensated", "traditional"], default="compensated",
-        help="heading estimator",
-    )  # fmt: skip
+    add_method_arg(p)
     p.add_argument("--update", choices=["yaw", "sun"], default="yaw", help="filter update kind")
     p.add_argument("--prior-lag", type=finite, default=1.0, help="age of the image prior [s]")
     p.add_argument("--nhc", default=None, metavar="SIGMA|off|auto",

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from polins.cli.common import add_site_args, angle, check, finite
+from polins.cli.common import add_method_arg, add_site_args, angle, check, finite
 
 __all__ = ["add_heading", "add_sun", "cmd_heading", "cmd_sun", "sun_report"]
 
@@ -171,10 +171,7 @@ def add_heading(sub: Any) -> None:
     p.add_argument("--yaw-prior", type=finite, default=0.0,
                    help="prior ENU yaw [deg, counter-clockwise from East]; used only near the "
                    "horizon")  # fmt: skip
-    p.add_argument(
-        "--method", choices=["compensated", "traditional"], default="compensated",
-        help="heading estimator",
-    )  # fmt: skip
+    add_method_arg(p)
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--out", default=None, help="also write the JSON report to this file")
     p.set_defaults(handler=cmd_heading)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from polins.cli.common import ArgumentError, check, finite
+from polins.cli.common import ArgumentError, add_method_arg, check, finite
 from polins.cli.fuse import filter_changes, filter_options_text
 from polins.errors import UserInputError
 
@@ -74,8 +74,7 @@ def add_tune(sub: Any) -> None:
     p.add_argument("--smooth", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--nhc", type=finite, default=None,
                    help="non-holonomic constraint sigma [m/s] (None: off)")  # fmt: skip
-    p.add_argument("--method", choices=["compensated", "traditional"],
-                   default="compensated", help="heading estimator")  # fmt: skip
+    add_method_arg(p)
     p.add_argument("--workers", type=int, default=None, help="image processes (None: all cores)")
     p.add_argument("--gyro-unit", choices=["rad/s", "deg/s"], default=None,
                    help="unit of gx, gy, gz (None: the file's or the manifest's, else rad/s)")  # fmt: skip

@@ -63,6 +63,7 @@ __all__ = [
     "MODEL_SCALE",
     "ZENITH_MIN",
     "Branch",
+    "check_sun",
     "heading_measurement",
     "instrumental_std",
     "instrumental_stds",
@@ -117,8 +118,15 @@ class Branch:
     zenith: float
 
 
-def _check_sun(geo: Geometry, opt: MeasureOptions) -> None:
-    """Refuse a sun below the horizon or too near the zenith (with an ephemeris)."""
+def check_sun(geo: Geometry) -> None:
+    """Refuse a sun below the horizon or within :data:`ZENITH_MIN` of the zenith (with an
+    ephemeris; no check without one).
+
+    Raises
+    ------
+    Refusal
+        With the reason, for :meth:`Measurement.refused`.
+    """
     if geo.sun_n is None:
         return
     if geo.sun_n[2] <= 0.0:
@@ -170,7 +178,7 @@ def measure_image(
     check_method(method)
     geo = image_geometry(cam, sun_n, rot_nb_prior, sun_azimuth_b_prior)
     try:
-        _check_sun(geo, opt)
+        check_sun(geo)
     except Refusal as r:
         return Measurement.refused(method, r.reason, r.n_pixels), None
     img = image_stokes(arr, cam, opt)

@@ -22,6 +22,7 @@ from polins.compass.lens import lens_forward_rows
 from polins.compass.pixels import pixel_set
 from polins.compass.polarimetry import stokes_calibration
 from polins.compass.prediction import pixel_data
+from polins.compass.skypixels import SNR_MIN
 from polins.compass.sunlight import stokes_with_sunlight, sunlight_direction
 from polins.frames import rot_lb_from_rot_nb, yaw_from_rot_nb
 from polins.models import CameraModel
@@ -42,7 +43,7 @@ def yaw_crlb(
     fixed_zenith: bool = True,
     sun_exclusion: float = float(np.radians(10.0)),
     dop_min: float = 0.03,
-    snr_min: float = 3.0,
+    snr_min: float = SNR_MIN,
 ) -> float:
     """Cramer-Rao lower bound of the yaw [rad] for a clear Rayleigh sky (docs/errata.md §5).
 
@@ -69,7 +70,8 @@ def yaw_crlb(
     fixed_zenith : bool
         Zenith known (the default estimator) or estimated as well.
     sun_exclusion, dop_min, snr_min : float
-        The default mask's thresholds, as in :class:`polins.compass.measurement.MeasureOptions`.
+        The default mask's thresholds, as in :class:`polins.compass.measurement.MeasureOptions`
+        and :data:`polins.compass.skypixels.SNR_MIN`.
     """
     s_n = check_sun_and_attitude(sun_n, rot_nb, "rot_nb")
     pixels = pixel_set(cam)

@@ -28,7 +28,6 @@ __all__ = [
     "eigen_sun_covariance",
     "gap_pseudo_inverse",
     "sandwich_covariance",
-    "sandwich_middle",
     "sun_eigen",
     "weighted_residuals",
 ]
@@ -148,14 +147,6 @@ def weighted_residuals(e: NDArray, omega: NDArray, sun: NDArray) -> NDArray:
     proj = sun[0] * e[0] + sun[1] * e[1] + sun[2] * e[2]
     proj *= omega
     return proj
-
-
-def sandwich_middle(e: NDArray, omega: NDArray, sun: NDArray) -> NDArray:
-    """``sum_i (w_i r_i)^2 u_i u_i^T`` for unit E-vectors ``u_i = e_i/|e_i|`` and residuals
-    ``r_i = u_i . s`` (docs/model.md §10.2), from unnormalised ``e`` (3, n) and
-    ``omega = w_i/|e_i|^2``: the summand equals ``(omega_i (e_i . s))^2 e_i e_i^T``."""
-    wr = weighted_residuals(e, omega, sun)
-    return moment(e, wr * wr)
 
 
 def gap_pseudo_inverse(solution: EigenSolution) -> FloatArray:

@@ -1,6 +1,6 @@
 """The Stokes stage of one image: calibrated Stokes rows of the field-of-view pixels and their noise.
 
-The first stage of :mod:`polins.compass.chain` (docs/model.md §7, docs/measurement.md §1):
+The second stage of :mod:`polins.compass.chain` (docs/model.md §7, docs/measurement.md §1):
 the least-squares Stokes rows and the redundancy of every field-of-view pixel, the
 sun-independent quality masks, the channel noise variance and the measured / declared
 noise ratio. Integer mosaics are processed in float32 (whose rounding is 4 orders below
@@ -20,7 +20,14 @@ from polins.compass.measurement import MeasureOptions
 from polins.compass.polarimetry import StokesCalibration, stokes_calibration, stokes_image
 from polins.models import CameraModel
 
-__all__ = ["GN_PIXELS", "GRADIENT_MAX", "REDUNDANCY_MAX_SIGMA", "ImageStokes", "image_stokes"]
+__all__ = [
+    "GN_PIXELS",
+    "GRADIENT_MAX",
+    "REDUNDANCY_MAX_SIGMA",
+    "ImageStokes",
+    "fill_invalid",
+    "image_stokes",
+]
 
 GRADIENT_MAX = 0.05
 """Largest relative intensity gradient ``|grad S0|/S0`` of a valid pixel [1/superpixel]
@@ -99,6 +106,27 @@ def _noise_ratio(
     return 1.0 / q if q > 0 else float("inf")
 
 
+def fill_invalid(rows: NDArray, inv_sigma_l2: NDArray | float, valid: NDArray) -> None:
+    """Give the invalid pixels harmless finite data (S = (1, 0, 0), no redundancy residual,
+    unit weight), in place on arrays the caller owns: the full-set arithmetic then runs over
+    all pixels and masks by multiplication, with no compression or NaN handling.
+
+    Parameters
+    ----------
+    rows : (3, n) or (4, n)
+        Stokes rows (S0, S1, S2[, redundancy residual]) [DN].
+    inv_sigma_l2 : (n,) or float
+        Inverse noise variances [1/DN^2] (a scalar is left alone).
+    valid : (n,) bool
+    """
+    invalid = ~valid
+    np.copyto(rows[:3], np.array([[1.0], [0.0], [0.0]], dtype=rows.dtype), where=invalid)
+    if rows.shape[0] > 3:
+        np.copyto(rows[3], rows.dtype.type(0.0), where=invalid)
+    if isinstance(inv_sigma_l2, np.ndarray):
+        np.copyto(inv_sigma_l2, inv_sigma_l2.dtype.type(1.0), where=invalid)
+
+
 def image_stokes(
     arr: NDArray,
     cam: CameraModel,
@@ -146,5 +174,6 @@ def image_stokes(
     sub = subsample(cam, dtype, stride)
     # Every 4th subsample pixel: ~4,000 pixels give the ratio to ~2 %.
     ratio = _noise_ratio(image.rows[3], image.sigma2, image.unsaturated, sub.index[::4])
+    fill_invalid(image.rows, inv_sigma_l2, image.valid)
     return ImageStokes(dtype, cache, sub, stride, cal, image.rows, image.rows[:3], image.sigma2,
                        inv_sigma_l2, image.valid, ratio, image.channels)  # fmt: skip

@@ -1,15 +1,17 @@
 """The measurement: what one image gives (:class:`Measurement`) and the options of the chain.
 
 :class:`MeasureOptions` is the one definition of the options of ``polins.measure``, with
-their units and defaults; :func:`measure_options` builds it from keyword options and
-rejects unknown ones. Angles are in radians, like everything inside polins
+their units and defaults; constructing it (directly or with :func:`measure_options`)
+rejects an unknown option in one line, naming what replaces a replaced one. Angles are in radians, like everything inside polins
 (docs/conventions.md); intensities in DN, as the ``_dn`` names say.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
+from numbers import Real
 from typing import Any
 
 import numpy as np
@@ -64,6 +66,7 @@ __all__ = [
     "NoiseModelWarning",
     "Refusal",
     "check_method",
+    "check_option_names",
     "measure_options",
 ]
 
@@ -149,6 +152,11 @@ class MeasureOptions:
     horizon_fallback: float = float(np.radians(5.0))
     epsilon0: float = 0.0
 
+    def __new__(cls, *args: Any, **options: Any) -> MeasureOptions:
+        """Refuse an unknown option by name, with what replaces a replaced one."""
+        check_option_names(options)
+        return super().__new__(cls)
+
     def __post_init__(self) -> None:
         _check_choices(self)
         _check_ranges(self)
@@ -182,6 +190,8 @@ def _check_choices(opt: MeasureOptions) -> None:
             raise UserInputError(f"{name}={getattr(opt, name)!r}: expected True or False")
     for name, word in _WORDS.items():
         value = getattr(opt, name)
+        if isinstance(value, bool | np.bool_):
+            raise UserInputError(f"{name}={value!r}: expected a number or {word!r}")
         if isinstance(value, str) or value is None:
             if value != word:
                 raise UserInputError(f"{name}={value!r}: expected a number or {word!r}")
@@ -199,8 +209,17 @@ _WORDS = {
 """The options that take a number or a word, and the word."""
 
 
+_NUMBERS = ("sun_exclusion", "dop_min", "s0_min_dn", "min_pixels", "tilt_std",
+            "horizon_fallback", "epsilon0")  # fmt: skip
+"""The options that take a number only."""
+
+
 def _check_ranges(opt: MeasureOptions) -> None:
-    """The numbers' ranges."""
+    """The numbers' types and ranges."""
+    for name in _NUMBERS:
+        value = getattr(opt, name)
+        if isinstance(value, bool | np.bool_) or not isinstance(value, Real):
+            raise UserInputError(f"{name}={value!r}: expected a number")
     for name in ("sun_exclusion", "tilt_std"):
         if not getattr(opt, name) >= 0:
             raise UserInputError(f"{name}={getattr(opt, name)} must be >= 0")
@@ -268,6 +287,17 @@ def measure_options(**options: Any) -> MeasureOptions:
     UserInputError
         An impossible value, also a ``ValueError``.
     """
+    return MeasureOptions(**options)
+
+
+def check_option_names(options: Mapping[str, Any]) -> None:
+    """Refuse unknown option names before any work (``MeasureOptions(...)`` calls it).
+
+    Raises
+    ------
+    UnknownOptionError
+        One line with what replaces a replaced option and the valid options.
+    """
     unknown = sorted(set(options) - set(_OPTION_NAMES))
     if unknown:
         replaced = [f"{k} -> {_REPLACED[k]}" for k in unknown if k in _REPLACED]
@@ -275,7 +305,6 @@ def measure_options(**options: Any) -> MeasureOptions:
         raise UnknownOptionError(
             f"unknown measure option(s) {unknown}{hint}; valid options: {', '.join(_OPTION_NAMES)}"
         )
-    return MeasureOptions(**options)
 
 
 @dataclass(frozen=True)

@@ -12,8 +12,8 @@ paper's Eq. 14 has both signs flipped, which turns the AoP by 90 deg; docs/errat
 
 A camera with per-pixel maps (``CameraModel.gain_map``, ``transmission_angle_map``,
 ``efficiency_map``) gets a per-pixel response ``a_pk`` and per-pixel least-squares rows
-(:class:`PixelStokes`, docs/measurement.md §1) for the pixel set it is measured on; without
-maps the calibration is one constant matrix, as before.
+(:class:`PixelStokes`, docs/measurement.md §1) for the pixel set it is measured on; a
+camera without maps has one constant calibration matrix for all pixels.
 
 The row kernels :func:`stokes_rows` and :func:`validity_rows` work on component-first
 arrays (``(k, n)``, one contiguous row per component), the layout of the per-image chain

@@ -1,6 +1,6 @@
 """The pixel-selection stage of one image: region of interest, masks, clouds, starting sun.
 
-The second stage of :mod:`polins.compass.chain` (docs/measurement.md §4, §5 step 1): the
+The third stage of :mod:`polins.compass.chain` (docs/measurement.md §4, §5 step 1): the
 region of interest, harmless data for the invalid pixels, the starting sun (the eigen
 solution on the fixed subsample, the sun circle taken from the prior or, without an
 ephemeris, from a first eigen solution), the thin-cloud cells by their DoP deficit, and the selection rules (:class:`polins.compass.selection.Selection`) of the
@@ -86,17 +86,6 @@ def _sqrt_at(w: NDArray | float, idx: NDArray | None) -> NDArray | float:
     )
 
 
-def _fill_invalid(img: ImageStokes, valid: NDArray) -> None:
-    """Invalid pixels get harmless finite data (S = (1, 0, 0)), in place: the full-set
-    arithmetic then runs over all pixels and masks by multiplication, with no compression
-    or NaN handling."""
-    invalid = ~valid
-    np.copyto(img.estimate, np.array([[1.0], [0.0], [0.0]], dtype=img.dtype), where=invalid)
-    np.copyto(img.rows[3], img.dtype(0.0), where=invalid)
-    if isinstance(img.inv_sigma_l2, np.ndarray):
-        np.copyto(img.inv_sigma_l2, img.dtype(1.0), where=invalid)
-
-
 def _starting_sun(
     img: ImageStokes,
     geo: Geometry,
@@ -146,9 +135,8 @@ def sky_pixels(
     """
     cache, sub = img.cache, img.sub
     valid = img.valid
-    if opt.roi is not None:  # the region of interest of this image
-        valid &= cache.rays[2] >= img.dtype(np.cos(opt.roi))
-    _fill_invalid(img, valid)
+    if opt.roi is not None:  # the region of interest of this image (a new mask)
+        valid = valid & (cache.rays[2] >= img.dtype(np.cos(opt.roi)))
     rows_sub = img.estimate.take(sub.index, axis=1)
     valid_sub = valid[sub.index]
     eig0 = _starting_sun(img, geo, opt, rows_sub, valid_sub, weighted)
@@ -161,7 +149,7 @@ def sky_pixels(
         cloudy = cloudy_cells(rows_sub, sub.rays, geo.mat_cl @ sun_l0, CLOUD_DOP_RATIO,
                               valid_sub, cells.take(sub.index))  # fmt: skip
         if cloudy.any():
-            valid &= ~cloudy.take(cells)
+            valid = valid & ~cloudy.take(cells)
             valid_sub = valid[sub.index]
 
     # The selection rules: the DoP and noise cuts along the predicted direction.

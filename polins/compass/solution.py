@@ -1,6 +1,6 @@
 """The solve stage of one image: the sun, its covariance and jackknife, compensated or traditional.
 
-The third stage of :mod:`polins.compass.chain`. ``"compensated"``: the joint ML of the sun
+The fourth stage of :mod:`polins.compass.chain`. ``"compensated"``: the joint ML of the sun
 and epsilon (:mod:`polins.compass.solve`; docs/model.md §9.2, docs/measurement.md §5); a
 solution that cannot be trusted falls back to the weighted eigen solution with the reason
 (docs/measurement.md §11). ``"traditional"``: the eigen solution on all valid pixels,
@@ -188,7 +188,9 @@ def solve_traditional(
     if geo.sun_n is not None:
         sun_l = resolve_sun_sign(eig.sun, geo.sun_n, geo.yaw_prior, opt.horizon_fallback)
     wr = weighted_residuals(e, omega, mat_cl @ sun_l)
-    middle = moment(e, wr * wr)  # the sandwich's middle (docs/measurement.md §6)
+    # The sandwich's middle sum_i (w_i r_i)^2 u_i u_i^T (docs/model.md §10.2,
+    # docs/measurement.md §6); wr also feeds the jackknife.
+    middle = moment(e, wr * wr)
     cov_sun_l = sandwich_covariance(eig, mat_lc @ middle @ mat_lc.T)
     deltas, share = eigen_jackknife(e, wr, omega, sector_runs(cam), mat_lc, eig, sun_l)
     theta = np.array([np.arctan2(sun_l[1], sun_l[0]), np.arccos(np.clip(sun_l[2], -1, 1)), 0.0])

@@ -17,6 +17,7 @@ from polins.evaluation.reference import (
 )
 from polins.frames import wrap_angle
 from polins.fusion.config import FuseConfig
+from polins.fusion.faults import reason_group
 from polins.tuning.innovations import (
     effective_samples,
     innovation_stats,
@@ -104,8 +105,10 @@ def summarize(
     m = measurements
     ok = m["ok"].to_numpy(dtype=bool) if len(m) else np.zeros(0, bool)
     accepted = m["accepted"].to_numpy(dtype=bool) if "accepted" in m else ok
-    reasons = m.loc[~ok, "reason"].value_counts().to_dict() if len(m) else {}
-    gate = m.loc[ok & ~accepted, "update_reason"].value_counts().to_dict() if len(m) else {}
+    # grouped by reason (polins.fusion.faults.reason_group); each row's in measurements.csv
+    reasons = m.loc[~ok, "reason"].map(reason_group).value_counts().to_dict() if len(m) else {}
+    gate = (m.loc[ok & ~accepted, "update_reason"].map(reason_group).value_counts().to_dict()
+            if len(m) else {})  # fmt: skip
     summary: dict[str, Any] = {
         "images": {
             "total": len(m),
@@ -158,6 +161,19 @@ def summarize(
     return summary
 
 
+def rejection_lines(images: Mapping[str, Any], most: int = 8) -> list[str]:
+    """The rejected images by reason group, largest first: at most ``most`` lines and one
+    for the other reasons (every row is in measurements.csv and events.csv)."""
+    rejected = sorted({**images["rejected_by_measurement"], **images["rejected_by_filter"]}.items(),
+                      key=lambda kv: -kv[1])  # fmt: skip
+    lines = [f"  rejected        {v:5d}  {k}" for k, v in rejected[:most]]
+    if len(rejected) > most:
+        rest = sum(v for _, v in rejected[most:])
+        lines.append(f"  rejected        {rest:5d}  for {len(rejected) - most} other reasons "
+                     "(measurements.csv, events.csv)")  # fmt: skip
+    return lines
+
+
 def format_summary(summary: Mapping[str, Any]) -> str:
     """A short human-readable table of a :func:`summarize` result."""
     im = summary["images"]
@@ -165,8 +181,7 @@ def format_summary(summary: Mapping[str, Any]) -> str:
         f"images            {im['total']} total, {im['measured_ok']} measured, "
         f"{im['accepted_by_filter']} used by the filter",
     ]
-    for k, v in {**im["rejected_by_measurement"], **im["rejected_by_filter"]}.items():
-        lines.append(f"  rejected        {v:5d}  {k}")
+    lines += rejection_lines(im)
     if summary.get("events"):
         ev = ", ".join(f"{k} {v}" for k, v in summary["events"].items())
         lines.append(f"events            {ev}")

@@ -1,17 +1,15 @@
-"""Backend-neutral robust start and data gaps: the yaw offsets of the headings, their consensus, and the measurements inside IMU gaps.
+"""Backend-neutral robust start: the yaw offsets of the headings and their consensus.
 
 Both backends acquire the yaw by consensus (docs/filter.md §7.1): each yaw / sun
 measurement gives the yaw rotation that zeroes its residual at the estimate of its time
 (:func:`yaw_offset`), and the yaw is set only when enough of them agree
 (:func:`consensus`). The ESKF runs this online (:mod:`polins.fusion.eskf.acquisition`),
 the graph on its dead-reckoned keyframes before the solve
-(:mod:`polins.fusion.graph.problem`). A measurement inside an IMU gap longer than
-``max_gap_s`` is skipped with an event (:func:`skip_in_gaps`, docs/faults.md).
+(:mod:`polins.fusion.graph.problem`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -21,7 +19,6 @@ from scipy.spatial.transform import Rotation
 from polins.frames import wrap_angle, yaw_from_rot_nb
 from polins.fusion.items import MeasurementItem, item_model
 from polins.fusion.measurement import yaw_from_sun
-from polins.fusion.result import FusionEvent
 
 FloatArray = NDArray[np.float64]
 
@@ -98,60 +95,3 @@ def consensus(
     w = 1.0 / stds[members] ** 2
     mean = offsets[seed] + float(np.sum(w * diff[seed, members]) / np.sum(w))
     return float(wrap_angle(mean)), float(1.0 / math.sqrt(np.sum(w))), members
-
-
-def skip_in_gaps(
-    t_imu: FloatArray, gaps: NDArray[np.int_], items: list[MeasurementItem]
-) -> tuple[list[MeasurementItem], list[FusionEvent]]:
-    """The items with those inside an IMU gap made invalid (docs/faults.md).
-
-    Parameters
-    ----------
-    t_imu : (N,) ndarray
-        IMU sample times [s].
-    gaps : (G,) int ndarray
-        Indices ``i`` of the gaps ``t_imu[i] .. t_imu[i + 1]`` longer than ``max_gap_s``
-        (``polins.fusion.inputs.ImuArrays.gaps``).
-    items : list of MeasurementItem
-
-    Returns
-    -------
-    items : list of MeasurementItem
-        In the input order; those strictly inside a gap invalid with the reason ``inside
-        an IMU gap (a to b s)``.
-    events : list of FusionEvent
-        A ``measurement-in-gap`` event for each item made invalid.
-    """
-    out = list(items)
-    events: list[FusionEvent] = []
-    if gaps.size == 0 or not out:
-        return out, events
-    t_item = np.array([it.t for it in out], dtype=float)
-    j = np.searchsorted(t_imu[gaps], t_item, side="left") - 1  # the gap starting before
-    inside = (j >= 0) & (t_item < t_imu[gaps[np.maximum(j, 0)] + 1])
-    for k in np.flatnonzero(inside).tolist():
-        it, i = out[k], int(gaps[j[k]])
-        if it.valid:
-            reason = f"inside an IMU gap ({t_imu[i]:.6g} to {t_imu[i + 1]:.6g} s)"
-            out[k] = dataclasses.replace(it, valid=False, reason=reason)
-            events.append(FusionEvent(it.t, "measurement-in-gap", f"{it.kind} skipped: {reason}"))
-    return out, events
-
-
-def gap_variance(
-    gap_s: float,
-    gyro_b: tuple[FloatArray, FloatArray],
-    accel_b: tuple[FloatArray, FloatArray],
-) -> FloatArray:
-    """Variances added to the navigation error state over an IMU gap (9: attitude [rad^2],
-    velocity [m^2/s^2], position [m^2]).
-
-    The rates inside the gap are interpolated linearly between its end samples; the
-    motion that misses is taken of the size of the motion seen at the ends: a rotation of
-    ``gap_s * max |w|`` about each axis, a velocity change of ``gap_s * |f_b - f_a|`` and
-    half of that times ``gap_s`` in position (1-sigma each).
-    """
-    rate = max(float(np.linalg.norm(gyro_b[0])), float(np.linalg.norm(gyro_b[1])))
-    force = float(np.linalg.norm(accel_b[1] - accel_b[0]))
-    att, vel = gap_s * rate, gap_s * force
-    return np.repeat(np.array([att, vel, 0.5 * vel * gap_s]) ** 2, 3)

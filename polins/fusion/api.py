@@ -1,42 +1,20 @@
-"""The fusion's entry points: ``fuse`` (a solution table), ``run_fusion`` (the full result) and ``build_filter`` (streaming)."""
+"""The fusion's entry points: ``fuse`` (the solution table), ``run_fusion`` (the full result) and ``build_filter`` (streaming)."""
 
 from __future__ import annotations
 
-import warnings
 from typing import Any
 
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from polins.errors import UserInputError
-from polins.fusion.acquisition import gap_variance, skip_in_gaps
-from polins.fusion.config import (
-    TIME_TOL_S,
-    FuseConfig,
-    config_with_site,
-    scaled_measurement_noise,
-)
+from polins.fusion.config import FuseConfig, config_with_site
+from polins.fusion.eskf.batch import fuse_eskf
 from polins.fusion.eskf.filter import ESKF
-from polins.fusion.eskf.propagate import advance, interpolate
-from polins.fusion.eskf.smoother import rts_smooth
-from polins.fusion.inputs import (
-    PRIOR_COLUMNS,
-    ImuArrays,
-    check_gyro_against_headings,
-    output_mask,
-    validate_imu,
-    validate_measurements,
-)
-from polins.fusion.items import (
-    MeasurementItem,
-    items_from_table,
-    no_clock_table,
-    records_table,
-)
-from polins.fusion.result import FusionEvent, FusionResult, events_table
-from polins.fusion.vehicle import odometer_items
-from polins.ins.state import solution_table
+from polins.fusion.faults import ImplausibleRunError, nis_verdict
+from polins.fusion.inputs import prepare
+from polins.fusion.items import HEADING_KINDS
+from polins.fusion.result import FusionResult
 
 
 def build_filter(
@@ -79,94 +57,38 @@ def run_fusion(
 ) -> FusionResult:
     """Fuse an IMU log with measurements: the solution, the update log and the run's facts.
 
-    The arguments are those of :func:`fuse`, with the options in ``config``. The GTSAM
+    The arguments are those of :func:`fuse`, with the options in ``config``. One
+    preparation (:func:`polins.fusion.inputs.prepare`: validation, the fault policy of
+    docs/faults.md, the resolved configuration), then the backend solves. The GTSAM
     backend (``polins.fusion.graph.fuse_graph``) is imported only when asked for.
+
+    Raises
+    ------
+    ImuUnitsError
+        The IMU data look like other units than declared (a ``UserInputError``).
+    ImplausibleRunError
+        The run's NIS is far outside any plausible band
+        (:func:`polins.fusion.faults.nis_verdict`); its ``result`` holds the run.
     """
-    cfg = config or FuseConfig()
-    cfg.check_backend(backend)
-    meas = scaled_measurement_noise(validate_measurements(measurements), cfg)
-    check_gyro_against_headings(imu, meas)
-    cfg = config_with_site(cfg, stacklevel=4)
-    if no_clock_table(meas):
-        cfg = announce_no_clock(cfg)
-    cfg = cfg.resolve(priors=all(c in meas.columns for c in PRIOR_COLUMNS),
-                      odometry=odometry is not None)  # fmt: skip
+    prep = prepare(imu, measurements, backend, rot_nb0, config, odometry)
     if backend == "graph":
         from polins.fusion.graph import fuse_graph  # gtsam: only when asked for
 
-        return fuse_graph(imu, meas, rot_nb0, cfg, odometry)
-    arrays = validate_imu(imu, max_gap_s=cfg.gap_s, model=cfg.imu)
-    t, W, A = arrays.t, arrays.gyro_b, arrays.accel_b
-    filt = ESKF(cfg, float(t[0]), arrays.dt, rot_nb0)
-    items = items_from_table(meas, use_sun=cfg.gating.use_sun, heading_bias=cfg.heading_bias)
-    if odometry is not None and cfg.odometer_sigma is not None:  # "off": ignored
-        items += odometer_items(odometry, cfg.odometer_sigma)
-    items, events = bridge_gaps(arrays, items)
-    filt.add_items(items)
-    if not filt.ready:
-        k_end = int(np.searchsorted(t - t[0], cfg.initial.align_s - TIME_TOL_S, side="left"))
-        if k_end >= len(t):
-            raise UserInputError(
-                f"the IMU log ({t[-1] - t[0]:.3f} s) is shorter than the alignment window "
-                f"align_s={cfg.initial.align_s} s; give rot_nb0 or a longer log"
-            )
-        filt.level([(float(t[k]), W[k], A[k]) for k in range(k_end + 1)])
-    run = advance(filt, t, W, A, output_mask(t, cfg.output_rate), full=cfg.output.smooth)
-    assert run is not None
-    nodes, rows = run
-    slices = filt.layout.index
-    filtered = solution_table(interpolate(nodes, rows, slices))
-    solution = filtered
-    if cfg.output.smooth:
-        assert nodes.P_pre is not None and nodes.P_post is not None and nodes.Phi is not None
-        delta, P_s = rts_smooth(nodes.P_pre, nodes.P_post, nodes.Phi, nodes.dx, nodes.linked)
-        solution = solution_table(interpolate(nodes, rows, slices, delta, P_s))
-    info = {"imu_model": cfg.imu.name, "n_resets": filt.n_resets, "options": cfg.changes()}
-    return FusionResult(
-        solution, records_table(filt.records), filtered if cfg.output.smooth else None, "eskf", info,
-        events_table([*arrays.events, *events, *filt.events]),
-    )  # fmt: skip
+        result = fuse_graph(prep)
+    else:
+        result = fuse_eskf(prep)
+    check_plausible(result)
+    return result
 
 
-def announce_no_clock(config: FuseConfig) -> FuseConfig:
-    """The config of a measurements table in the no-clock mode (sun_azimuth_b without yaw
-    or sun_n), with the one warning that says so (both backends)."""
-    config = config.resolve(sun_azimuth_only=True)  # no_clock=off: a one-line error
-    warnings.warn(
-        "no-clock mode: the measurements carry sun_azimuth_b without yaw or sun_n; the sun's "
-        "ENU azimuth is a filter state and the heading is relative to the initial yaw "
-        "(absolute heading is not observable without a clock; docs/filter.md, 'No clock')",
-        UserWarning,
-        stacklevel=4,
-    )
-    return config
-
-
-def bridge_gaps(
-    arrays: ImuArrays, items: list[MeasurementItem]
-) -> tuple[list[MeasurementItem], list[FusionEvent]]:
-    """The measurement items with the IMU gaps longer than ``max_gap_s`` handled
-    (docs/faults.md): the measurements inside a gap are rejected (invalid items with a
-    reason), and a ``"gap"`` item at the sample after it inflates the covariance
-    (:func:`~polins.fusion.acquisition.gap_variance`); an event for each. The graph skips
-    the same measurements (:func:`~polins.fusion.acquisition.skip_in_gaps`).
-
-    Returns
-    -------
-    items : list of MeasurementItem
-        In the input order, the ``"gap"`` items after them.
-    events : list of FusionEvent
-    """
-    t, gaps = arrays.t, arrays.gaps
-    out, events = skip_in_gaps(t, gaps, items)
-    for i in gaps.tolist():
-        t_a, t_b = float(t[i]), float(t[i + 1])
-        inflation = gap_variance(t_b - t_a, (arrays.gyro_b[i], arrays.gyro_b[i + 1]),
-                                 (arrays.accel_b[i], arrays.accel_b[i + 1]))  # fmt: skip
-        events.append(FusionEvent(t_a, "imu-gap", f"IMU gap of {t_b - t_a:.3g} s until "
-                                  f"t={t_b:.6g}: propagated across, covariance inflated"))  # fmt: skip
-        out.append(MeasurementItem(t_b, "gap", t_b - t_a, inflation=inflation))
-    return out, events
+def check_plausible(result: FusionResult) -> None:
+    """Raise :class:`~polins.fusion.faults.ImplausibleRunError` when the NIS of the
+    heading updates is far outside any plausible band (:func:`~polins.fusion.faults.nis_verdict`)."""
+    upd = result.updates
+    heading = upd["name"].isin(HEADING_KINDS).to_numpy() if len(upd) else np.zeros(0, bool)
+    verdict = nis_verdict(upd["nis"].to_numpy()[heading], upd["dim"].to_numpy()[heading])
+    if verdict:
+        raise ImplausibleRunError(verdict, result)
 
 
 def fuse(
@@ -212,18 +134,14 @@ def fuse(
     -------
     DataFrame
         The solution table (:func:`polins.ins.state.solution_table`; docs/filter.md
-        lists its columns), smoothed with ``smooth=True``. ``attrs`` carries ``updates``,
-        ``events``, ``backend``, ``imu_model`` and (smoothed) ``filtered`` for compatibility; pandas
-        operations drop them: :func:`run_fusion` returns them in a ``FusionResult``.
+        lists its columns), smoothed with ``smooth=True``: the ``solution`` of
+        :func:`run_fusion`, whose :class:`~polins.fusion.result.FusionResult` also holds the
+        update log, the events, the filtered solution and the resolved configuration.
+
+    Raises
+    ------
+    ImuUnitsError, ImplausibleRunError
+        As :func:`run_fusion`.
     """
-    result = run_fusion(
-        imu, measurements, backend, rot_nb0, FuseConfig.from_options(config, **options), odometry
-    )
-    sol = result.solution
-    sol.attrs["updates"] = result.updates
-    sol.attrs["backend"] = result.backend
-    sol.attrs["imu_model"] = result.info.get("imu_model")
-    sol.attrs["events"] = result.events
-    if result.filtered is not None:
-        sol.attrs["filtered"] = result.filtered
-    return sol
+    config = FuseConfig.from_options(config, **options)
+    return run_fusion(imu, measurements, backend, rot_nb0, config, odometry).solution

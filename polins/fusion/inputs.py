@@ -2,22 +2,39 @@
 
 A mistake in a table raises ``ValueError`` with a message naming the column, the row and
 what was expected; unit mistakes that can be detected (gyro in deg/s, accelerometer in g or
-mg, yaw in degrees) are such mistakes. Faults in the data are not errors (docs/faults.md):
-impossible IMU samples are dropped and reported, IMU gaps reported to the fusion (which
-bridges or skips them), rows with an unusable sigma rejected with a reason.
+mg, yaw in degrees) are such mistakes. Faults in the data are not errors: they follow the
+policy of :mod:`polins.fusion.faults` (docs/faults.md). :func:`prepare` turns a run's
+inputs into what both backends solve (:class:`Prepared`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
+from polins.compass.measurement import Measurement
 from polins.errors import UserInputError
-from polins.fusion.result import FusionEvent
+from polins.frames import euler_from_rot_nb
+from polins.fusion.config import FuseConfig, config_with_site, scaled_measurement_noise
+from polins.fusion.faults import (
+    FusionEvent,
+    GyroHeadingCheck,
+    ImuScreen,
+    check_imu_units,
+    default_max_gap_s,
+    gap_item,
+    skip_in_gaps,
+)
+from polins.fusion.items import MeasurementItem, items_from_table, no_clock_table
+from polins.fusion.vehicle import odometer_items
 from polins.models import ImuModel, load_imu
 
 FloatArray = NDArray[np.float64]
@@ -32,23 +49,21 @@ SUN_AZIMUTH_COLUMNS = ("sun_azimuth_b", "sun_azimuth_b_std")
 SUN_ELEVATION_COLUMNS = ("sun_elevation_b", "sun_elevation_b_std")
 PRIOR_COLUMNS = ("prior_roll", "prior_pitch", "prior_yaw")
 
-# Plausibility limit of the unit check of the accelerometer (the gyro's: the IMU model's
-# full scale, ImuModel.full_scale).
-ACCEL_MEDIAN_RANGE = (6.0, 14.0)  # median |f| [m/s^2] of data near the Earth's surface
-
 
 @dataclass(frozen=True, eq=False)
 class ImuArrays:
     """Validated IMU samples: ``t`` (N,) [s], ``gyro_b`` (N, 3) [rad/s], ``accel_b`` (N, 3)
-    [m/s^2], the median sample interval ``dt`` [s], the events of the dropped samples, and
-    ``gaps``: the indices ``i`` where ``t[i + 1] - t[i]`` exceeds ``max_gap_s``."""
+    [m/s^2], the median sample interval ``dt`` [s], the events of the dropped samples and
+    of the gaps, and ``gaps``: one ``"gap"`` item per interval longer than ``max_gap_s``
+    (:func:`polins.fusion.faults.gap_item`), at the sample after it."""
 
     t: FloatArray
     gyro_b: FloatArray
     accel_b: FloatArray
     dt: float
     events: tuple[FusionEvent, ...] = ()
-    gaps: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, dtype=int))
+    gaps: tuple[MeasurementItem, ...] = ()
+    gap_spans: tuple[tuple[float, float], ...] = ()  # (t_a, t_b) [s]: the samples around each
 
 
 def _require_frame(df: object, what: str) -> pd.DataFrame:
@@ -123,129 +138,50 @@ def validate_imu(
     if len(df) < 2:
         raise UserInputError(f"imu table needs at least 2 samples, got {len(df)}")
     data = _numeric(df, IMU_COLUMNS, "imu")
-    t = data[:, 0]
+    t, gyro, accel = data[:, 0], data[:, 1:4], data[:, 4:7]
     _check_times(t, "imu")
-    gyro_max, accel_max = (model or load_imu("mems-typical")).full_scale()
-    with np.errstate(invalid="ignore", over="ignore"):
-        w = np.linalg.norm(data[:, 1:4], axis=1)
-        f = np.linalg.norm(data[:, 4:7], axis=1)
+    full_scale = (model or load_imu("mems-typical")).full_scale()
     finite = np.isfinite(data[:, 1:]).all(axis=1)
-    check_imu_units(w[finite], f[finite], gyro_max)
-    events = []
-    for i in np.flatnonzero(~finite).tolist():
-        events.append(FusionEvent(float(t[i]), "imu-nonfinite", "IMU sample with NaN/inf dropped"))
-    beyond = finite & ((w > gyro_max) | (f > accel_max))
-    for i in np.flatnonzero(beyond).tolist():
-        detail = (
-            f"IMU sample beyond the full scale dropped: |w| = {w[i]:.3g} rad/s (limit "
-            f"{gyro_max:.3g}), |f| = {f[i]:.3g} m/s^2 (limit {accel_max:.3g})"
-        )
-        events.append(FusionEvent(float(t[i]), "imu-out-of-range", detail))
-    keep = finite & ~beyond
+    with np.errstate(invalid="ignore", over="ignore"):
+        check_imu_units(np.linalg.norm(gyro[finite], axis=1),
+                        np.linalg.norm(accel[finite], axis=1), full_scale[0])  # fmt: skip
+    d = np.diff(t[finite])
+    dt = float(np.median(d)) if d.size else math.nan
+    screen = ImuScreen(full_scale, default_max_gap_s(max_gap_s, dt))
+    keep, events, ends = screen.screen(t, gyro, accel)
     if keep.sum() < 2:
         raise UserInputError(f"imu: fewer than 2 usable samples ({int(keep.sum())} of {len(t)})")
-    t, data = t[keep], data[keep]
-    d = np.diff(t)
-    dt = float(np.median(d))
-    limit = 5.0 * dt if max_gap_s is None else float(max_gap_s)
-    gaps = np.flatnonzero(d > limit)
-    return ImuArrays(t=t.copy(), gyro_b=data[:, 1:4].copy(), accel_b=data[:, 4:7].copy(),
-                     dt=dt, events=tuple(events), gaps=gaps)  # fmt: skip
+    gaps, spans = [], []
+    for k in ends.tolist():
+        j = int(np.flatnonzero(keep[:k])[-1])  # the accepted sample before the gap
+        item, event = gap_item(float(t[j]), float(t[k]), (gyro[j], gyro[k]), (accel[j], accel[k]))
+        gaps.append(item)
+        spans.append((float(t[j]), float(t[k])))
+        events.append(event)
+    return ImuArrays(t=t[keep].copy(), gyro_b=gyro[keep].copy(), accel_b=accel[keep].copy(),
+                     dt=float(np.median(np.diff(t[keep]))), events=tuple(events), gaps=tuple(gaps),
+                     gap_spans=tuple(spans))  # fmt: skip
 
 
-def check_imu_units(gyro_norm: ArrayLike, accel_norm: ArrayLike, gyro_max: float) -> None:
-    """Raise ``UserInputError`` if IMU samples look like the wrong units.
-
-    Parameters
-    ----------
-    gyro_norm, accel_norm : (N,) array_like
-        |gyro| [rad/s] and |specific force| [m/s^2] of finite samples.
-    gyro_max : float
-        The gyro's full scale [rad/s]: more than 1 % of the samples beyond it is deg/s data.
-
-    Raises
-    ------
-    UserInputError
-        The gyro looks like deg/s, or the median |f| is not ~9.8 m/s^2 (g or mg named).
-    """
-    w = np.asarray(gyro_norm, dtype=float)
-    f = np.asarray(accel_norm, dtype=float)
-    if w.size and np.percentile(w, 99) > gyro_max:
-        raise UserInputError(
-            f"imu: the gyro magnitude exceeds the full scale {gyro_max:.3g} rad/s "
-            f"({np.degrees(gyro_max):.4g} deg/s) in more than 1 % of the samples (99th "
-            f"percentile {np.percentile(w, 99):.3g}); the gyro looks like deg/s: multiply by "
-            "pi/180 (or set range_deg_per_s in the IMU model)"
-        )
-    f_med = float(np.median(f)) if f.size else math.nan
-    lo, hi = ACCEL_MEDIAN_RANGE
-    if not lo <= f_med <= hi:
-        hint = ""
-        if 0.6 <= f_med <= 1.4:
-            hint = " It looks like g: multiply by 9.80665."
-        elif 600.0 <= f_med <= 1400.0:
-            hint = " It looks like mg: multiply by 9.80665e-3."
-        raise UserInputError(
-            f"imu: median specific force |f| = {f_med:.4g} is not ~9.8 m/s^2 (expected "
-            f"{lo}-{hi} m/s^2 near the Earth's surface).{hint}"
-        )
+def check_gyro_against_headings(arrays: ImuArrays, measurements: pd.DataFrame) -> None:
+    """Raise :class:`~polins.fusion.faults.ImuUnitsError` if the gyro turns ~57x as much as
+    the measured headings (:class:`~polins.fusion.faults.GyroHeadingCheck`) of validated
+    measurements: :func:`heading_proxy` of its rows."""
+    check = GyroHeadingCheck(keep_s=math.inf)
+    check.add_imu(arrays.t, arrays.gyro_b, arrays.accel_b)
+    check.add_headings(measurements["t"].to_numpy(dtype=float), heading_proxy(measurements))
 
 
-DEG_PER_RAD = 180.0 / math.pi
-
-
-def check_gyro_against_headings(
-    imu: pd.DataFrame, measurements: pd.DataFrame, window_s: float = 1.0
-) -> None:
-    """Raise ``UserInputError`` if the gyro turns ~57x as much as the measured headings.
-
-    An undeclared deg/s gyro below the full scale (slow turns) passes
-    :func:`check_imu_units`; while the vehicle turns, the headings show it. Over windows of
-    ``window_s`` between yaw measurements, the gyro's rotation about the specific force
-    (the vertical at low dynamics), ``int w_b . f_b/|f_b| dt``, is compared with the
-    headings' change; windows turning less than 3 deg are not used. At least 5 windows
-    with a median ratio within a factor 2 of 180/pi is a deg/s gyro.
-
-    Parameters
-    ----------
-    imu : DataFrame
-        ``t, gx, gy, gz, ax, ay, az`` (checked by :func:`validate_imu`).
-    measurements : DataFrame
-        Validated measurements; only rows with a finite ``yaw`` are used.
-    window_s : float
-        Span of the compared heading pairs [s].
-    """
-    if "yaw" not in measurements.columns:
-        return
-    yaw = measurements["yaw"].to_numpy(dtype=float)
-    ok = np.isfinite(yaw)
-    if ok.sum() < 6:
-        return
-    t_m, yaw = measurements["t"].to_numpy(dtype=float)[ok], np.unwrap(yaw[ok])
-    data = imu[list(IMU_COLUMNS)].to_numpy(dtype=float)
-    data = data[np.isfinite(data).all(axis=1)]
-    # impossible samples (dropped later by the fusion, with an event) may overflow here
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        f_norm = np.linalg.norm(data[:, 4:7], axis=1)
-        rate_up = np.einsum("ij,ij->i", data[:, 1:4], data[:, 4:7]) / f_norm
-    rate_up = np.where(np.isfinite(rate_up), rate_up, 0.0)
-    t = data[:, 0]
-    angle = np.concatenate([[0.0], np.cumsum(0.5 * (rate_up[1:] + rate_up[:-1]) * np.diff(t))])
-    j = np.searchsorted(t_m, t_m + window_s)
-    i = np.flatnonzero((j < t_m.size) & (t_m >= t[0]))
-    j = j[i]
-    i, j = i[t_m[j] <= t[-1]], j[t_m[j] <= t[-1]]
-    turn_m = yaw[j] - yaw[i]
-    turn_g = np.interp(t_m[j], t, angle) - np.interp(t_m[i], t, angle)
-    used = np.abs(turn_m) > np.radians(3.0)
-    if used.sum() < 5:
-        return
-    ratio = float(np.median(turn_g[used] / turn_m[used]))
-    if 0.5 * DEG_PER_RAD <= ratio <= 2.0 * DEG_PER_RAD:
-        raise UserInputError(
-            f"imu: the gyro turns {ratio:.3g} times as much as the measured headings over "
-            f"{int(used.sum())} turning windows: the gyro looks like deg/s; multiply by pi/180"
-        )
+def heading_proxy(rows: pd.DataFrame | Mapping[str, Any]) -> FloatArray:
+    """The heading of measurement rows for the gyro check [rad]: ``-sun_azimuth_b`` where
+    finite (prior-free), else ``yaw``, else NaN."""
+    n = len(rows["t"]) if isinstance(rows, pd.DataFrame) else 1
+    out = np.full(n, np.nan)
+    for name, sign in (("yaw", 1.0), ("sun_azimuth_b", -1.0)):
+        if name in rows:
+            value = sign * np.asarray(rows[name], dtype=float).reshape(-1)
+            out = np.where(np.isfinite(value), value, out)
+    return out
 
 
 def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
@@ -356,3 +292,140 @@ def output_mask(t: FloatArray, rate_hz: float | None) -> NDArray[np.bool_]:
     mask = np.concatenate([[True], np.diff(cell) > 0])
     mask[-1] = True
     return mask
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """A fusion run's inputs, validated and resolved: what both backends solve.
+
+    Attributes
+    ----------
+    config : FuseConfig
+        The resolved configuration (``FuseConfig.resolve``): a site, ``tilt_coupling`` and
+        ``no_clock`` decided, ``odometer_std`` set when odometry is given.
+    imu : ImuArrays
+        The accepted IMU samples and the ``"gap"`` items of the IMU gaps.
+    items : list of MeasurementItem
+        The measurement rows (zero-velocity rows among them) and odometer speeds; those
+        with an unusable value or inside an IMU gap invalid, with their reason.
+    events : list of FusionEvent
+        Dropped IMU samples, IMU gaps and the measurements skipped inside them.
+    rot_nb0 : Rotation or None
+        The initial attitude (None: self-alignment).
+    """
+
+    config: FuseConfig
+    imu: ImuArrays
+    items: list[MeasurementItem]
+    events: list[FusionEvent]
+    rot_nb0: Rotation | None
+
+
+def prepare(
+    imu: pd.DataFrame,
+    measurements: pd.DataFrame | None,
+    backend: str,
+    rot_nb0: Rotation | None,
+    config: FuseConfig | None,
+    odometry: pd.DataFrame | None = None,
+) -> Prepared:
+    """Validate a run's inputs and resolve its configuration, for either backend.
+
+    The arguments are those of :func:`polins.fusion.run_fusion`. Raises on a mistake
+    (``UserInputError``; :class:`~polins.fusion.faults.ImuUnitsError` for IMU units, also
+    those the headings reveal); applies the fault policy of :mod:`polins.fusion.faults`
+    to the data; warns once when no site is given (the site assumed) and once in the
+    no-clock mode.
+    """
+    cfg = config or FuseConfig()
+    cfg.check_backend(backend)
+    if rot_nb0 is not None and (not isinstance(rot_nb0, Rotation) or not rot_nb0.single):
+        raise UserInputError("rot_nb0 must be a single scipy Rotation (body FLU -> ENU) or None")
+    meas = scaled_measurement_noise(validate_measurements(measurements), cfg)
+    arrays = validate_imu(imu, max_gap_s=cfg.gap_s, model=cfg.imu)
+    check_gyro_against_headings(arrays, meas)
+    cfg = config_with_site(cfg, stacklevel=5)
+    if no_clock_table(meas):
+        cfg = announce_no_clock(cfg)
+    cfg = cfg.resolve(priors=all(c in meas.columns for c in PRIOR_COLUMNS),
+                      odometry=odometry is not None)  # fmt: skip
+    items = items_from_table(meas, use_sun=cfg.gating.use_sun, heading_bias=cfg.heading_bias)
+    if odometry is not None and cfg.odometer_sigma is not None:  # "off": ignored
+        items += odometer_items(odometry, cfg.odometer_sigma)
+    items, in_gaps = skip_in_gaps(arrays.gap_spans, items)
+    return Prepared(cfg, arrays, items, [*arrays.events, *in_gaps], rot_nb0)
+
+
+def announce_no_clock(config: FuseConfig) -> FuseConfig:
+    """The config of a measurements table in the no-clock mode (sun_azimuth_b without yaw
+    or sun_n), with the one warning that says so (both backends)."""
+    config = config.resolve(sun_azimuth_only=True)  # no_clock=off: a one-line error
+    warnings.warn(
+        "no-clock mode: the measurements carry sun_azimuth_b without yaw or sun_n; the sun's "
+        "ENU azimuth is a filter state and the heading is relative to the initial yaw "
+        "(absolute heading is not observable without a clock; docs/filter.md, 'No clock')",
+        UserWarning,
+        stacklevel=5,
+    )
+    return config
+
+
+def measurement_row(measurement: Measurement) -> dict[str, Any]:
+    """One :class:`polins.Measurement` as a row of the measurements table ``polins.fuse``
+    takes: its fields (``Measurement.as_dict``), the body sun vector as ``sun_bx, sun_by,
+    sun_bz`` (``sun_l``, ``sun_c`` left out), NaN for a missing value. A refused
+    measurement's row is all NaN: ``polins.fuse`` skips it with its reason logged."""
+    fields = measurement.as_dict()
+    sun_b = fields.pop("sun_b")
+    del fields["sun_l"], fields["sun_c"]
+    row = {k: math.nan if v is None else v for k, v in fields.items()}
+    for c, v in zip("xyz", sun_b, strict=True):
+        row[f"sun_b{c}"] = math.nan if v is None else float(v)
+    return row
+
+
+def measurement_table(
+    measurements: Measurement | Sequence[Measurement],
+    t: ArrayLike,
+    *,
+    sun_n: ArrayLike | None = None,
+    rot_nb_prior: Rotation | None = None,
+) -> pd.DataFrame:
+    """Measurements (one or a list) as the measurements table ``polins.fuse`` takes.
+
+    Parameters
+    ----------
+    measurements : Measurement or sequence of Measurement
+        What ``polins.measure`` returned, one per image.
+    t : float or (N,) array_like
+        The image times [s] (the IMU's clock).
+    sun_n : (3,) or (N, 3) array_like, optional
+        The ENU sun vector each image was measured with: adds ``sun_nx, sun_ny, sun_nz``,
+        and with them the 2-DOF sun-vector rows (``use_sun``); without it the sun-vector
+        columns are left out and the rows are yaw measurements.
+    rot_nb_prior : Rotation, optional
+        The attitude prior of each image (single or N): adds ``prior_roll, prior_pitch,
+        prior_yaw`` [rad], which the tilt-coupled yaw model uses.
+
+    Returns
+    -------
+    DataFrame
+        One row per measurement: ``t`` and the :func:`measurement_row` columns.
+    """
+    ms = [measurements] if isinstance(measurements, Measurement) else list(measurements)
+    times = np.atleast_1d(np.asarray(t, dtype=float))
+    if len(times) != len(ms):
+        raise UserInputError(f"{len(ms)} measurements but {len(times)} times")
+    table = pd.DataFrame([measurement_row(m) for m in ms])
+    table.insert(0, "t", times)
+    if sun_n is None:
+        table = table.drop(columns=["sun_bx", "sun_by", "sun_bz", "sun_std"])
+    else:
+        s_n = np.broadcast_to(np.asarray(sun_n, dtype=float), (len(ms), 3))
+        for i, c in enumerate("xyz"):
+            table[f"sun_n{c}"] = s_n[:, i]
+    if rot_nb_prior is not None:
+        mats = np.broadcast_to(rot_nb_prior.as_matrix(), (len(ms), 3, 3))
+        yaw, pitch, roll = euler_from_rot_nb(Rotation.from_matrix(mats))
+        table["prior_roll"], table["prior_pitch"], table["prior_yaw"] = roll, pitch, yaw
+    return table

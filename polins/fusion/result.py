@@ -9,26 +9,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-# The data faults and recoveries of the fusion (docs/faults.md, docs/filter.md): an IMU
-# sample that is not finite or beyond the model's full scale (dropped), an IMU gap longer
-# than max_gap_s (propagated across, covariance inflated; the measurements inside it
-# skipped), a measurement skipped inside such a gap, and the yaw re-acquired.
-FUSION_EVENT_KINDS = (
-    "imu-nonfinite",
-    "imu-out-of-range",
-    "imu-gap",
-    "measurement-in-gap",
-    "yaw-reacquired",
-)
-
-
-@dataclass(frozen=True)
-class FusionEvent:
-    """One data fault or recovery: time [s], a kind of :data:`FUSION_EVENT_KINDS`, a text."""
-
-    t: float
-    kind: str
-    detail: str
+from polins.fusion.config import FuseConfig
+from polins.fusion.faults import FusionEvent
 
 
 def events_table(events: Sequence[FusionEvent]) -> pd.DataFrame:
@@ -45,7 +27,7 @@ def events_table(events: Sequence[FusionEvent]) -> pd.DataFrame:
 
 @dataclass(frozen=True, eq=False)
 class FusionResult:
-    """What ``polins.fusion.run_fusion`` returns (``polins.fuse`` returns its ``solution``).
+    """What a fusion run returns: ``polins.fusion.run_fusion`` and ``polins.loop.run_log``.
 
     Attributes
     ----------
@@ -55,21 +37,28 @@ class FusionResult:
     updates : DataFrame
         One row per measurement: ``t, name, dim, nis, accepted, reason``
         (``polins.fusion.items.records_table``).
-    filtered : DataFrame or None
-        The filtered (causal) solution when ``solution`` is smoothed, else None.
-    backend : str
-        "eskf" or "graph".
-    info : dict
-        Facts of the run: the IMU model's name, the solver, iterations, timings [s], ...
     events : DataFrame
         The data faults met and the recoveries (``t, kind, detail``,
-        :func:`events_table`): dropped IMU samples, IMU gaps, skipped measurements, yaw
-        re-acquisitions. Empty for a clean run.
+        :func:`events_table`; ``kind`` one of :class:`polins.fusion.faults.EventKind`).
+        Empty for a clean run.
+    config : FuseConfig
+        The resolved configuration of the run (its site, IMU model, tilt coupling, ...).
+    backend : str
+        "eskf" or "graph".
+    filtered : DataFrame or None
+        The filtered (causal) solution when ``solution`` is smoothed, else None.
+    info : dict
+        Facts of the backend: the solver, iterations, keyframes, timings [s], resets.
+    measurements : DataFrame or None
+        The navigation loop's table, one row per image
+        (``polins.loop.tables.MEASUREMENT_COLUMNS``); None outside the loop.
     """
 
     solution: pd.DataFrame
     updates: pd.DataFrame
-    filtered: pd.DataFrame | None = None
+    events: pd.DataFrame
+    config: FuseConfig
     backend: str = "eskf"
+    filtered: pd.DataFrame | None = None
     info: dict[str, Any] = field(default_factory=dict)
-    events: pd.DataFrame = field(default_factory=lambda: events_table([]))
+    measurements: pd.DataFrame | None = None

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from polins.fusion.faults import nis_verdict
 from polins.io.images import ImageReadError, bit_depth_warning, load_raw
 from polins.io.log import Log
 
@@ -59,12 +60,15 @@ def run_verdict(
     *,
     t_imu: FloatArray | None = None,
     t_images: FloatArray | None = None,
+    measurements: pd.DataFrame | None = None,
 ) -> str | None:
     """One line saying why a run produced nothing usable (docs/faults.md), or None if it did.
 
     Nothing usable: no image, fewer images measured than ``max_image_failures`` (a share of
-    the images, 0..1) allows, or none accepted by the filter. With the IMU and image times,
-    a time-base hint is added (:func:`time_base_hint`).
+    the images, 0..1) allows, or none accepted by the filter. With the measurement table
+    (``nis, nis_dof``), a run whose NIS is far outside any plausible band is not a result
+    either (:func:`polins.fusion.faults.nis_verdict`). With the IMU and image times, a
+    time-base hint is added (:func:`time_base_hint`).
     """
     im = summary["images"]
     outside = int((events["kind"] == "path-outside-log").sum()) if len(events) else 0
@@ -86,6 +90,11 @@ def run_verdict(
                 + (f": {top}" if top else ""))  # fmt: skip
     elif not im["accepted_by_filter"]:
         line = f"nothing usable: none of the {measured} measured images was accepted by the filter"
+    elif measurements is not None and "nis" in measurements and "nis_dof" in measurements:
+        nis_line = nis_verdict(measurements["nis"], measurements["nis_dof"])
+        if nis_line is None:
+            return None
+        line = nis_line
     else:
         return None
     return f"{line}; {hint}" if hint else line

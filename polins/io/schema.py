@@ -152,7 +152,7 @@ _MEASUREMENTS: dict[str, tuple[str, str]] = {
 }
 _EVENTS: dict[str, tuple[str, str]] = {
     "t": ("s", "time of the sample or image the event is about"),
-    "kind": ("text", "event kind (docs/faults.md; polins.loop.tables.EVENT_KINDS)"),
+    "kind": ("text", "event kind (docs/faults.md; polins.fusion.faults.EventKind)"),
     "detail": ("text", "what happened, for a person"),
 }
 _DEMO_SUMMARY: dict[str, tuple[str, str]] = {

@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from polins.compass.measure import NoiseModelWarning, check_measure_options, measure
 from polins.compass.measurement import NOISE_RATIO_BAND
+from polins.fusion.inputs import measurement_row
 from polins.io.images import ImageReadError, load_raw
 from polins.loop.tables import EventBuffer
 from polins.models import CameraModel
@@ -79,33 +80,8 @@ class ImageMeasurer:
                                 method=self.method, **self.options)  # fmt: skip
             except cv2.error as exc:
                 row.update(reason=f"measurement failed: OpenCV: {exc}", event="image-error")
-            else:
-                row.update(
-                    ok=bool(m.ok),
-                    reason=m.reason,
-                    yaw=m.yaw,
-                    yaw_std=m.yaw_std,
-                    yaw_std_meas=m.yaw_std_meas,
-                    yaw_std_noise=m.yaw_std_noise,
-                    yaw_std_model=m.yaw_std_model,
-                    yaw_std_correlated=m.yaw_std_correlated,
-                    heading_deg=m.heading_deg,
-                    heading_std_deg=math.degrees(m.yaw_std),
-                    epsilon=m.epsilon,
-                    epsilon_std=m.epsilon_std,
-                    n_pixels=int(m.n_pixels),
-                    sun_bx=m.sun_b[0],
-                    sun_by=m.sun_b[1],
-                    sun_bz=m.sun_b[2],
-                    sun_std=m.sun_std,
-                    sun_azimuth_b=m.sun_azimuth_b,
-                    sun_azimuth_b_std=m.sun_azimuth_b_std,
-                    sun_elevation_b=m.sun_elevation_b,
-                    sun_elevation_b_std=m.sun_elevation_b_std,
-                    eigen_gap=m.eigen_gap,
-                    residual_rms=m.residual_rms,
-                    noise_ratio=m.noise_ratio,
-                )
+            else:  # the row polins.fuse takes, and the sigma in degrees for the table
+                row.update(measurement_row(m), heading_std_deg=math.degrees(m.yaw_std))
         row["measure_s"] = time.perf_counter() - start
         return row
 

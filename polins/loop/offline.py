@@ -27,6 +27,7 @@ from polins.errors import UserInputError
 from polins.fusion.api import run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.result import FusionResult
+from polins.io.images import ImageIndex
 from polins.io.log import Log
 from polins.loop.options import LoopOptions
 from polins.loop.stream import NavigationStream
@@ -76,15 +77,31 @@ def fuse_measurements(
 ) -> FusionResult:
     """A solution from the loop's measurement table (its rows with ``ok``): ``run_fusion``.
 
-    ``config`` is the stream's filter configuration (:attr:`NavigationStream.config`). IMU
-    gaps were reported by the loop and are bridged here (``max_gap_s`` above the longest one).
+    ``config`` is the stream's filter configuration (:attr:`NavigationStream.config`): the
+    IMU samples the stream accepted meet the same fault policy (docs/faults.md) here, its
+    gaps bridged alike (the images inside them were skipped by the stream).
     """
     ok = measurements["ok"].to_numpy(dtype=bool)
     table = measurements.loc[ok, list(MEASUREMENT_INPUTS)].reset_index(drop=True).astype(float)
-    t = imu["t"].to_numpy(dtype=float)
-    longest = float(np.max(np.diff(t))) if len(t) > 1 else 0.0
-    config = config.replace(max_gap_s=max(longest * 1.001, 1e-3))
     return run_fusion(imu, table, backend, rot_nb0, config, odometry)
+
+
+def check_images_exist(log: Log) -> None:
+    """Refuse a log none of whose image files exists, before any work (``UserInputError``,
+    one line naming the missing folder and the count); some missing files are data faults
+    (``image-unreadable`` events, docs/faults.md)."""
+    images = log.images
+    if not isinstance(images, ImageIndex) or not len(images):
+        return
+    exists = np.array([f.exists() for f in images.files])
+    if exists.any():
+        return
+    folders = sorted({f.parent for f in images.files})
+    gone = [d for d in folders if not d.is_dir()]
+    where = f"the image folder {gone[0]} does not exist" if gone else f"none is in {folders[0]}"
+    raise UserInputError(
+        f"{log.manifest_path}: {where}: all {len(images)} images of the index are missing"
+    )
 
 
 def run_log(
@@ -118,6 +135,7 @@ def run_log(
     """
     from tqdm import tqdm
 
+    check_images_exist(log)
     opts = options if options is not None else LoopOptions()
     base = config if config is not None else FuseConfig.from_log(log)
     base.check_backend(backend)

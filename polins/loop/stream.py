@@ -31,8 +31,13 @@ into runs moves the estimates by ~1e-15 rad). The cost of the lag: the prior mis
 ``prior_lag_s`` of updates, which typically moves the tilt far less than its sigma
 (simulated UGV drives: median 0.001 deg with a MEMS IMU against a 0.16 deg roll sigma).
 
-Data faults (docs/faults.md) are skipped and reported as events, the run goes on; the
-kinds and what each means: :mod:`polins.loop.tables`.
+Data faults are skipped and reported as events, the run goes on: the fault policy of every
+path (:mod:`polins.fusion.faults`, docs/faults.md). An IMU gap longer than ``max_gap_s``
+queues its ``"gap"`` item in the filter (the covariance grows as in ``polins.fuse``) and the
+images inside it are skipped (``measurement-in-gap``). The units are checked over the
+levelling window, and the gyro against the headings once five turning windows of headings
+have arrived (docs/streaming.md): a mistake raises ``ImuUnitsError`` from the call that
+fed the deciding sample or heading.
 
 Memory and latency are bounded: the IMU buffer spans at most ``prior_lag_s +
 max_image_delay_s`` plus the processing time of the images in flight, at most
@@ -62,11 +67,19 @@ from polins.errors import UserInputError
 from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
 from polins.fusion.config import TIME_TOL_S, FuseConfig, config_with_site, site_from_shorthand
 from polins.fusion.eskf.filter import ESKF
-from polins.fusion.inputs import PRIOR_COLUMNS
+from polins.fusion.faults import (
+    EventKind,
+    GyroHeadingCheck,
+    ImuScreen,
+    UnitsWindow,
+    default_max_gap_s,
+    gap_item,
+    gap_reason,
+)
+from polins.fusion.inputs import PRIOR_COLUMNS, heading_proxy
 from polins.fusion.items import UpdateRecord
 from polins.fusion.vehicle import odometer_items
 from polins.ins.state import NavState
-from polins.loop.imu_gate import ImuGate
 from polins.loop.measurer import (
     EXECUTORS,
     ImageMeasurer,
@@ -183,8 +196,12 @@ class NavigationStream:
         self._by_t: dict[float, dict[str, Any]] = {}  # handed over, awaiting the verdict
         self._rows: deque[dict[str, Any]] = deque(maxlen=self.options.max_table_rows)
         self._events = EventBuffer(self.options.max_table_rows)
-        self._gate = ImuGate(self._events, imu_model.full_scale(), self.config.initial.align_s,
-                             self.config.gap_s or 5.0 * self.imu_dt)  # fmt: skip
+        # the fault policy of every path (polins.fusion.faults, docs/faults.md)
+        full_scale = imu_model.full_scale()
+        self._screen = ImuScreen(full_scale, default_max_gap_s(self.config.gap_s, self.imu_dt))
+        self._units = UnitsWindow(self.config.initial.align_s, full_scale[0])
+        self._heading_check = GyroHeadingCheck()
+        self._last: Sample | None = None  # the newest accepted sample
         self.n_images = 0  # images added (including skipped ones)
         self._t_last_image = -math.inf
         self._head: ESKF | None = None
@@ -206,11 +223,11 @@ class NavigationStream:
     @property
     def t_latest(self) -> float:
         """Time of the newest accepted IMU sample [s] (-inf before the first)."""
-        return self._gate.t_latest
+        return self._screen.t_latest
 
     @property
     def counts(self) -> dict[str, int]:
-        """Events reported per kind since the start (``polins.loop.tables.EVENT_KINDS``)."""
+        """Events reported per kind since the start (``polins.fusion.faults.EventKind``)."""
         return dict(self._events.counts)
 
     @property
@@ -240,9 +257,9 @@ class NavigationStream:
         Returns False if the sample was dropped (NaN, not after the previous one; module
         docstring). Never waits for the image stage.
         """
-        w = np.array(gyro_b, dtype=float).reshape(3)
-        f = np.array(accel_b, dtype=float).reshape(3)
-        accepted = self._accept(float(t), w, f)
+        w = np.array(gyro_b, dtype=float).reshape(1, 3)
+        f = np.array(accel_b, dtype=float).reshape(1, 3)
+        accepted = bool(self._accept(np.array([float(t)]), w, f)[0])
         if accepted:
             self._advance(block=False)
         return accepted
@@ -261,27 +278,50 @@ class NavigationStream:
                 f"add_imu_many needs t (N,), gyro_b and accel_b (N, 3); got {len(t_a)}, "
                 f"{len(w_a)}, {len(f_a)} samples"
             )
-        accepted = np.array([self._accept(float(t_a[k]), w_a[k].copy(), f_a[k].copy())
-                             for k in range(len(t_a))], dtype=bool)  # fmt: skip
+        accepted = self._accept(t_a.copy(), w_a.copy(), f_a.copy())
         if accepted.any():
             self._advance(block=False)
         return accepted
 
-    def _accept(self, t: float, w: FloatArray, f: FloatArray) -> bool:
-        """The IMU sample policy (module docstring); an accepted sample joins the buffer."""
-        if not self._gate.accept(t, w, f):
-            return False
+    def _accept(self, t: FloatArray, w: FloatArray, f: FloatArray) -> NDArray[np.bool_]:
+        """The IMU sample policy of :mod:`polins.fusion.faults` over a block (N,) [s],
+        (N, 3) [rad/s, m/s^2]: the dropped samples and the gaps reported, the unit checks
+        fed; the accepted samples join the buffer. Returns which were accepted."""
+        keep, events, gap_ends = self._screen.screen(t, w, f)
+        for ev in events:
+            self._events.add(ev.t, ev.kind, ev.detail)
+        if not keep.any():
+            return keep
         if self._runner is None:
-            self._runner = FilterRunner(self.config, t, self.imu_dt, self.rot_nb0,
+            self._runner = FilterRunner(self.config, float(t[keep][0]), self.imu_dt,
+                                        self.rot_nb0,
                                         snapshot_every_s=self.options.snapshot_every_s,
                                         record_solution=self.options.record_solution,
                                         max_rows=self.options.max_table_rows)  # fmt: skip
-        sample = (t, w, f)
-        self._buf.append(sample)
-        if self._head is not None and self._head_valid:
-            self._head.propagate(*sample)
-            self._head.records.clear()  # bounded memory: the head's log is not used
-        return True
+        self._units.add(t[keep], w[keep], f[keep])
+        self._heading_check.add_imu(t[keep], w[keep], f[keep])
+        ends = set(gap_ends.tolist())
+        for k in np.flatnonzero(keep).tolist():
+            sample = (float(t[k]), w[k], f[k])
+            if k in ends and self._last is not None:
+                self._bridge(self._last, sample)
+            self._buf.append(sample)
+            self._last = sample
+            if self._head is not None and self._head_valid:
+                self._head.propagate(*sample)
+                self._head.records.clear()  # bounded memory: the head's log is not used
+        return keep
+
+    def _bridge(self, before: Sample, after: Sample) -> None:
+        """An IMU gap between two accepted samples: its event, and its ``"gap"`` item
+        queued in the filter at the sample after it (docs/faults.md)."""
+        assert self._runner is not None
+        item, event = gap_item(before[0], after[0], (before[1], after[1]), (before[2], after[2]))
+        self._events.add(event.t, event.kind, event.detail)
+        for skipped in self._runner.filter.skip_in_gap(before[0], after[0]):  # odometer speeds
+            self._events.add(skipped.t, skipped.kind, skipped.detail)
+        self._collect(self._runner.filter.add_items([item]))
+        self._head_valid = False
 
     def add_image(self, t: float, raw: Any, *, sun_n: ArrayLike | None = None) -> bool:
         """One camera image taken at ``t``: a raw mosaic (or a path / bag message).
@@ -340,11 +380,17 @@ class NavigationStream:
             self._skip(index, t, "image-out-of-order",
                        f"{what} time not after the previous one (t={self._t_last_image!r})")  # fmt: skip
             return False
-        if f is None or t < self._gate.t_first - self._tol:
+        gap = self._screen.inside_gap(t)
+        if gap is not None:
+            self._skip(
+                index, t, EventKind.MEASUREMENT_IN_GAP, f"{what} skipped: {gap_reason(*gap)}"
+            )
+            return False
+        if f is None or t < self._units.t_first - self._tol:
             self._skip(index, t, "image-outside-imu", f"{what} before the first IMU sample")
             return False
         align_s = self.config.initial.align_s
-        if self.rot_nb0 is None and t <= self._gate.t_first + align_s + self._tol:
+        if self.rot_nb0 is None and t <= self._units.t_first + align_s + self._tol:
             self._skip(index, t, "image-during-alignment",
                        f"{what} inside the levelling window ({align_s} s)")  # fmt: skip
             return False
@@ -397,8 +443,9 @@ class NavigationStream:
     def __exit__(self, *exc: object) -> None:
         if exc[0] is None:
             self.close()
-        else:
-            self._executor.shutdown(wait=False, cancel_futures=True)
+        else:  # the queued images cancelled, the running ones (one per worker) awaited:
+            # a process pool left running prints a traceback at the interpreter's exit
+            self._executor.shutdown(wait=True, cancel_futures=True)
             self._closed = True
 
     # ------------------------------------------------------------------ internals
@@ -406,6 +453,20 @@ class NavigationStream:
         self._events.add(t, kind, detail)
         self._rows.append({"t": t, "image": index, "ok": False, "reason": f"{kind}: {detail}",
                            "accepted": False, "update_reason": "skipped"})  # fmt: skip
+
+    def _skip_in_gaps(self) -> bool:
+        """Skip the images (and external measurements) strictly inside an IMU gap, as
+        every path does (docs/faults.md); True if one was."""
+        if not self._screen.gaps:
+            return False
+        inside = [(img, self._screen.inside_gap(img.t)) for img in self._images]
+        skipped = [(img, gap) for img, gap in inside if gap is not None]
+        for img, gap in skipped:
+            self._images.remove(img)
+            what = "image" if img.row is None else "measurement"
+            self._skip(img.index, img.t, EventKind.MEASUREMENT_IN_GAP,
+                       f"{what} skipped: {gap_reason(*gap)}")  # fmt: skip
+        return bool(skipped)
 
     def _busy(self) -> int:
         return sum(1 for img in self._images if img.future is not None and not img.resolved)
@@ -423,7 +484,7 @@ class NavigationStream:
         """The snapshot of ``img`` is final and the IMU reaches the image."""
         f = self.filter
         assert f is not None
-        if not f.ready or not self._snaps or self._gate.t_latest < img.t - self._tol:
+        if not f.ready or not self._snaps or self._screen.t_latest < img.t - self._tol:
             return False
         # no later snapshot can be older than the limit once the next sample is past it
         return not self._buf or self._buf[0][0] >= self._snapshot_limit(img)
@@ -437,7 +498,11 @@ class NavigationStream:
                 snap = s
             else:
                 break
-        samples = [s for s in self._hist] + [s for s in self._buf if s[0] <= img.t + 1.0]
+        samples = list(self._hist)
+        for sample in self._buf:  # up to the first sample at or after the image
+            samples.append(sample)
+            if sample[0] >= img.t:
+                break
         rot_prior = propagate_nominal(snap, samples, img.t, self._runner.filter.mech)
         yaw, pitch, roll = euler_from_rot_nb(rot_prior)
         img.prior = {"prior_t": snap.t, "prior_roll": float(roll),
@@ -465,6 +530,7 @@ class NavigationStream:
             row.update(accepted=False, update_reason="not measured")
             self._rows.append(row)
             return
+        self._heading_check.add_headings(img.t, heading_proxy(row))  # ImuUnitsError: deg/s
         cols: dict[str, Any] = {"sky": {c: row[c] for c in SKY_COLUMNS if c in row}}
         if "yaw" in row:
             cols.update(yaw=row["yaw"], yaw_std=float(self.config.yaw_sigma(row["yaw_std"])))
@@ -516,7 +582,7 @@ class NavigationStream:
         and not inside the window where a late image may still come (at least one)."""
         tol = self._tol
         t_image = self._images[0].t - tol if self._images else math.inf
-        t_wait = -math.inf if final else max(self._gate.t_latest - self.options.max_image_delay_s,
+        t_wait = -math.inf if final else max(self._screen.t_latest - self.options.max_image_delay_s,
                                               self._t_last_image)  # fmt: skip
         n = 1
         while (
@@ -536,6 +602,8 @@ class NavigationStream:
         limit = t_ref - self.options.prior_lag_s - self._tol
         while len(self._snaps) > 1 and self._snaps[1].t < limit:
             self._snaps.popleft()
+        oldest = min((img.t for img in self._images), default=self._t_last_image)
+        self._screen.gaps = [g for g in self._screen.gaps if g[1] > oldest]
         keep_from = min(self._snaps[0].t if self._snaps else math.inf, f.t)
         while len(self._hist) > 1 and self._hist[1][0] <= keep_from:
             self._hist.popleft()
@@ -548,7 +616,7 @@ class NavigationStream:
         tol = self._tol
         delay = self.options.max_image_delay_s
         while True:
-            progressed = False
+            progressed = self._skip_in_gaps()
             for img in self._images:  # in time order: priors become known in order
                 if img.dispatched:
                     continue
@@ -574,7 +642,7 @@ class NavigationStream:
                     continue
                 if (
                     not final
-                    and t_next > self._gate.t_latest - delay
+                    and t_next > self._screen.t_latest - delay
                     and t_next > self._t_last_image
                 ):
                     break  # an image up to max_image_delay_s late may still come

@@ -1,27 +1,15 @@
 """The loop's tables: one measurement row per image, and the bounded buffer of data-fault events.
 
-An event is data, not a log line (docs/faults.md): a time, a kind from :data:`EVENT_KINDS`
-and a detail text, so a user can count and filter them. The data faults of the loop
-(skipped and reported, the run goes on):
-
-* IMU sample with NaN/inf: dropped (``imu-nonfinite``).
-* IMU sample not after the previous accepted one (duplicate or out of order): dropped
-  (``imu-out-of-order``).
-* IMU sample beyond the IMU model's full scale: dropped (``imu-out-of-range``).
-* IMU gap longer than ``max_gap_s`` (FuseConfig; auto: 5 sample intervals): reported (``imu-gap``) and propagated across with
-  the rates interpolated linearly (the covariance grows with the gap).
-* Image not after the previous image: skipped (``image-out-of-order``).
-* Image older than the filter can still take (more than ``max_image_delay_s`` behind the IMU,
-  after the filter has moved past it): skipped (``image-late``).
-* Image before the first IMU sample or after the last one: skipped (``image-outside-imu``).
-* Image inside the levelling window of a self-alignment: skipped (``image-during-alignment``).
-* Image that cannot be read or decoded (``image-unreadable``), or on which OpenCV fails
-  (``image-error``): skipped. Any other exception of the measurement is a bug and propagates.
-* Image index entry outside the log folder (``polins.io.read_log`` without
-  ``allow_outside_paths``): skipped (``path-outside-log``).
-* Image refused by the measurement (too few pixels, sun near the zenith, ...): kept in the
-  measurement table with ``ok=False`` and its reason; no update.
-* Update refused by the filter's chi-square gate: kept with ``accepted=False`` and the reason.
+An event is data, not a log line (docs/faults.md): a time, a kind of
+:class:`polins.fusion.faults.EventKind` (the one vocabulary of every path) and a detail
+text, so a user can count and filter them. docs/faults.md says which data faults the loop
+meets and what it does with each; beyond the IMU policy of :mod:`polins.fusion.faults`
+(shared with ``polins.fuse``) the loop skips images out of order (``image-out-of-order``),
+too late for the filter (``image-late``), outside the IMU span (``image-outside-imu``),
+inside the levelling window (``image-during-alignment``), unreadable (``image-unreadable``)
+or failing in OpenCV (``image-error``), and index entries outside the log folder
+(``path-outside-log``). An image refused by the measurement stays in the measurement table
+with ``ok=False`` and its reason; an update refused by the gate with ``accepted=False``.
 """
 
 from __future__ import annotations
@@ -32,20 +20,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-EVENT_KINDS = (
-    "imu-nonfinite",
-    "imu-out-of-order",
-    "imu-gap",
-    "imu-out-of-range",
-    "image-out-of-order",
-    "image-late",
-    "image-outside-imu",
-    "image-during-alignment",
-    "image-unreadable",
-    "image-error",
-    "path-outside-log",
-    "noise-model",
-)
+from polins.fusion.faults import EventKind
+
 EVENT_COLUMNS = ("t", "kind", "detail")
 MEASUREMENT_COLUMNS = (
     "t", "ok", "reason", "yaw", "yaw_std", "heading_deg", "heading_std_deg", "epsilon",
@@ -78,13 +54,12 @@ class EventBuffer:
         if maxlen < 1:
             raise ValueError(f"maxlen={maxlen} must be >= 1")
         self._rows: deque[dict[str, Any]] = deque(maxlen=maxlen)
-        self.counts: dict[str, int] = dict.fromkeys(EVENT_KINDS, 0)
+        self.counts: dict[str, int] = {kind.value: 0 for kind in EventKind}
         self.dropped = 0
 
     def add(self, t: float, kind: str, detail: str) -> None:
-        """Report one event; ``kind`` must be one of :data:`EVENT_KINDS`."""
-        if kind not in self.counts:
-            raise ValueError(f"event kind {kind!r} is not one of {EVENT_KINDS}")
+        """Report one event; ``kind`` must be an :class:`~polins.fusion.faults.EventKind`."""
+        kind = EventKind(kind).value  # an unknown kind raises ValueError
         if len(self._rows) == self._rows.maxlen:
             self.dropped += 1
         self.counts[kind] += 1
@@ -118,7 +93,6 @@ def measurement_frame(rows: list[dict[str, Any]]) -> pd.DataFrame:
 
 __all__ = [
     "EVENT_COLUMNS",
-    "EVENT_KINDS",
     "MEASUREMENT_COLUMNS",
     "EventBuffer",
     "measurement_frame",

@@ -25,11 +25,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.compass.chain import measure_stokes
-from polins.compass.heading import image_geometry
-from polins.compass.image import image_stokes
-from polins.compass.measurement import Measurement, MeasurementMaps, measure_options
+from polins.compass.chain import check_sun, measure_stokes
+from polins.compass.heading import Geometry, image_geometry
+from polins.compass.image import fill_invalid, image_stokes
+from polins.compass.measurement import Measurement, MeasurementMaps, Refusal, measure_options
 from polins.compass.pixels import check_raw
+from polins.errors import UserInputError
 from polins.models import CameraModel
 
 FloatArray = NDArray[np.float64]
@@ -158,6 +159,15 @@ def paper_algorithm1(
     return rows.T.reshape(*ch.shape[:-1], 3), k_m.reshape(ch.shape[:-1])
 
 
+def _ephemeris_geometry(
+    cam: CameraModel, sun_n: ArrayLike | None, rot_nb_prior: Rotation | None, caller: str
+) -> Geometry:
+    """The image geometry of a measurement that needs the ephemeris sun and the prior."""
+    if sun_n is None or rot_nb_prior is None:
+        raise UserInputError(f"{caller} needs sun_n and rot_nb_prior")
+    return image_geometry(cam, sun_n, rot_nb_prior)
+
+
 def measure_algorithm1(
     raw: ArrayLike,
     cam: CameraModel,
@@ -196,20 +206,20 @@ def measure_algorithm1(
     check_switches(eq22, kc, gain_final, eq14)
     opt = measure_options(**options)
     arr = check_raw(raw, cam)
-    geo = image_geometry(cam, sun_n, rot_nb_prior)
-    assert geo.sun_n is not None
-    if geo.sun_n[2] <= 0.0:
-        return Measurement.refused("paper", "sun below the horizon"), None
+    geo = _ephemeris_geometry(cam, sun_n, rot_nb_prior, "measure_algorithm1")
+    try:
+        check_sun(geo)
+    except Refusal as r:
+        return Measurement.refused("paper", r.reason), None
     img = image_stokes(arr, cam, opt, channels=True)
     assert img.channels is not None
     rows, k_m = algorithm1_rows(img.channels, cam, geo.mat_cn @ geo.sun_n, eq22=eq22, kc=kc,
                                 gain_final=gain_final, eq14=eq14)  # fmt: skip
-    img = dataclasses.replace(
-        img,
-        estimate=rows.astype(img.dtype),
-        valid=img.valid & np.isfinite(rows).all(axis=0),
-        epsilon_px=k_m / 4.0,  # k_m = 4 epsilon (the paper's Eq. 12)
-    )
+    estimate: NDArray = rows.astype(img.dtype)
+    valid = img.valid & np.isfinite(rows).all(axis=0)
+    fill_invalid(estimate, 1.0, valid)
+    # k_m = 4 epsilon (the paper's Eq. 12)
+    img = dataclasses.replace(img, estimate=estimate, valid=valid, epsilon_px=k_m / 4.0)
     m, mapped = measure_stokes(img, cam, geo, opt, method="traditional", maps=maps,
                                weighted=weighted)  # fmt: skip
     return dataclasses.replace(m, method="paper"), mapped
@@ -230,9 +240,10 @@ def measure_baseline(
     equal eigen weights (``weighted=False``, its Eq. 31)."""
     opt = measure_options(**options)
     arr = check_raw(raw, cam)
-    geo = image_geometry(cam, sun_n, rot_nb_prior)
-    assert geo.sun_n is not None
-    if geo.sun_n[2] <= 0.0:
-        return Measurement.refused("traditional", "sun below the horizon")
+    geo = _ephemeris_geometry(cam, sun_n, rot_nb_prior, "measure_baseline")
+    try:
+        check_sun(geo)
+    except Refusal as r:
+        return Measurement.refused("traditional", r.reason)
     img = image_stokes(arr, cam, opt, gain_correction=gain_correction)
     return measure_stokes(img, cam, geo, opt, method="traditional", weighted=weighted)[0]

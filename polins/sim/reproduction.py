@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from polins.compass.camera import fov_mask, pixel_rays_c
 from polins.compass.crlb import yaw_crlb
 from polins.compass.measure import Measurement, measure
+from polins.errors import UserInputError
 from polins.frames import heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
 from polins.models import CameraModel, load_camera
 from polins.sim.algorithm1 import measure_algorithm1, measure_baseline
@@ -84,7 +85,9 @@ class Estimator:
     method : str
         "traditional" or "compensated" (``polins.measure``; "traditional" with the
         ``gain_correction`` or ``weighted`` switch: :func:`polins.sim.algorithm1.measure_baseline`),
-        or "paper" (:func:`polins.sim.algorithm1.measure_algorithm1`).
+        or "paper" (:func:`polins.sim.algorithm1.measure_algorithm1`, which takes
+        ``weighted`` too); a switch the method does not take is refused
+        (:class:`polins.errors.UserInputError`).
     options : tuple of (name, value)
         Keyword options: ``MeasureOptions`` fields and the switches of those functions.
     paper_role : str
@@ -96,6 +99,16 @@ class Estimator:
     method: str
     options: tuple[tuple[str, Any], ...] = ()
     paper_role: str = ""
+
+    def __post_init__(self) -> None:
+        switches = {"traditional": {"gain_correction", "weighted"}, "paper": {"weighted"}}
+        baseline = {"gain_correction", "weighted"} & dict(self.options).keys()
+        wrong = sorted(baseline - switches.get(self.method, set()))
+        if wrong:
+            raise UserInputError(
+                f"Estimator {self.key!r}: {', '.join(wrong)} is no switch of "
+                f"method={self.method!r} (measure_baseline takes it with 'traditional')"
+            )
 
 
 ESTIMATORS: tuple[Estimator, ...] = (

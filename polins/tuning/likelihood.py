@@ -36,7 +36,7 @@ from scipy.differentiate import hessian
 from scipy.optimize import minimize
 
 from polins.errors import UserInputError
-from polins.fusion import FuseConfig, FusionResult, run_fusion
+from polins.fusion import FuseConfig, FusionResult, ImplausibleRunError, run_fusion
 from polins.tuning.innovations import InnovationStats, innovation_arrays, innovation_stats
 
 FloatArray = NDArray[np.float64]
@@ -327,7 +327,10 @@ def tune(
     def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
         c, m = with_values(base, measurements, values)
         count[0] += 1
-        return run_fusion(imu, m, rot_nb0=rot_nb0, config=c, odometry=odometry)
+        try:
+            return run_fusion(imu, m, rot_nb0=rot_nb0, config=c, odometry=odometry)
+        except ImplausibleRunError as exc:  # a candidate far off: its likelihood says so
+            return exc.result
 
     def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
         values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}

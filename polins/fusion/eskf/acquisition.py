@@ -19,7 +19,7 @@ acquisition and recovery"):
 
 An IMU gap longer than ``max_gap_s`` is propagated across with the rates interpolated
 linearly; the motion that the interpolation cannot see is covered by
-:func:`~polins.fusion.acquisition.gap_variance`.
+:func:`~polins.fusion.faults.gap_variance`.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from numpy.typing import NDArray
 from polins.fusion.acquisition import consensus, yaw_offset
 from polins.fusion.eskf.alignment import rotate_yaw
 from polins.fusion.eskf.blocks import Layout, inject_nav
+from polins.fusion.faults import FusionEvent
 from polins.fusion.items import MeasurementItem, UpdateRecord
-from polins.fusion.result import FusionEvent
 
 FloatArray = NDArray[np.float64]
 

@@ -54,6 +54,7 @@ from polins.fusion.measurement import (
     mount_jacobian,
     wrap_residual,
 )
+from polins.fusion.priors import EARTH_RATE_TURN_S, SUN_AZIMUTH_STD0, SUN_RATE_CHANGE_S
 from polins.fusion.sky_states import (
     heading_bias_jacobian,
     site_rotation_std,
@@ -169,12 +170,6 @@ LEVER = Block(LEVER_STATE, 3, lambda step: {}, lambda m, c: c.lever_sigma or 0.0
               jacobian=lambda item, lin: lever_jacobian(lin, item.mat_vb, item.gyro_b))  # fmt: skip
 
 
-# Without a site the Earth rate (OMEGA_IE) is not mechanized: the gyro bias block covers
-# it, as a turn-on term of OMEGA_IE and a random walk that lets the horizontal part turn
-# with the heading over about EARTH_RATE_TURN_S (docs/filter.md, "Without a site").
-EARTH_RATE_TURN_S = 60.0
-
-
 def _cover_earth_rate(block: Block) -> Block:
     """The gyro-bias block widened to cover the unmechanized Earth rate."""
     return dataclasses.replace(
@@ -209,12 +204,6 @@ def sky_blocks(config: FuseConfig) -> tuple[Block, ...]:
                       lambda m, c: sig, lambda m: 2.0 * sig**2 / tau, heading_bias_jacobian,
                       offset=True),)  # fmt: skip
     return out
-
-
-# No clock: the sun's azimuth is unknown at the start (its first measurement sets it, with
-# the yaw's sigma); its rate may change by its own 1-sigma over SUN_RATE_CHANGE_S.
-SUN_AZIMUTH_STD0 = 10.0  # [rad], "unknown"
-SUN_RATE_CHANGE_S = 3600.0
 
 
 def error_blocks(config: FuseConfig) -> tuple[Block, ...]:

@@ -60,6 +60,7 @@ from polins.fusion.eskf.alignment import level
 from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav
 from polins.fusion.eskf.dynamics import StepNominal, StepSums, discretize, step_nominal
 from polins.fusion.eskf.propagate import advance
+from polins.fusion.faults import FusionEvent, skip_in_gaps
 from polins.fusion.items import (
     HEADING_KINDS,
     MeasurementItem,
@@ -68,7 +69,6 @@ from polins.fusion.items import (
     measurement_items,
 )
 from polins.fusion.measurement import Linearized
-from polins.fusion.result import FusionEvent
 from polins.fusion.sky_states import ModelPart
 from polins.fusion.vehicle import VehicleAiding, yaw_consider_update
 from polins.ins.state import NavState
@@ -183,6 +183,13 @@ class ESKF:
     def pending(self) -> tuple[MeasurementItem, ...]:
         """The queued measurement items, in processing order."""
         return tuple(self._pending)
+
+    def skip_in_gap(self, t_a: float, t_b: float) -> list[FusionEvent]:
+        """Make the queued items strictly inside the IMU gap ``t_a .. t_b`` [s] invalid, as
+        :func:`~polins.fusion.faults.skip_in_gaps` does for a table (a stream learns of a
+        gap after it queued them); their ``measurement-in-gap`` events."""
+        self._pending, events = skip_in_gaps([(t_a, t_b)], self._pending)
+        return events
 
     def copy(self) -> ESKF:
         """A cheap copy: arrays copied, model/config/layout shared, an empty update log
@@ -471,7 +478,8 @@ class ESKF:
             nu, S = tuple(y.tolist()), tuple(Sm.ravel().tolist())
         limit = gate_limit(self.config.gate_probability, dim)
         if nis > limit:
-            reason = f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {dim} dof, p={self.config.gate_probability})"
+            reason = (f"NIS above the gate: {nis:.3g} > {limit:.3g} (chi2, {dim} dof, "
+                      f"p={self.config.gate_probability})")  # fmt: skip
             rec = self._record(item, dim, nis, False, reason, nu, S)
             if item.kind in ("yaw", "sun"):
                 self.acquisition.rejections += 1

@@ -105,12 +105,6 @@ except ImportError as exc:  # tests simulate a missing gtsam
         'the graph backend (backend="graph") needs GTSAM >= 4.3: pip install "polins[graph]"'
     ) from exc
 
-import pandas as pd
-from scipy.spatial.transform import Rotation
-
-from polins.errors import UserInputError
-from polins.fusion.acquisition import skip_in_gaps
-from polins.fusion.config import FuseConfig, config_with_site, scaled_measurement_noise
 from polins.fusion.graph.factors import (
     bias_from_polins,
     gyro_noise_density,
@@ -132,79 +126,35 @@ from polins.fusion.graph.solvers import (
     solve_batch,
     solve_incremental,
 )
-from polins.fusion.inputs import PRIOR_COLUMNS, output_mask, validate_imu, validate_measurements
-from polins.fusion.items import UpdateRecord, items_from_table, records_table
-from polins.fusion.result import FusionEvent, FusionResult, events_table
-from polins.fusion.vehicle import odometer_items
+from polins.fusion.inputs import Prepared, output_mask
+from polins.fusion.items import UpdateRecord, records_table
+from polins.fusion.result import FusionResult, events_table
 from polins.ins.state import solution_table
 
 
-def fuse_graph(
-    imu: pd.DataFrame,
-    measurements: pd.DataFrame | None,
-    rot_nb0: Rotation | None,
-    config: FuseConfig,
-    odometry: pd.DataFrame | None = None,
-) -> FusionResult:
-    """Fuse an IMU log with yaw / sun-vector measurements in a GTSAM factor graph.
+def fuse_graph(prep: Prepared) -> FusionResult:
+    """Solve a prepared run (:func:`polins.fusion.inputs.prepare`) in a GTSAM factor graph.
 
-    ``polins.fusion.api.run_fusion`` calls this for ``backend="graph"``.
-
-    Parameters
-    ----------
-    imu : DataFrame
-        Columns ``t`` [s], ``gx, gy, gz`` [rad/s], ``ax, ay, az`` [m/s^2] (body FLU,
-        instantaneous; validated by :func:`polins.fusion.inputs.validate_imu`).
-    measurements : DataFrame or None
-        The measurements table (docs/filter.md); rows become factors by the shared rules
-        (:func:`polins.fusion.items.items_from_table`).
-    rot_nb0 : Rotation or None
-        Initial attitude (body -> ENU) at the first IMU sample; None: self-alignment
-        (package docstring).
-    config : FuseConfig
-        The options; ESKF-only options set away from their defaults are refused
-        (``FuseConfig.check_backend``). Without ``config.site`` the run assumes
-        ``polins.site.PAPER_SITE`` and warns.
-    odometry : DataFrame, optional
-        Wheel-odometer speeds (``t`` [s], ``speed`` [m/s]) with ``config.odometer_sigma``
-        (:func:`polins.fusion.vehicle.odometer_items`; an odometer-scale variable, module
-        :mod:`~polins.fusion.graph.states`).
+    ``polins.fusion.api.run_fusion`` calls this for ``backend="graph"``: the IMU samples,
+    the measurement items (factors by the shared rules of :mod:`polins.fusion.items`), the
+    IMU gaps (keyframes at their ends, their variance in the preintegration noise) and the
+    resolved configuration come from the one preparation the ESKF solves too.
 
     Returns
     -------
     FusionResult
         ``solution``: the solution table (:func:`polins.ins.state.solution_table`);
         ``updates``: one row per yaw/sun measurement (``t, name, dim, nis, accepted,
-        reason``; the batch solver's NIS is post-fit); ``events``: the data faults and
-        recoveries (dropped IMU samples, IMU gaps, measurements skipped inside them, a
-        re-acquired yaw; docs/faults.md); ``info``: the IMU model's name, the
-        solver, the options set (``FuseConfig.changes``), iterations, keyframes, timings
-        [s]. ``solution.attrs`` repeats ``updates``, ``events``, ``backend``, ``solver``,
-        ``imu_model`` and ``info``.
+        reason``; the batch solver's NIS is post-fit); ``events``: the preparation's and
+        a re-acquired yaw (docs/faults.md); ``info``: the solver, iterations, keyframes,
+        timings [s].
     """
     t_start = time.perf_counter()
-    config.check_backend("graph")
-    if rot_nb0 is not None and (not isinstance(rot_nb0, Rotation) or not rot_nb0.single):
-        raise UserInputError("rot_nb0 must be a single scipy Rotation (body FLU -> ENU) or None")
-    config = config_with_site(config, stacklevel=3)
-    arrays = validate_imu(imu, max_gap_s=config.gap_s, model=config.imu)
-    meas = scaled_measurement_noise(validate_measurements(measurements), config)
-    config = config.resolve(priors=all(c in meas.columns for c in PRIOR_COLUMNS),
-                            odometry=odometry is not None)  # fmt: skip
-    tilt = config.tilt_coupling
-    items = items_from_table(meas, use_sun=config.gating.use_sun, heading_bias=config.heading_bias)
-    if odometry is not None and config.odometer_sigma is not None:  # "off": ignored
-        items += odometer_items(odometry, config.odometer_sigma)
-    items, events = skip_in_gaps(arrays.t, arrays.gaps, items)
-    for i in arrays.gaps.tolist():
-        t_a, t_b = float(arrays.t[i]), float(arrays.t[i + 1])
-        detail = (
-            f"IMU gap of {t_b - t_a:.3g} s until t={t_b:.6g}: preintegrated across, noise inflated"
-        )
-        events.append(FusionEvent(t_a, "imu-gap", detail))
-    prob = Problem(
-        config, tilt, arrays.t, arrays.gyro_b, arrays.accel_b, items, rot_nb0, arrays.gaps
-    )
+    config, arrays, items = prep.config, prep.imu, prep.items
+    spans = zip(arrays.gap_spans, arrays.gaps, strict=True)
+    gaps = [(t_a, t_b, g.inflation) for (t_a, t_b), g in spans if g.inflation is not None]
+    prob = Problem(config, config.tilt_coupling, arrays.t, arrays.gyro_b, arrays.accel_b,
+                   items, prep.rot_nb0, gaps)  # fmt: skip
     records = [
         UpdateRecord(it.t, it.kind, 0, math.nan, False, it.reason or "invalid measurement")
         for it in items
@@ -224,28 +174,22 @@ def fuse_graph(
         state = keyframe_output(prob, est)
     else:
         state = interpolate(prob, est, arrays.t[output_mask(arrays.t, config.output_rate)])
-    sol = solution_table(state)
     info.update(
-        imu_model=config.imu.name,
         solver=config.graph.solver,
-        options=config.changes(),
         n_keyframes=len(prob.t_key),
         n_measurement_factors=len(prob.meas),
         time_build_s=t_built - t_start,
         time_solve_s=t_solved - t_built,
         time_output_s=time.perf_counter() - t_solved,
     )
-    updates = records_table(sorted(records, key=lambda r: r.t))
-    sol.attrs.update(
-        updates=updates,
+    return FusionResult(
+        solution=solution_table(state),
+        updates=records_table(sorted(records, key=lambda r: r.t)),
+        events=events_table([*prep.events, *prob.events]),
+        config=config,
         backend="graph",
-        solver=config.graph.solver,
-        imu_model=config.imu.name,
         info=info,
     )
-    ev = events_table([*arrays.events, *events, *prob.events])
-    sol.attrs["events"] = ev
-    return FusionResult(solution=sol, updates=updates, backend="graph", info=info, events=ev)
 
 
 __all__ = [

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,14 +21,14 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 
-from polins.fusion.acquisition import consensus, gap_variance, yaw_offset
+from polins.fusion.acquisition import consensus, yaw_offset
 from polins.fusion.config import (
     INTEGRATION_STD,
     MAX_KEYFRAME_DT_S,
     TIME_TOL_S,
     FuseConfig,
 )
-from polins.fusion.eskf.blocks import EARTH_RATE_TURN_S
+from polins.fusion.faults import FusionEvent
 from polins.fusion.graph.factors import (
     bias_from_polins,
     gyro_noise_density,
@@ -51,7 +52,7 @@ from polins.fusion.graph.imu import (
 from polins.fusion.graph.states import GraphStates
 from polins.fusion.items import HEADING_KINDS, MeasurementItem, UpdateRecord
 from polins.fusion.measurement import N_ERROR
-from polins.fusion.result import FusionEvent
+from polins.fusion.priors import EARTH_RATE_TURN_S
 from polins.fusion.vehicle import vehicle_items
 from polins.ins.alignment import level_from_accel
 from polins.ins.earth import (
@@ -122,10 +123,11 @@ class Problem:
         The measurement items (:func:`polins.fusion.items.items_from_table`).
     rot_nb0 : Rotation or None
         Initial attitude, or None for self-alignment.
-    gaps : int ndarray, optional
-        The IMU gaps longer than ``max_gap_s`` (``ImuArrays.gaps``: ``t_imu[i] ..
-        t_imu[i + 1]``): keyframes at their ends, and the IMU noise of the intervals
-        inside raised by :func:`~polins.fusion.acquisition.gap_variance`, the ESKF's
+    gaps : sequence of (t_a, t_b, variance)
+        The IMU gaps longer than ``max_gap_s`` [s] and the variances their ``"gap"`` items
+        add to the 9 navigation errors (``ImuArrays.gap_spans``, ``ImuArrays.gaps``,
+        :func:`polins.fusion.faults.gap_item`): keyframes at their ends, and the IMU noise
+        of the intervals inside raised by the attitude and velocity variances, the ESKF's
         inflation (docs/faults.md).
     """
 
@@ -138,7 +140,7 @@ class Problem:
         accel: FloatArray,
         items: list[MeasurementItem],
         rot_nb0: Rotation | None,
-        gaps: NDArray[np.int_] | None = None,
+        gaps: Sequence[tuple[float, float, FloatArray]] = (),
     ) -> None:
         assert isinstance(config.site, Site)  # fuse_graph substitutes the assumed site
         self.config = config
@@ -162,13 +164,8 @@ class Problem:
         t_aid = snap_times([it.t for it in aiding], t_imu, TIME_TOL_S).tolist()
         t_zupt = snap_times([it.t for it in zupts], t_imu, TIME_TOL_S).tolist()
         nhc_t = np.array([it.t for it in nhcs], dtype=float)
-        gaps = np.zeros(0, dtype=int) if gaps is None else np.asarray(gaps, dtype=int)
         # (start, end, variances of the attitude and velocity errors) of each IMU gap
-        self.gaps = [
-            (float(t_imu[i]), float(t_imu[i + 1]), gap_variance(
-                float(t_imu[i + 1] - t_imu[i]), (gyro[i], gyro[i + 1]), (accel[i], accel[i + 1])
-            )[[0, 3]]) for i in gaps.tolist()
-        ]  # fmt: skip
+        self.gaps = [(t_a, t_b, np.asarray(var)[[0, 3]]) for t_a, t_b, var in gaps]
         t_gaps = [t for a, b, _ in self.gaps for t in (a, b)]
         t_odo = snap_times([it.t for it in odos], t_imu, TIME_TOL_S).tolist()
         events = np.concatenate([t_aid, t_zupt, nhc_t, t_gaps, t_odo])

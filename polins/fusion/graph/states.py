@@ -43,7 +43,6 @@ from gtsam.symbol_shorthand import V, X
 from numpy.typing import NDArray
 
 from polins.fusion.config import ODOMETER_SCALE_STD, SUN_AZIMUTH_RATE_STD, FuseConfig
-from polins.fusion.eskf.blocks import SUN_AZIMUTH_STD0, SUN_RATE_CHANGE_S
 from polins.fusion.graph.factors import body_jacobian
 from polins.fusion.graph.imu import CONSTANT_S
 from polins.fusion.items import (
@@ -65,6 +64,7 @@ from polins.fusion.measurement import (
     sun_kernel,
     wrap_residual,
 )
+from polins.fusion.priors import SUN_AZIMUTH_STD0, SUN_RATE_CHANGE_S
 from polins.fusion.sky_states import (
     heading_bias_jacobian,
     site_rotation_std,
