@@ -37,6 +37,7 @@ from polins.compass.skypixels import SkyPixels
 from polins.compass.solution import Solution
 
 __all__ = [
+    "CONE_MAX",
     "MIRROR_SECTORS",
     "ZenithMean",
     "total_std",
@@ -79,10 +80,16 @@ def _edge_pixels(pixels: PixelSet) -> NDArray:
     return pixels.to_image(np.arange(pixels.size), fill=-1.0)[edge_img].astype(np.intp)
 
 
+# [rad] widest cone half-angle: a field that holds a wider cone about the zenith fixes the
+# sun's elevation itself (on the shipped 88 deg fisheye the cone never wins, and computing
+# it there costs six eigen solutions); docs/measurement.md §13
+CONE_MAX = np.radians(45.0)
+
+
 def zenith_cone(img: ImageStokes, mat_lc: NDArray) -> NDArray | None:
     """Field-of-view pixels ``(n,)`` bool inside the largest cone about the level zenith
     that lies inside the field (its edge and occlusions), or None when the zenith is
-    outside the field."""
+    outside the field or the cone is wider than :data:`CONE_MAX`."""
     rays = img.cache.rays
     up = mat_lc[2].astype(rays.dtype) @ rays  # cosine of the zenith angle
     edge = _edge_pixels(img.cache.pixels)
@@ -90,6 +97,8 @@ def zenith_cone(img: ImageStokes, mat_lc: NDArray) -> NDArray | None:
         return None
     up_edge = float(np.max(up[edge]))
     if not float(np.max(up)) > up_edge:  # the zenith is on the edge or outside
+        return None
+    if up_edge < np.cos(CONE_MAX):  # a wide field: the eigen solution fixes the elevation
         return None
     return up > up_edge
 
