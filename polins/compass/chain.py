@@ -50,6 +50,7 @@ from polins.compass.pixels import check_raw
 from polins.compass.skymodel import sky_model
 from polins.compass.skypixels import SkyPixels, sky_pixels
 from polins.compass.solution import Solution, solve_image
+from polins.compass.zenith import zenith_solution
 from polins.frames import heading_deg_from_yaw, wrap_angle
 from polins.models import CameraModel
 
@@ -202,6 +203,10 @@ def measure_stokes(
         return Measurement.refused(method, r.reason, r.n_pixels), None
     sol = solve_image(img, cam, px, geo, opt, method, weighted=weighted)
     std_instrumental = instrumental_std(img, cam, px, sol, geo, opt)
+    if sol.method == "traditional":  # the zenith cone when its sigma is smaller (§13)
+        stds = instrumental_stds(cam, opt)
+        zen = zenith_solution(img, px, sol, geo, opt, std_instrumental, stds, MODEL_SCALE)
+        sol, std_instrumental = zen if zen is not None else (sol, std_instrumental)
     n_pixels = int(np.count_nonzero(sol.mask))
     if n_pixels < opt.min_pixels:
         reason = f"too few valid pixels ({n_pixels} < {opt.min_pixels})"
