@@ -255,6 +255,10 @@ def test_cli_simulate_then_fuse(tmp_path, capsys):
     assert abs(heading["final_deg"]) < 3 * heading["final_sigma_deg"]
     assert summary["images"]["accepted_by_filter"] >= 40
     assert summary["timing"]["images_per_s"] > 0 and summary["timing"]["imu_samples_per_s"] > 0
+    # every kind's NIS with its verdict, printed and in the summary
+    assert set(summary["nis"]) == {"yaw", "odo", "nhc", "zupt"}, summary["nis"]
+    assert all(f"NIS {kind}" in out for kind in summary["nis"])
+    assert all(n["verdict"] and n["n"] > 0 for n in summary["nis"].values())
     meas = pd.read_csv(run / "measurements.csv")
     for col in ("t", "yaw", "heading_deg", "yaw_std", "heading_std_deg", "epsilon", "n_pixels",
                 "ok", "reason", "yaw_error"):  # fmt: skip
