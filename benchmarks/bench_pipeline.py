@@ -26,7 +26,7 @@ from polins.sim.scenario import simulate_log
 
 
 def _row(label: str, r) -> str:  # type: ignore[no-untyped-def]
-    t = r.timing
+    t = r.info["timing"]
     return (
         f"{label:<22}{t['run_s']:9.2f} {t['loop_s']:9.2f} {t['fuse_s']:8.2f} "
         f"{t['images'] / t['run_s']:10.1f} {t['imu_samples'] / t['run_s']:11.0f} "

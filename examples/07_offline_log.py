@@ -46,9 +46,13 @@ def main() -> None:
           f"{log.camera.shape[1]}x{log.camera.shape[0]} px, IMU {log.imu_model.name})")  # fmt: skip
 
     result = run_log(log, workers=args.workers, progress=not args.quick)
-    summary = summarize(result.solution, result.measurements, result.events, truth=log.truth,
-                        timing=result.timing, settings=result.settings, settle_s=5.0)  # fmt: skip
-    files = write_report(args.out / "run", result.solution, result.measurements, result.events,
+    measurements = result.measurements  # one row per image
+    assert measurements is not None
+    summary = summarize(result.solution, measurements, result.events, truth=log.truth,
+                        timing=result.info["timing"], settings=result.info["settings"],
+                        settle_s=5.0, gate_prob=result.config.gate_probability,
+                        updates=result.updates)  # fmt: skip
+    files = write_report(args.out / "run", result.solution, measurements, result.events,
                          summary, truth=log.truth, title="simulated UGV drive")  # fmt: skip
     print(format_summary(summary))
     print("figures:", ", ".join(str(p) for name, p in files.items() if p.suffix == ".png"))

@@ -208,7 +208,8 @@ def main() -> None:
         "  (the largest max is the call that runs the filter for the first time, with its\n"
         "   one-time compilation; the steady state is the median and the 99 %)"
     )
-    print(f"events: {dict(events['kind'].value_counts()) if len(events) else 'none'}")
+    counts = {str(k): int(v) for k, v in events["kind"].value_counts().items()}
+    print(f"events: {counts if counts else 'none'}")
 
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
     t_ok = table.loc[ok, "t"]

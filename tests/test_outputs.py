@@ -21,11 +21,13 @@ import polins.loop
 from polins.cli import main
 from polins.compass.measure import NoiseModelWarning
 from polins.evaluation import heading_plot_series, summarize
+from polins.fusion.config import FuseConfig
+from polins.fusion.items import UpdateRecord, records_table
+from polins.fusion.result import FusionResult
 from polins.io import read_log
 from polins.io.checks import run_verdict, time_base_hint
 from polins.io.outputs import clean_stale, output_set, read_stamp
 from polins.io.schema import schema_markdown
-from polins.loop.offline import RunResult
 from polins.loop.tables import EVENT_COLUMNS, EventBuffer, measurement_frame
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,8 +73,13 @@ def fake_run_log(log, *, options=None, config=None, backend="eskf", workers=None
         rows.append(row)
     timing = {"run_s": 0.1, "loop_s": 0.1, "fuse_s": 0.0, "images": len(rows),
               "imu_samples": len(t_imu), "workers": 1.0, "measure_s_mean": 0.0}  # fmt: skip
-    return RunResult(sol, measurement_frame(rows), pd.DataFrame(events, columns=EVENT_COLUMNS),
-                     log.imu, timing, {"backend": backend})  # fmt: skip
+    var = np.radians(0.05) ** 2  # the innovation of NIS 0.8 for every measured image
+    updates = records_table([UpdateRecord(r["t"], "yaw", 1, 0.8, True, "", (np.sqrt(0.8 * var),),
+                                          (var,)) for r in rows if r["ok"]])  # fmt: skip
+    return FusionResult(sol, updates, pd.DataFrame(events, columns=EVENT_COLUMNS),
+                        config or FuseConfig.from_log(log), backend=backend,
+                        info={"timing": timing, "settings": {"backend": backend}, "imu_used": log.imu},
+                        measurements=measurement_frame(rows))  # fmt: skip
 
 
 @pytest.fixture

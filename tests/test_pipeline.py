@@ -101,7 +101,9 @@ def test_batch_heading_agrees_with_truth_within_sigma(sim_log, batch):
     assert np.all(
         (used["prior_t"] <= used["t"] - 1.0 + 1e-9) | (used["prior_t"] == used["prior_t"].min())
     )
-    s = summarize(batch.solution, m, batch.events, truth=log.truth, timing=batch.timing, settle_s=3)
+    s = summarize(
+        batch.solution, m, batch.events, truth=log.truth, timing=batch.info["timing"], settle_s=3
+    )
     heading = s["accuracy_vs_reference"]["heading"]
     assert heading["within_3sigma"] >= 0.95
     assert abs(heading["final_deg"]) < 3 * heading["final_sigma_deg"]
@@ -158,7 +160,7 @@ def test_bad_imu_samples_are_dropped_and_reported(sim_log, batch, tmp_path):
     result = run_log(dirty, workers=1, progress=False)
     kinds = result.events["kind"].value_counts()
     assert kinds["imu-out-of-order"] == 2 and kinds["imu-nonfinite"] == 1
-    assert len(result.imu) == len(imu)
+    assert len(result.info["imu_used"]) == len(imu)
     np.testing.assert_allclose(result.solution["yaw"], batch.solution["yaw"], atol=1e-12)
 
     gap = pd.concat([imu.iloc[:1000], imu.iloc[1040:]], ignore_index=True)  # 0.2 s missing
@@ -253,6 +255,10 @@ def test_cli_simulate_then_fuse(tmp_path, capsys):
     assert abs(heading["final_deg"]) < 3 * heading["final_sigma_deg"]
     assert summary["images"]["accepted_by_filter"] >= 40
     assert summary["timing"]["images_per_s"] > 0 and summary["timing"]["imu_samples_per_s"] > 0
+    # every kind's NIS with its verdict, printed and in the summary
+    assert set(summary["nis"]) == {"yaw", "odo", "nhc", "zupt"}, summary["nis"]
+    assert all(f"NIS {kind}" in out for kind in summary["nis"])
+    assert all(n["verdict"] and n["n"] > 0 for n in summary["nis"].values())
     meas = pd.read_csv(run / "measurements.csv")
     for col in ("t", "yaw", "heading_deg", "yaw_std", "heading_std_deg", "epsilon", "n_pixels",
                 "ok", "reason", "yaw_error"):  # fmt: skip
@@ -364,11 +370,21 @@ def test_run_log_runs_the_filter_once(sim_log, batch, monkeypatch):
     log = read_log(sim_log)
     result = run_log(log, workers=1, progress=False)
     assert len(built) == 1
-    assert len(result.solution) == len(log.imu) and result.timing["fuse_s"] < 1.0
+    assert len(result.solution) == len(log.imu) and result.info["timing"]["fuse_s"] < 1.0
     config = LoopOptions().filter_config(FuseConfig.from_log(log))
-    ref = fuse_measurements(result.imu, result.measurements, config,
-                            odometry=log.odometry).solution  # fmt: skip
+    fused = fuse_measurements(result.info["imu_used"], result.measurements, config,
+                              odometry=log.odometry)  # fmt: skip
+    ref = fused.solution
     assert len(built) == 2  # (the reference itself)
+    # the stream's update log holds every kind's updates, as the batch filter's
+    kinds = result.updates["name"].value_counts().to_dict()
+    assert kinds == fused.updates["name"].value_counts().to_dict()
+    assert set(kinds) == {"yaw", "nhc", "odo", "zupt"}, kinds
+    nis = summarize(result.solution, result.measurements, result.events,
+                    updates=result.updates)["nis"]  # fmt: skip
+    u = result.updates
+    used = u[u["accepted"] & (u["innovation"].map(len) > 0)]  # (the yaw alignment has none)
+    assert {k: v["n"] for k, v in nis.items()} == used["name"].value_counts().to_dict()
     # (a ground vehicle's 10 Hz NHC and standstill updates make the covariance steps, cut
     # where the stream's runs end, move bgz by ~1e-10 rad/s, ve and alt_m by ~3e-6)
     for col, atol in (("roll", 1e-9), ("pitch", 1e-9), ("yaw", 1e-9), ("yaw_std", 1e-7),

@@ -102,18 +102,24 @@ def cmd_fuse(args: argparse.Namespace) -> int:
     with output_set(args.out, command="fuse", known=FUSE_FILES) as out:
         result = run_log(log, options=options, config=config, backend=args.backend,
                          workers=args.workers, rot_nb0=rot_nb0, progress=not args.quiet)  # fmt: skip
-        summary = summarize(result.solution, result.measurements, result.events,
-                            truth=log.truth, timing=result.timing, settings=result.settings,
-                            settle_s=args.settle, gate_prob=config.gate_probability)  # fmt: skip
+        measurements = result.measurements  # the loop's: one row per image
+        assert measurements is not None
+        # every kind's NIS from the update log; the graph's log has no innovations, there
+        # the images' NIS come from the loop's table
+        settings = result.info["settings"]
+        summary = summarize(result.solution, measurements, result.events, truth=log.truth,
+                            timing=result.info["timing"], settings=settings,
+                            settle_s=args.settle, gate_prob=config.gate_probability,
+                            updates=result.updates if args.backend == "eskf" else None)  # fmt: skip
         verdict = run_verdict(summary, result.events, args.max_image_failures,
                               t_imu=log.imu["t"].to_numpy(dtype=float),
                               t_images=np.asarray(log.images.t, dtype=float),
-                              measurements=result.measurements)  # fmt: skip
+                              measurements=measurements)  # fmt: skip
         summary["status"] = verdict or "ok"
-        write_report(out.path, result.solution, result.measurements, result.events, summary,
+        write_report(out.path, result.solution, measurements, result.events, summary,
                      truth=log.truth, plots=not args.no_plots,
                      title=log.manifest_path.parent.name)  # fmt: skip
-        out.stamp["settings"] = {**result.settings, "filter": config.changes(),
+        out.stamp["settings"] = {**settings, "filter": config.changes(),
                                  "argv": sys.argv[1:], "status": summary["status"]}  # fmt: skip
         files = [*out.files(), "run.json"]
     print(format_summary(summary))

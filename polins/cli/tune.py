@@ -40,6 +40,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     options = LoopOptions(method=args.method)
     first = run_log(log, options=options, config=config, workers=args.workers,
                     progress=not args.quiet)  # fmt: skip
+    assert first.measurements is not None  # the loop's: one row per image
     result = tune(log.imu, first.measurements, options.filter_config(config), params,
                   odometry=log.odometry)  # fmt: skip
     model = dataclasses.replace(result.config.imu, name=out.stem,

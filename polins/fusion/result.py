@@ -48,7 +48,10 @@ class FusionResult:
     filtered : DataFrame or None
         The filtered (causal) solution when ``solution`` is smoothed, else None.
     info : dict
-        Facts of the backend: the solver, iterations, keyframes, timings [s], resets.
+        Facts of the backend: the solver, iterations, keyframes, timings [s], resets. From
+        ``run_log`` also ``timing`` (``run_s, loop_s, fuse_s, measure_s_mean`` [s] and the
+        counts ``images, imu_samples, workers``), ``settings`` (the run's options, for the
+        summary) and ``imu_used`` (the IMU samples the sample policy kept, a DataFrame).
     measurements : DataFrame or None
         The navigation loop's table, one row per image
         (``polins.loop.tables.MEASUREMENT_COLUMNS``); None outside the loop.

@@ -7,8 +7,8 @@ image), :mod:`polins.loop.stream` (:class:`NavigationStream`, the streaming stat
 (:func:`run_log` over a recorded log).
 """
 
-from polins.loop.offline import RunResult, run_log
+from polins.loop.offline import run_log
 from polins.loop.options import LoopOptions
 from polins.loop.stream import NavigationStream, StreamState
 
-__all__ = ["LoopOptions", "NavigationStream", "RunResult", "StreamState", "run_log"]
+__all__ = ["LoopOptions", "NavigationStream", "StreamState", "run_log"]

@@ -16,8 +16,6 @@ import dataclasses
 import math
 import os
 import time
-from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -35,35 +33,6 @@ from polins.loop.tables import EVENT_COLUMNS
 
 MEASUREMENT_INPUTS = ("t", "yaw", "yaw_std", "sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny",
                       "sun_nz", "sun_std", "prior_roll", "prior_pitch", "prior_yaw")  # fmt: skip
-
-
-@dataclass(frozen=True, eq=False)
-class RunResult:
-    """What :func:`run_log` produced.
-
-    Attributes
-    ----------
-    solution : DataFrame
-        The solution table at every accepted IMU sample (docs/filter.md lists its columns).
-    measurements : DataFrame
-        One row per image (``polins.loop.tables.MEASUREMENT_COLUMNS``).
-    events : DataFrame
-        ``t, kind, detail`` of skipped data and gaps.
-    imu : DataFrame
-        The IMU samples used (after the sample policy).
-    timing : dict
-        ``run_s, loop_s, fuse_s, images, imu_samples, workers, measure_s_mean`` [s, counts];
-        ``fuse_s`` is the time of the final solution after the loop.
-    settings : dict
-        Options of the run (for the summary).
-    """
-
-    solution: pd.DataFrame
-    measurements: pd.DataFrame
-    events: pd.DataFrame
-    imu: pd.DataFrame
-    timing: dict[str, float]
-    settings: dict[str, Any]
 
 
 def fuse_measurements(
@@ -113,7 +82,7 @@ def run_log(
     workers: int | None = None,
     rot_nb0: Rotation | None = None,
     progress: bool = True,
-) -> RunResult:
+) -> FusionResult:
     """Measurement and fusion of a recorded log: the Eq. 13 loop, its filter run once.
 
     Parameters
@@ -132,6 +101,13 @@ def run_log(
         Initial attitude; default self-alignment.
     progress : bool
         tqdm progress bar over the images.
+
+    Returns
+    -------
+    FusionResult
+        With ``measurements`` (one row per image), ``updates`` (every measurement kind:
+        images, odometer, NHC, ZUPT) and in ``info``: ``timing``, ``settings`` and
+        ``imu_used`` (``FusionResult`` lists them).
     """
     from tqdm import tqdm
 
@@ -196,13 +172,13 @@ def run_log(
         events = pd.concat([loaded, events], ignore_index=True)
     imu_used = imu.loc[used].reset_index(drop=True)
     t_fuse = time.perf_counter()
+    config = stream.config.replace(smooth=base.output.smooth)
     if own_solution:
-        solution = stream.drain_solution()
+        fused = FusionResult(stream.drain_solution(), stream.drain_updates(), events, config)
     else:
-        config = stream.config.replace(smooth=base.output.smooth)
-        solution = fuse_measurements(
+        fused = fuse_measurements(
             imu_used, measurements, config, rot_nb0=rot_nb0, backend=backend, odometry=odometry
-        ).solution
+        )
     end = time.perf_counter()
     measure_s = measurements["measure_s"].to_numpy(dtype=float)
     settings = {
@@ -232,7 +208,9 @@ def run_log(
         if np.isfinite(measure_s).any()
         else math.nan,
     }
-    return RunResult(solution, measurements, events, imu_used, timing, settings)
+    info = {**fused.info, "timing": timing, "settings": settings, "imu_used": imu_used}
+    return dataclasses.replace(fused, events=events, backend=backend, info=info,
+                               measurements=measurements)  # fmt: skip
 
 
-__all__ = ["MEASUREMENT_INPUTS", "RunResult", "fuse_measurements", "run_log"]
+__all__ = ["MEASUREMENT_INPUTS", "fuse_measurements", "run_log"]

@@ -77,7 +77,7 @@ from polins.fusion.faults import (
     gap_reason,
 )
 from polins.fusion.inputs import PRIOR_COLUMNS, heading_proxy
-from polins.fusion.items import UpdateRecord
+from polins.fusion.items import UpdateRecord, records_table
 from polins.fusion.vehicle import odometer_items
 from polins.ins.state import NavState
 from polins.loop.measurer import (
@@ -195,6 +195,7 @@ class NavigationStream:
         self._images: deque[PendingImage] = deque()  # added, not yet handed to the filter
         self._by_t: dict[float, dict[str, Any]] = {}  # handed over, awaiting the verdict
         self._rows: deque[dict[str, Any]] = deque(maxlen=self.options.max_table_rows)
+        self._updates: deque[UpdateRecord] = deque(maxlen=self.options.max_table_rows)
         self._events = EventBuffer(self.options.max_table_rows)
         # the fault policy of every path (polins.fusion.faults, docs/faults.md)
         full_scale = imu_model.full_scale()
@@ -244,6 +245,13 @@ class NavigationStream:
         rows = list(self._rows)
         self._rows.clear()
         return measurement_frame(rows)
+
+    def drain_updates(self) -> pd.DataFrame:
+        """The filter's update log since the last call, every measurement kind (images,
+        odometer, NHC, ZUPT): ``polins.fusion.items.records_table``, oldest first."""
+        records = list(self._updates)
+        self._updates.clear()
+        return records_table(records)
 
     def drain_solution(self) -> pd.DataFrame:
         """The filter's estimate at every filtered IMU sample since the last call
@@ -559,6 +567,7 @@ class NavigationStream:
     def _collect(self, records: Iterable[UpdateRecord]) -> None:
         for rec in records:
             self._head_valid = False
+            self._updates.append(rec)
             row = self._by_t.pop(rec.t, None) if rec.name in ("yaw", "sun") else None
             if row is None:
                 continue
