@@ -172,15 +172,7 @@ def main() -> None:
     camera = Camera(traj, image_t, dropout, clock, node.images, args.seed)
     camera.start()
     data = imu[["t", "gx", "gy", "gz", "ax", "ay", "az"]].to_numpy()
-    wall0 = time.perf_counter()
-    cond = clock["cond"]
-    for row in data:  # the IMU driver: one callback per sample
-        with cond:
-            cond.wait_for(lambda t=row[0]: clock["camera_due"] > t - 0.1)
-            clock["t"] = row[0]
-            cond.notify_all()
-        node.on_imu(row[0], row[1:4], row[4:7])
-    wall = time.perf_counter() - wall0
+    wall = drive_imu(node, data, clock)
     camera.join()
     node.nav.close()
     events = node.nav.drain_events()
@@ -211,6 +203,28 @@ def main() -> None:
     counts = {str(k): int(v) for k, v in events["kind"].value_counts().items()}
     print(f"events: {counts if counts else 'none'}")
 
+    plot_heading(table, dropout, args.out / "stream_heading.png")
+    table.to_csv(args.out / "timer_ticks.csv", index=False)
+    print(f"figure stream_heading.png and timer_ticks.csv in {args.out}")
+
+
+def drive_imu(node: NavigationNode, data: np.ndarray, clock: dict) -> float:
+    """The IMU driver: one ``on_imu`` callback per sample row ``(t, gyro_b, accel_b)``, each
+    after the camera thread has delivered the images due; the wall time taken [s]."""
+    wall0 = time.perf_counter()
+    cond = clock["cond"]
+    for row in data:
+        with cond:
+            cond.wait_for(lambda t=row[0]: clock["camera_due"] > t - 0.1)
+            clock["t"] = row[0]
+            cond.notify_all()
+        node.on_imu(row[0], row[1:4], row[4:7])
+    return time.perf_counter() - wall0
+
+
+def plot_heading(table: pd.DataFrame, dropout: tuple[float, float], path: Path) -> None:
+    """Heading error with the stream's ±3σ and the heading sigma at the timer ticks."""
+    ok = table["status"] == "ok"
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
     t_ok = table.loc[ok, "t"]
     sig = 3 * table.loc[ok, "heading_std_deg"]
@@ -229,10 +243,8 @@ def main() -> None:
     ax2.set_xlabel("time [s]")
     ax2.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    fig.savefig(args.out / "stream_heading.png", dpi=100)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
-    table.to_csv(args.out / "timer_ticks.csv", index=False)
-    print(f"figure stream_heading.png and timer_ticks.csv in {args.out}")
 
 
 if __name__ == "__main__":

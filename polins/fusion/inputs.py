@@ -209,6 +209,24 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
     df = _require_frame(measurements, "measurements")
     if "t" not in df.columns:
         raise UserInputError("measurements table lacks column 't'")
+    present = _measurement_groups(df)
+    t = _numeric(df, ("t",), "measurements")[:, 0]
+    _check_times(t, "measurements")
+    if present["yaw"]:
+        _check_yaw(df)
+    if present["sun"]:
+        _check_sun_vectors(df)
+    _check_sun_angles(df)
+    if present["zupt"]:
+        _check_std(_numeric(df, ZUPT_COLUMNS, "measurements")[:, 0], "zupt_std", np.inf)
+    if present["prior"]:
+        _check_prior(df)
+    return df
+
+
+def _measurement_groups(df: pd.DataFrame) -> dict[str, list[str]]:
+    """The columns of each group (yaw, sun, zupt, sun_azimuth, prior) present in ``df``;
+    refuses an incomplete group and a non-empty table without a measurement group."""
     groups = {"yaw": YAW_COLUMNS, "sun": SUN_COLUMNS, "zupt": ZUPT_COLUMNS,
               "sun_azimuth": SUN_AZIMUTH_COLUMNS}  # fmt: skip
     present = {g: [c for c in cols if c in df.columns] for g, cols in groups.items()}
@@ -222,28 +240,37 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
             "measurements table has no measurement columns; expected yaw, yaw_std and/or "
             f"{list(SUN_COLUMNS)} and/or zupt_std"
         )
-    t = _numeric(df, ("t",), "measurements")[:, 0]
-    _check_times(t, "measurements")
-    if present["yaw"]:
-        yaw, std = _numeric(df, YAW_COLUMNS, "measurements").T
-        big = np.flatnonzero(np.abs(yaw) > 2.0 * np.pi)
-        if big.size:
+    return present
+
+
+def _check_yaw(df: pd.DataFrame) -> None:
+    """Yaw in [-2 pi, 2 pi] (radians) and its sigma."""
+    yaw, std = _numeric(df, YAW_COLUMNS, "measurements").T
+    big = np.flatnonzero(np.abs(yaw) > 2.0 * np.pi)
+    if big.size:
+        raise UserInputError(
+            f"measurements: yaw={yaw[big[0]]:.4g} at row {big[0]} is outside "
+            "[-2 pi, 2 pi]; yaw must be in radians (ENU, counter-clockwise from East)"
+        )
+    _check_std(std, "yaw_std", np.pi)
+
+
+def _check_sun_vectors(df: pd.DataFrame) -> None:
+    """Unit measured and reference sun vectors (1 % tolerance) and their sigma."""
+    sun = _numeric(df, SUN_COLUMNS, "measurements")
+    for name, vec in (("sun_b", sun[:, 0:3]), ("sun_n", sun[:, 3:6])):
+        norm = np.linalg.norm(vec, axis=1)
+        bad = np.flatnonzero(np.isfinite(norm) & (np.abs(norm - 1.0) > 0.01))
+        if bad.size:
             raise UserInputError(
-                f"measurements: yaw={yaw[big[0]]:.4g} at row {big[0]} is outside "
-                "[-2 pi, 2 pi]; yaw must be in radians (ENU, counter-clockwise from East)"
+                f"measurements: {name} at row {bad[0]} has norm {norm[bad[0]]:.4g}; "
+                "sun vectors must be unit vectors"
             )
-        _check_std(std, "yaw_std", np.pi)
-    if present["sun"]:
-        sun = _numeric(df, SUN_COLUMNS, "measurements")
-        for name, vec in (("sun_b", sun[:, 0:3]), ("sun_n", sun[:, 3:6])):
-            norm = np.linalg.norm(vec, axis=1)
-            bad = np.flatnonzero(np.isfinite(norm) & (np.abs(norm - 1.0) > 0.01))
-            if bad.size:
-                raise UserInputError(
-                    f"measurements: {name} at row {bad[0]} has norm {norm[bad[0]]:.4g}; "
-                    "sun vectors must be unit vectors"
-                )
-        _check_std(sun[:, 6], "sun_std", np.pi)
+    _check_std(sun[:, 6], "sun_std", np.pi)
+
+
+def _check_sun_angles(df: pd.DataFrame) -> None:
+    """The sun's body azimuth and elevation, where given, in radians, and their sigmas."""
     for name, upper in (("sun_azimuth_b", 2.0 * np.pi), ("sun_elevation_b", np.pi / 2)):
         if name in df.columns:
             angle = _numeric(df, (name,), "measurements")[:, 0]
@@ -256,17 +283,17 @@ def validate_measurements(measurements: pd.DataFrame | None) -> pd.DataFrame:
     for name in ("sun_azimuth_b_std", "sun_elevation_b_std"):
         if name in df.columns:
             _check_std(_numeric(df, (name,), "measurements")[:, 0], name, np.pi)
-    if present["zupt"]:
-        _check_std(_numeric(df, ZUPT_COLUMNS, "measurements")[:, 0], "zupt_std", np.inf)
-    if present["prior"]:
-        angles = _numeric(df, PRIOR_COLUMNS, "measurements")
-        big = np.flatnonzero(np.any(np.abs(angles) > 2.0 * np.pi, axis=1))
-        if big.size:
-            raise UserInputError(
-                f"measurements: prior angles at row {big[0]} are outside [-2 pi, 2 pi]; "
-                "prior_roll, prior_pitch, prior_yaw must be in radians"
-            )
-    return df
+
+
+def _check_prior(df: pd.DataFrame) -> None:
+    """The attitude prior's angles in [-2 pi, 2 pi] (radians)."""
+    angles = _numeric(df, PRIOR_COLUMNS, "measurements")
+    big = np.flatnonzero(np.any(np.abs(angles) > 2.0 * np.pi, axis=1))
+    if big.size:
+        raise UserInputError(
+            f"measurements: prior angles at row {big[0]} are outside [-2 pi, 2 pi]; "
+            "prior_roll, prior_pitch, prior_yaw must be in radians"
+        )
 
 
 def _check_std(std: FloatArray, name: str, upper: float) -> None:

@@ -203,11 +203,9 @@ def items_from_table(
     sun_b = np.column_stack([col(f"sun_b{c}") for c in "xyz"])
     sun_n = np.column_stack([col(f"sun_n{c}") for c in "xyz"])
     sun_std, zupt_std = col("sun_std"), col("zupt_std")
-    prior = np.column_stack([col(c) for c in ("prior_yaw", "prior_pitch", "prior_roll")])
-    prior_ok = np.all(np.isfinite(prior), axis=1)
-    mat_prior = np.full((n, 3, 3), np.nan)
-    if prior_ok.any():
-        mat_prior[prior_ok] = rot_nb_from_euler(*prior[prior_ok].T).as_matrix()
+    mat_prior, prior_ok = _prior_matrices(
+        np.column_stack([col(c) for c in ("prior_yaw", "prior_pitch", "prior_roll")])
+    )
     with np.errstate(invalid="ignore"):
         n_ok = np.all(np.isfinite(sun_n), axis=1)
         sun_ok = has_sun & np.all(np.isfinite(sun_b), axis=1) & n_ok & _sigma_ok(sun_std)
@@ -221,10 +219,7 @@ def items_from_table(
             yaw_ok = np.isfinite(yaw) & _sigma_ok(yaw_std)
     model_std = np.zeros(n)
     if heading_bias == "fixed" and "yaw_std_correlated" in df:
-        part = np.nan_to_num(col("yaw_std_correlated"))
-        with np.errstate(invalid="ignore", divide="ignore"):  # a share of the heading sigma
-            white = np.sqrt(np.maximum(1.0 - (part / yaw_std) ** 2, 0.01))
-        white = np.where(np.isfinite(white), white, 1.0)
+        white = _white_share(col("yaw_std_correlated"), yaw_std)
         yaw_std = np.where(yaw_ok, yaw_std * white, yaw_std)
         sun_std = np.where(sun_ok, sun_std * white, sun_std)
     elif heading_bias == "model":
@@ -298,6 +293,25 @@ def correlated_model_std(yaw_std_model: ArrayLike, yaw_std_noise: ArrayLike) -> 
     with np.errstate(invalid="ignore"):
         excess = model**2 - (NOISE_ALLOWANCE * noise) ** 2
     return np.sqrt(np.maximum(np.nan_to_num(excess), 0.0))
+
+
+def _prior_matrices(prior: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The prior attitude matrices ``mat_nb`` of ``(yaw, pitch, roll)`` rows [rad] (NaN
+    where a row is incomplete) and which rows are complete."""
+    prior_ok = np.all(np.isfinite(prior), axis=1)
+    mat_prior = np.full((prior.shape[0], 3, 3), np.nan)
+    if prior_ok.any():
+        mat_prior[prior_ok] = rot_nb_from_euler(*prior[prior_ok].T).as_matrix()
+    return mat_prior, prior_ok
+
+
+def _white_share(yaw_std_correlated: FloatArray, yaw_std: FloatArray) -> FloatArray:
+    """The factor on heading sigmas that leaves the part a fixed heading-bias state does not
+    carry: ``sqrt(1 - (part / yaw_std)^2)``, at least a tenth; 1 where undefined."""
+    part = np.nan_to_num(yaw_std_correlated)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a share of the heading sigma
+        white = np.sqrt(np.maximum(1.0 - (part / yaw_std) ** 2, 0.01))
+    return np.where(np.isfinite(white), white, 1.0)
 
 
 def _sigma_ok(std: FloatArray) -> NDArray[np.bool_]:

@@ -619,50 +619,60 @@ class NavigationStream:
 
     def _advance(self, *, block: bool, final: bool = False) -> None:
         """Dispatch images whose prior is known, hand results over, filter IMU samples."""
-        f = self.filter
-        if f is None:
+        if self.filter is None:
             return
-        tol = self._tol
-        delay = self.options.max_image_delay_s
         while True:
             progressed = self._skip_in_gaps()
-            for img in self._images:  # in time order: priors become known in order
-                if img.dispatched:
-                    continue
-                if not self._prior_ready(img):
-                    break
-                self._dispatch(img)
-                progressed = True
-            while self._buf:
-                t_next = self._buf[0][0]
-                if self._images and self._images[0].t <= t_next + tol:
-                    img = self._images[0]
-                    if not img.dispatched and not f.ready:  # no prior can ever come
-                        self._images.popleft()
-                        self._skip(img.index, img.t, "image-during-alignment",
-                                   "no attitude yet (self-alignment still levelling)")  # fmt: skip
-                        progressed = True
-                        continue
-                    if not img.dispatched or not (img.resolved or block):
-                        break
-                    self._images.popleft()
-                    self._hand_over(img)
-                    progressed = True
-                    continue
-                if (
-                    not final
-                    and t_next > self._screen.t_latest - delay
-                    and t_next > self._t_last_image
-                ):
-                    break  # an image up to max_image_delay_s late may still come
-                self._filter_run(self._runnable(final))
-                progressed = True
+            progressed = self._dispatch_ready() or progressed
+            progressed = self._drain(block=block, final=final) or progressed
             if not progressed:
                 if block and any(img.future is not None and not img.resolved
                                  for img in self._images):  # fmt: skip
                     self._wait_oldest()
                     continue
                 return
+
+    def _dispatch_ready(self) -> bool:
+        """Dispatch the waiting images whose prior is known; True if any was."""
+        progressed = False
+        for img in self._images:  # in time order: priors become known in order
+            if img.dispatched:
+                continue
+            if not self._prior_ready(img):
+                break
+            self._dispatch(img)
+            progressed = True
+        return progressed
+
+    def _drain(self, *, block: bool, final: bool) -> bool:
+        """Hand the images due before the next buffered IMU sample over and filter the
+        samples no image can still precede; True if anything was done."""
+        f = self.filter
+        assert f is not None
+        tol = self._tol
+        delay = self.options.max_image_delay_s
+        progressed = False
+        while self._buf:
+            t_next = self._buf[0][0]
+            if self._images and self._images[0].t <= t_next + tol:
+                img = self._images[0]
+                if not img.dispatched and not f.ready:  # no prior can ever come
+                    self._images.popleft()
+                    self._skip(img.index, img.t, "image-during-alignment",
+                               "no attitude yet (self-alignment still levelling)")  # fmt: skip
+                    progressed = True
+                    continue
+                if not img.dispatched or not (img.resolved or block):
+                    break
+                self._images.popleft()
+                self._hand_over(img)
+                progressed = True
+                continue
+            if not final and t_next > self._screen.t_latest - delay and t_next > self._t_last_image:
+                break  # an image up to max_image_delay_s late may still come
+            self._filter_run(self._runnable(final))
+            progressed = True
+        return progressed
 
 
 __all__ = ["NavigationStream", "StreamState"]

@@ -78,6 +78,22 @@ FloatArray = NDArray[np.float64]
 log = logging.getLogger("polins.fusion")
 
 
+def _innovation(
+    lin: Linearized, x: FloatArray, P: FloatArray
+) -> tuple[float, tuple[float, ...], tuple[float, ...]]:
+    """The NIS, the innovation and its covariance (row-major) for the update log."""
+    H = lin.H
+    if lin.residual.shape[0] == 1:  # scalar innovation: dot products
+        h = H[0]
+        y1 = float(lin.residual[0]) - float(h @ x)
+        s1 = float(h @ (P @ h)) + float(lin.R[0, 0])
+        return y1 * y1 / s1, (y1,), (s1,)
+    y = lin.residual - H @ x
+    Sm = H @ (P @ H.T) + lin.R
+    nis = float(y @ np.linalg.solve(Sm, y))
+    return nis, tuple(y.tolist()), tuple(Sm.ravel().tolist())
+
+
 class ESKF:
     """Error-state Kalman filter holding its state; streaming interface (module docstring).
 
@@ -453,29 +469,34 @@ class ESKF:
         if not item.valid:
             return self.reject(item, item.reason or "invalid measurement")
         if self.model_part is not None and item.kind in HEADING_KINDS:
-            i = self.layout.index["heading_bias"].start
-            item, density = self.model_part.take(item, self.P, i)
-            if density != self.qc[i]:
-                self.qc = self.qc.copy()  # shared with copies of the filter
-                self.qc[i] = density
+            item = self._model_heading_bias(item)
         if not self.yaw_aligned and item.kind in ("yaw", "sun"):
             return hold_heading(self, item, None)
         if item.kind == "odo":  # the lever arm at the current rate, the scale estimate
             item = self.vehicle.odometer(item, self.errors, self._cur)
-        lin = self.linearize(item)
-        H, dim = lin.H, lin.residual.shape[0]
-        nu: tuple[float, ...]  # the innovation and its covariance, for the update log
-        S: tuple[float, ...]
-        if dim == 1:  # scalar innovation: dot products
-            h = H[0]
-            y1 = float(lin.residual[0]) - float(h @ self.x)
-            s1 = float(h @ (self.P @ h)) + float(lin.R[0, 0])
-            nis, nu, S = y1 * y1 / s1, (y1,), (s1,)
-        else:
-            y = lin.residual - H @ self.x
-            Sm = H @ (self.P @ H.T) + lin.R
-            nis = float(y @ np.linalg.solve(Sm, y))
-            nu, S = tuple(y.tolist()), tuple(Sm.ravel().tolist())
+        rec = self._gate_and_update(item, self.linearize(item))
+        x_att = self.x[0:3]
+        if (
+            self.t - self.t_reset >= self.reset_interval_s
+            or float(np.dot(x_att, x_att)) > RESET_ANGLE_RAD**2
+        ):
+            self.reset()
+        return rec
+
+    def _model_heading_bias(self, item: MeasurementItem) -> MeasurementItem:
+        """Pass a heading through the heading-bias model; adopt its process-noise density."""
+        assert self.model_part is not None
+        i = self.layout.index["heading_bias"].start
+        item, density = self.model_part.take(item, self.P, i)
+        if density != self.qc[i]:
+            self.qc = self.qc.copy()  # shared with copies of the filter
+            self.qc[i] = density
+        return item
+
+    def _gate_and_update(self, item: MeasurementItem, lin: Linearized) -> UpdateRecord:
+        """Chi-square gate on the NIS; the Kalman update if it passes, logged either way."""
+        nis, nu, S = _innovation(lin, self.x, self.P)
+        dim = lin.residual.shape[0]
         limit = gate_limit(self.config.gate_probability, dim)
         if nis > limit:
             reason = (f"NIS above the gate: {nis:.3g} > {limit:.3g} (chi2, {dim} dof, "
@@ -484,21 +505,14 @@ class ESKF:
             if item.kind in ("yaw", "sun"):
                 self.acquisition.rejections += 1
                 rec = hold_heading(self, item, rec)
-        else:
-            if item.kind in ("yaw", "sun") and self.acquisition.held:
-                self.acquisition.clear()
-            x_before = self.x
-            update = kf_update if self.yaw_aligned else yaw_consider_update  # yaw unknown
-            self.x, self.P = update(self.x, self.P, lin.residual, lin.R, H)
-            self.correction += self.x - x_before
-            rec = self._record(item, dim, nis, True, "", nu, S)
-        x_att = self.x[0:3]
-        if (
-            self.t - self.t_reset >= self.reset_interval_s
-            or float(np.dot(x_att, x_att)) > RESET_ANGLE_RAD**2
-        ):
-            self.reset()
-        return rec
+            return rec
+        if item.kind in ("yaw", "sun") and self.acquisition.held:
+            self.acquisition.clear()
+        x_before = self.x
+        update = kf_update if self.yaw_aligned else yaw_consider_update  # yaw unknown
+        self.x, self.P = update(self.x, self.P, lin.residual, lin.R, lin.H)
+        self.correction += self.x - x_before
+        return self._record(item, dim, nis, True, "", nu, S)
 
     def reset(self) -> None:
         """Inject the error estimate into the nominal state and zero it (reset Jacobian I)."""

@@ -182,21 +182,8 @@ class Problem:
 
         self.meas: list[MeasFactor] = []
         self.outside: list[MeasurementItem] = []
-        for it, t in zip(aiding, t_aid, strict=True):
-            k = self.key_of(t)
-            if k is None:
-                self.outside.append(it)
-            else:
-                self.meas.append(MeasFactor(k, it, self._aiding_factor(X(k), it)))
-        self.aux: list[list[gtsam.NonlinearFactor]] = [[] for _ in range(n_key)]
-        for it in nhcs:
-            k = self.key_of(it.t)
-            if k is not None and self.states.sees(it):  # the mounting variable
-                self.aux[k].append(self.states.factor(it, k, X(k), V(k), False))
-            elif k is not None:
-                self.aux[k].append(
-                    non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b)
-                )
+        self._place_headings(aiding, t_aid)
+        self.aux = self._nhc_factors(nhcs, n_key)
         # else unknown until the first yaw / sun; no clock: relative to the first yaw
         self.yaw_given = rot_nb0 is not None or config.no_clock
         self.held: list[UpdateRecord] = []  # headings rejected by the yaw acquisition
@@ -210,17 +197,45 @@ class Problem:
         # Zero velocity: gated like the headings (the standstill detector also fires at
         # a constant speed; the ESKF's gate rejects those updates too).
         self.detected: set[int] = set()  # those of the standstill detector
+        self._place_zupts(zupts, t_zupt, n_given)
+        keys = [self.key_of(t) for t in t_odo]
+        self.meas += [MeasFactor(*m) for m in self.states.odometer(odos, keys, t_imu, gyro)]
+        self.meas_at: list[list[int]] = [[] for _ in range(n_key)]
+        for i, mf in enumerate(self.meas):
+            self.meas_at[mf.k].append(i)
+
+    def _place_headings(self, aiding: list[MeasurementItem], t_aid: list[float]) -> None:
+        """The yaw / sun factors at their keyframes; items outside the keyframes kept aside."""
+        for it, t in zip(aiding, t_aid, strict=True):
+            k = self.key_of(t)
+            if k is None:
+                self.outside.append(it)
+            else:
+                self.meas.append(MeasFactor(k, it, self._aiding_factor(X(k), it)))
+
+    def _nhc_factors(
+        self, nhcs: list[MeasurementItem], n_key: int
+    ) -> list[list[gtsam.NonlinearFactor]]:
+        """The non-holonomic constraints of each keyframe (through the mounting variable
+        when the run estimates it)."""
+        aux: list[list[gtsam.NonlinearFactor]] = [[] for _ in range(n_key)]
+        for it in nhcs:
+            k = self.key_of(it.t)
+            if k is not None and self.states.sees(it):  # the mounting variable
+                aux[k].append(self.states.factor(it, k, X(k), V(k), False))
+            elif k is not None:
+                aux[k].append(non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b))
+        return aux
+
+    def _place_zupts(self, zupts: list[MeasurementItem], t_zupt: list[float], n_given: int) -> None:
+        """The zero-velocity factors at their keyframes; those after the first ``n_given``
+        (the standstill detector's) are marked in ``self.detected``."""
         for j, (it, t) in enumerate(zip(zupts, t_zupt, strict=True)):
             k = self.key_of(t)
             if k is not None:
                 if j >= n_given:
                     self.detected.add(len(self.meas))
                 self.meas.append(MeasFactor(k, it, zero_velocity_factor(V(k), it.std)))
-        keys = [self.key_of(t) for t in t_odo]
-        self.meas += [MeasFactor(*m) for m in self.states.odometer(odos, keys, t_imu, gyro)]
-        self.meas_at: list[list[int]] = [[] for _ in range(n_key)]
-        for i, mf in enumerate(self.meas):
-            self.meas_at[mf.k].append(i)
 
     def _params(self, **densities: Any) -> gtsam.PreintegrationCombinedParams:
         """Preintegration parameters of the run with the densities ``densities`` replaced

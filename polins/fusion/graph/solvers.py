@@ -271,9 +271,22 @@ def solve_incremental(
     gated factors: index into ``prob.meas`` -> (NIS, reason); ``scale=False`` leaves the
     scale-factor variables out.
     """
-    c = prob.config
-    solver = solver or c.graph.solver
-    scale = scale and prob.scale_jac is not None
+    run = _IncrementalRun(
+        prob, records, solver or prob.config.graph.solver, rejected,
+        scale and prob.scale_jac is not None,
+    )  # fmt: skip
+    run.start()
+    for k in range(len(prob.t_key) - 1):
+        run.step(k)
+    for k in run.pending:
+        run.record(k)
+    info.update(n_keyframes=len(prob.t_key))
+    return run.est
+
+
+def _isam2_params(prob: Problem, solver: str) -> gtsam.ISAM2Params:
+    """ISAM2 parameters of an incremental solve: QR, per-variable relinearization
+    thresholds, and for the fixed-lag smoother all deltas kept current."""
     isam_params = gtsam.ISAM2Params()
     isam_params.setFactorization("QR")
     # Relinearize on attitude and velocity changes only: the IMU factors are linear in
@@ -300,18 +313,37 @@ def solve_incremental(
         # smoother reports them late: update them all (cheap in a bounded window). ISAM2
         # reports the newest keyframe, whose delta is always current.
         isam_params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(0.0))
-    engine: Any = (
-        gtsam.ISAM2(isam_params)
-        if solver == "isam2"
-        else gtsam.IncrementalFixedLagSmoother(c.graph.lag_s, isam_params)
-    )
-    n_key = len(prob.t_key)
-    est = Estimates.empty(n_key, prob.states.n)
-    seen_aiding = False
-    pending: list[int] = []  # fixed lag: keyframes not reported yet
+    return isam_params
 
-    def record(k: int) -> None:
-        est.store(
+
+class _IncrementalRun:
+    """One incremental solve (:func:`solve_incremental`): its engine, the estimates
+    reported so far and the gate's state; keyframe by keyframe."""
+
+    def __init__(
+        self,
+        prob: Problem,
+        records: list[UpdateRecord],
+        solver: str,
+        rejected: dict[int, tuple[float, str]] | None,
+        scale: bool,
+    ) -> None:
+        self.prob, self.records, self.solver = prob, records, solver
+        self.rejected, self.scale = rejected, scale
+        params = _isam2_params(prob, solver)
+        self.engine: Any = (
+            gtsam.ISAM2(params)
+            if solver == "isam2"
+            else gtsam.IncrementalFixedLagSmoother(prob.config.graph.lag_s, params)
+        )
+        self.est = Estimates.empty(len(prob.t_key), prob.states.n)
+        self.seen_aiding = False
+        self.pending: list[int] = []  # fixed lag: keyframes not reported yet
+
+    def record(self, k: int) -> None:
+        """Store the engine's estimates and marginals of keyframe ``k``."""
+        prob, engine = self.prob, self.engine
+        self.est.store(
             k,
             engine.calculateEstimatePose3(X(k)),
             engine.calculateEstimateVector(V(k)),
@@ -319,17 +351,17 @@ def solve_incremental(
             engine.marginalCovariance(X(k)),
             engine.marginalCovariance(V(k)),
             engine.marginalCovariance(B(k)),
-            seen_aiding or prob.yaw_given,
+            self.seen_aiding or prob.yaw_given,
             prob.states.read(k, engine.calculateEstimateVector, engine.marginalCovariance),
         )
-        if scale:
-            est.store_scale(k, engine.calculateEstimateVector, engine.marginalCovariance)
+        if self.scale:
+            self.est.store_scale(k, engine.calculateEstimateVector, engine.marginalCovariance)
 
     def gated(
-        k: int, state: gtsam.NavState, cov_prev: FloatArray, extra: FloatArray
+        self, k: int, state: gtsam.NavState, cov_prev: FloatArray, extra: FloatArray
     ) -> list[gtsam.NonlinearFactor]:
         """Measurement factors at keyframe k that pass the chi-square gate."""
-        nonlocal seen_aiding
+        prob, records = self.prob, self.records
         out = []
         mat = state.attitude().matrix()
         for i in prob.meas_at[k]:
@@ -341,81 +373,94 @@ def solve_incremental(
             else:
                 s = lin.H @ cov_prev @ lin.H.T + lin.R
                 nis = float(lin.residual @ np.linalg.solve(s, lin.residual))
-            limit = gate_limit(c.gate_probability, lin.dim)
-            if (seen_aiding or not heading) and nis > limit:
+            limit = gate_limit(prob.config.gate_probability, lin.dim)
+            if (self.seen_aiding or not heading) and nis > limit:
                 reason = f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {lin.dim} dof)"
                 records.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
-                if rejected is not None:
-                    rejected[i] = (nis, reason)
+                if self.rejected is not None:
+                    self.rejected[i] = (nis, reason)
                 continue
             # The first heading (yaw/sun) is not gated: it aligns the yaw.
             records.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, True, ""))
             out.append(mf.factor)
-            seen_aiding = seen_aiding or heading
+            self.seen_aiding = self.seen_aiding or heading
         return out
 
-    def update(k: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
-        if solver == "isam2":
+    def update(self, k: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        """Add keyframe ``k``'s factors and values; ISAM2 reports it at once, the fixed-lag
+        smoother the keyframes about to leave its window."""
+        prob, engine, pending = self.prob, self.engine, self.pending
+        if self.solver == "isam2":
             engine.update(graph, values)
-            record(k)
+            self.record(k)
             return
         t_k = float(prob.t_key[k])
-        while pending and prob.t_key[pending[0]] < t_k - c.graph.lag_s:
-            record(pending.pop(0))  # last chance before it is marginalized
+        while pending and prob.t_key[pending[0]] < t_k - prob.config.graph.lag_s:
+            self.record(pending.pop(0))  # last chance before it is marginalized
         stamps = {X(k): t_k, V(k): t_k, B(k): t_k, **prob.states.timestamps(k, t_k)}
-        if scale:
+        if self.scale:
             stamps.update(dict.fromkeys(prob.scale_values(k).keys(), t_k))
         engine.update(graph, values, stamps)
         pending.append(k)
 
-    graph = gtsam.NonlinearFactorGraph()
-    n_cov = N_ERROR + prob.states.n
-    guess = prob.states.guess
-    first = gated(0, prob.state0, np.full((n_cov, n_cov), np.nan), guess)
-    for f in prob.priors + list(prob.aux[0]) + first:
-        graph.add(f)
-    values = gtsam.Values()
-    values.insert(X(0), prob.state0.pose())
-    values.insert(V(0), prob.state0.velocity())
-    values.insert(B(0), prob.bias0)
-    if scale:
-        values.insert(prob.scale_values(0))
-        for f in prob.scale_factors_at(0):
+    def start(self) -> None:
+        """The first keyframe: the priors, its constraints and its gated measurements."""
+        prob = self.prob
+        graph = gtsam.NonlinearFactorGraph()
+        n_cov = N_ERROR + prob.states.n
+        guess = prob.states.guess
+        first = self.gated(0, prob.state0, np.full((n_cov, n_cov), np.nan), guess)
+        for f in prob.priors + list(prob.aux[0]) + first:
             graph.add(f)
-    values.insert(prob.states.initial(0, guess))
-    update(0, graph, values)
-    for k in range(n_key - 1):
-        if solver == "isam2":
-            state, bias = est.values(k)
-            cov_prev, extra = est.cov[k], est.extra[k]
-        else:
-            state = gtsam.NavState(
-                engine.calculateEstimatePose3(X(k)), engine.calculateEstimateVector(V(k))
-            )
-            bias = engine.calculateEstimateConstantBias(B(k))
-            cov_prev = fixed_lag_cov(engine, k, state, prob)
-            extra = prob.states.read(k, engine.calculateEstimateVector)[0]
+        values = gtsam.Values()
+        values.insert(X(0), prob.state0.pose())
+        values.insert(V(0), prob.state0.velocity())
+        values.insert(B(0), prob.bias0)
+        if self.scale:
+            values.insert(prob.scale_values(0))
+            for f in prob.scale_factors_at(0):
+                graph.add(f)
+        values.insert(prob.states.initial(0, guess))
+        self.update(0, graph, values)
+
+    def current(
+        self, k: int
+    ) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias, FloatArray, FloatArray]:
+        """Keyframe ``k``'s state, bias, error covariance and variables' estimates."""
+        prob, engine = self.prob, self.engine
+        if self.solver == "isam2":
+            state, bias = self.est.values(k)
+            return state, bias, self.est.cov[k], self.est.extra[k]
+        state = gtsam.NavState(
+            engine.calculateEstimatePose3(X(k)), engine.calculateEstimateVector(V(k))
+        )
+        bias = engine.calculateEstimateConstantBias(B(k))
+        cov_prev = fixed_lag_cov(engine, k, state, prob)
+        extra = prob.states.read(k, engine.calculateEstimateVector)[0]
+        return state, bias, cov_prev, extra
+
+    def step(self, k: int) -> None:
+        """Keyframe ``k + 1``: the IMU factor from ``k``, its constraints and its gated
+        measurements, at the IMU prediction."""
+        prob = self.prob
+        state, bias, cov_prev, extra = self.current(k)
         extra = prob.states.predict(extra, k)
         pim = prob.preintegrate(k, bias, prob.imu_correction(state))
         pred = pim.predict(state, bias)
         graph = gtsam.NonlinearFactorGraph()
-        graph.add(prob.imu_factor(k, pim, scale))
-        for f in list(prob.aux[k + 1]) + gated(k + 1, pred, cov_prev, extra):
+        graph.add(prob.imu_factor(k, pim, self.scale))
+        for f in list(prob.aux[k + 1]) + self.gated(k + 1, pred, cov_prev, extra):
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(k + 1), pred.pose())
         values.insert(V(k + 1), pred.velocity())
         values.insert(B(k + 1), bias)
         values.insert(prob.states.initial(k + 1, extra))
-        if scale:
+        if self.scale:
             values.insert(prob.scale_values(k + 1))
             for f in prob.scale_factors_at(k + 1):
                 graph.add(f)
-        update(k + 1, graph, values)
-    for k in pending:
-        record(k)
-    info.update(n_keyframes=n_key)
-    return est
+        self.update(k + 1, graph, values)
 
 
 def fixed_lag_cov(engine: Any, k: int, state: gtsam.NavState, prob: Problem) -> FloatArray:

@@ -401,6 +401,22 @@ class GraphStates:
         estimate and its columns :func:`~polins.fusion.measurement.mount_jacobian`; with the
         lever-arm variable, the lever arm plus its estimate and
         :func:`~polins.fusion.measurement.lever_jacobian`."""
+        it, lin = self._base_model(item, mat_nb, vel_n, tilt_coupling, extra)
+        if self.n == 0:
+            return lin
+        H, res = self._variable_columns(item, it, lin, extra)
+        return Linearized(wrap_residual(res, lin.name), H, lin.R, lin.name)
+
+    def _base_model(
+        self,
+        item: MeasurementItem,
+        mat_nb: FloatArray,
+        vel_n: FloatArray | None,
+        tilt_coupling: bool,
+        extra: FloatArray,
+    ) -> tuple[MeasurementItem, Linearized]:
+        """The item as modelled (an odometer speed scaled by ``1 + k``) and its shared model
+        over the 15 navigation errors, with the variables' estimates ``extra`` as states."""
         idx = self.index
         states: dict[str, FloatArray] = {}
         if "sun_azimuth_n" in idx:
@@ -417,8 +433,15 @@ class GraphStates:
                              sun_basis_b(item.sun_b), item.cov_b)  # fmt: skip
         else:
             lin = item_model(it, mat_nb, vel_n, tilt_coupling, states)
-        if self.n == 0:
-            return lin
+        return it, lin
+
+    def _variable_columns(
+        self, item: MeasurementItem, it: MeasurementItem, lin: Linearized, extra: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """``H`` over ``15 + n`` columns (the variables' columns appended to ``lin.H``) and
+        the residual taken at the variables' estimates ``extra``; ``it`` is ``item`` as
+        modelled (:meth:`_base_model`)."""
+        idx = self.index
         H = np.zeros((lin.dim, N_ERROR + self.n))
         H[:, :N_ERROR] = lin.H
         res = lin.residual.copy()
@@ -441,7 +464,7 @@ class GraphStates:
             col = heading_bias_jacobian(item, lin)
             H[:, N_ERROR + idx["heading_bias"].start] = col[:, 0]
             res -= col[:, 0] * float(extra[idx["heading_bias"]][0])
-        return Linearized(wrap_residual(res, lin.name), H, lin.R, lin.name)
+        return H, res
 
     def factor(
         self, item: MeasurementItem, k: int, pose_key: int, vel_key: int | None, tilt: bool
