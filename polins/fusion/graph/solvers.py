@@ -294,7 +294,7 @@ def _isam2_params(prob: Problem, solver: str) -> gtsam.ISAM2Params:
     # most of the tree at every check. The velocity enters through the attitude
     # (R^T (v_j - v_i - g dt)): on the hand-held BROAD trial 15, whose unaided velocity
     # drifts by m/s, a velocity never relinearized left the tilt at rest after the motion
-    # 1 deg off with a 0.14 deg sigma (pitch RMS(err/sigma) 2.97 -> 0.43 at 1 m/s); a
+    # 1 deg off with a 0.14 deg sigma (pitch RMS(err/sigma) 2.97; 0.43 with the 1 m/s threshold); a
     # finer threshold relinearizes a UGV's drifting along-track velocity at every check.
     thresholds = gtsam.ISAM2ThresholdMap()
     thresholds.insert(("x", np.array([1e-2, 1e-2, 1e-2, 1e6, 1e6, 1e6])))
