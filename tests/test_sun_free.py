@@ -32,8 +32,9 @@ def _random_case(rng, elevation_deg=(20.0, 70.0), tilt_deg=5.0):
     return sun_n, rot
 
 
-def _narrow_camera(tmp_path, half_fov_deg):
-    """The paper camera with a pinhole lens of the given half field of view, at 1/4 resolution."""
+def narrow_camera(tmp_path, half_fov_deg=26.0):
+    """The paper camera with a pinhole lens looking up (horizontal half field ``half_fov_deg``,
+    the vertical one 22 deg at 26), at 1/4 resolution (also tests/test_zenith.py's camera)."""
     fx = 612.0 / np.tan(np.radians(half_fov_deg))  # superpixel image 1224 wide
     text = CAM.path.read_text()
     for old, new in [
@@ -151,7 +152,7 @@ def test_narrow_field_at_the_horizon_falls_back_and_brightness_resolves(tmp_path
     # horizon: epsilon and the zenith cannot be told apart, the compensated estimate falls
     # back to weighted traditional and says why; the elevation cannot choose the branch, the
     # brightness of the clear sky does.
-    cam = _narrow_camera(tmp_path, 15.0)
+    cam = narrow_camera(tmp_path, 15.0)
     rng = np.random.default_rng(9)
     sun_n = polins.sun_vector_n(np.radians(200.0), np.radians(88.0))
     rot = Rotation.from_euler("ZYX", [0.4, 0.01, -0.02])
@@ -168,7 +169,7 @@ def test_narrow_field_at_the_horizon_falls_back_and_brightness_resolves(tmp_path
 # ----------------------------------------------------------------------------- robust ML
 def test_compensated_never_accepts_an_unphysical_epsilon(tmp_path):
     rng = np.random.default_rng(10)
-    narrow = _narrow_camera(tmp_path, 15.0)
+    narrow = narrow_camera(tmp_path, 15.0)
     for cam in (CAM8, narrow):
         for elevation, epsilon0 in [(2.0, 0.0), (30.0, 5.0), (60.0, -3.0), (10.0, 0.09)]:
             sun_n = polins.sun_vector_n(rng.uniform(0, 2 * np.pi), np.radians(90 - elevation))

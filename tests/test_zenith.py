@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from test_sun_free import narrow_camera
 
 import polins
 from polins.compass.chain import MODEL_SCALE, instrumental_stds
@@ -19,24 +20,6 @@ from polins.sim import render_raw
 from polins.sim.realsky import random_real_sky, render_real_raw
 
 CAM = polins.load_camera("paper-table1")
-
-
-def _narrow_camera(tmp_path, half_fov_deg=26.0):
-    """The paper camera with a pinhole lens (horizontal half field ``half_fov_deg``, the
-    vertical one 22 deg at 26) looking up, at 1/4 resolution."""
-    fx = 612.0 / np.tan(np.radians(half_fov_deg))
-    text = CAM.path.read_text()
-    for old, new in [
-        ('projection = "kannala-brandt"', 'projection = "pinhole"'),
-        ("[0.029274, -0.013300, 0.009758, -0.004919]", "[0.0, 0.0, 0.0, 0.0, 0.0]"),
-        ("fov_max_deg = 80.0", "fov_max_deg = 40.0"),
-        ("fx_superpixel = 259.10", f"fx_superpixel = {fx:.1f}"),
-        ("fy_superpixel = 259.20", f"fy_superpixel = {fx:.1f}"),
-    ]:
-        assert old in text
-        text = text.replace(old, new)
-    (tmp_path / "narrow.toml").write_text(text)
-    return polins.load_camera(tmp_path / "narrow.toml").downscaled(4)
 
 
 def _zenith_estimate(raw, cam, sun_n, rot):
@@ -61,7 +44,7 @@ def test_zenith_cone_is_unbiased_for_any_sun_elevation(tmp_path):
     # A noise-free Rayleigh sky, level camera: the cone about the zenith is symmetric about
     # the sun's vertical plane, so the mean doubled E-vector gives the azimuth exactly,
     # whether the sun is 5 or 80 deg high, up to the pixel grid's asymmetry about that plane.
-    cam = _narrow_camera(tmp_path)
+    cam = narrow_camera(tmp_path)
     rot = Rotation.from_euler("ZYX", [0.7, 0.0, 0.0])
     for elevation_deg in (5.0, 30.0, 60.0, 80.0):
         sun_n = polins.sun_vector_n(np.radians(40.0), np.radians(90.0 - elevation_deg))
@@ -74,7 +57,7 @@ def test_zenith_cone_sigma_is_honest_on_realistic_skies(tmp_path):
     # Realistic skies (clouds on half, vignetting, neutral points, gain residual), camera
     # tilted up to 3 deg: the vignetting about the tilted axis and the clouds break the
     # cone's symmetry; the mirror-pair jackknife covers them.
-    cam = _narrow_camera(tmp_path)
+    cam = narrow_camera(tmp_path)
     rng = np.random.default_rng(1)
     out = []
     for _ in range(10):
@@ -93,7 +76,7 @@ def test_zenith_cone_sigma_is_honest_on_realistic_skies(tmp_path):
 def test_narrow_field_takes_the_smaller_sigma_and_stays_honest(tmp_path):
     # Sun-free measurement with a narrow pinhole: the eigen solution or the zenith cone,
     # whichever states the smaller sigma; the sigma covers the error.
-    cam = _narrow_camera(tmp_path)
+    cam = narrow_camera(tmp_path)
     rng = np.random.default_rng(1)
     out, zenith_used = [], 0
     for _ in range(10):
