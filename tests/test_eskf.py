@@ -539,6 +539,20 @@ def test_fuse_options_site_and_result():
     assert len(a) == 9 and a["t"].iloc[-1] == pytest.approx(imu["t"].iloc[-1])
 
 
+def test_output_rate_default_and_every_sample():
+    """Default: 10 rows per second and the last sample; "imu": every sample, the same
+    estimates at the shared times (the rows are reports, not a different filter)."""
+    model, _, imu, _, _, meas = scenario("mems-typical", 8, 6.0)
+    every = polins.fuse(imu, meas, imu_model=model, output_rate_hz="imu", **SITE)
+    default = polins.fuse(imu, meas, imu_model=model, **SITE)
+    assert len(every) == len(imu)
+    assert len(default) == 61 and default["t"].iloc[-1] == imu["t"].iloc[-1]  # 0 .. 6 s
+    same = every.set_index("t").loc[default["t"]].reset_index()
+    pd.testing.assert_frame_equal(default, same)
+    with pytest.raises(UserInputError, match="output_rate_hz"):
+        polins.fuse(imu, meas, imu_model=model, output_rate_hz="every", **SITE)
+
+
 def test_gating_logs_rejections(caplog):
     model, _, imu, _, _, meas = scenario("mems-typical", 9, 20.0)
     meas = meas.copy()

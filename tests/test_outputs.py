@@ -20,7 +20,7 @@ import pytest
 import polins.loop
 from polins.cli import main
 from polins.compass.measure import NoiseModelWarning
-from polins.evaluation import heading_plot_series, summarize
+from polins.evaluation import format_summary, heading_plot_series, summarize
 from polins.fusion.config import FuseConfig
 from polins.fusion.items import UpdateRecord, records_table
 from polins.fusion.result import FusionResult
@@ -249,6 +249,47 @@ def test_csv_floats_are_short_and_every_column_is_documented(log_dir, tmp_path, 
         assert all(schema[name][c]["unit"] and schema[name][c]["meaning"] for c in header)
     assert "eigen-gap" in schema["measurements.csv"]["eigen_gap"]["meaning"]
     assert "noise" in schema["measurements.csv"]["residual_rms"]["meaning"]
+
+
+def test_parquet_tables_hold_the_csv_tables(log_dir, tmp_path, fake_loop):
+    """``table_format=parquet``: the same tables, columns and schema, as Parquet files."""
+    csv_out, pq_out = tmp_path / "csv", tmp_path / "pq"
+    assert _fuse(log_dir, csv_out, "--no-plots") == 0
+    assert _fuse(log_dir, pq_out, "--no-plots", "--set", "table_format=parquet") == 0
+    schema = json.loads((pq_out / "schema.json").read_text())
+    assert not list(pq_out.glob("*.csv"))
+    for name in ("solution", "measurements", "events"):
+        a = pd.read_csv(csv_out / f"{name}.csv")
+        b = pd.read_parquet(pq_out / f"{name}.parquet")
+        assert list(a.columns) == list(b.columns) == list(schema[f"{name}.parquet"])
+        assert len(a) == len(b)
+        numeric = b.select_dtypes("number").columns
+        np.testing.assert_allclose(
+            a[numeric].to_numpy(float),
+            b[numeric].to_numpy(float),
+            rtol=1e-9,
+            atol=1e-12,
+            err_msg=name,
+        )  # CSV: %.10g
+    assert all(v["unit"] for v in schema["solution.parquet"].values())
+    assert "solution.parquet" in read_stamp(pq_out)["files"]
+
+
+def test_graph_summary_says_which_filter_each_figure_comes_from(log_dir):
+    """A graph run's printed NIS are the loop's ESKF's; its accuracy rows the graph's."""
+    log = read_log(log_dir)
+    res = fake_run_log(log, backend="graph")
+    timing = {**res.info["timing"], "imu_samples": 2001.0, "run_s": 2.0}
+    summary = summarize(res.solution, res.measurements, res.events, truth=log.truth,
+                        timing=timing, settings={"backend": "graph", "solver": "batch"})  # fmt: skip
+    text = format_summary(summary).splitlines()
+    first_nis = next(i for i, line in enumerate(text) if line.startswith("NIS "))
+    assert "navigation loop's ESKF" in text[first_nis - 1]
+    assert any(line.startswith("vs reference      graph batch solution") for line in text)
+    # the IMU samples filtered, not the solution's rows
+    assert summary["imu_samples"] == 2001 and summary["timing"]["imu_samples_per_s"] == 1000.5
+    eskf = format_summary({**summary, "settings": {"backend": "eskf"}})
+    assert "navigation loop's ESKF" not in eskf and "vs reference      eskf solution" in eskf
 
 
 def test_docs_outputs_page_holds_the_schema():

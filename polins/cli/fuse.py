@@ -118,7 +118,8 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         summary["status"] = verdict or "ok"
         write_report(out.path, result.solution, measurements, result.events, summary,
                      truth=log.truth, plots=not args.no_plots,
-                     title=log.manifest_path.parent.name)  # fmt: skip
+                     title=log.manifest_path.parent.name,
+                     table_format=config.output.table_format)  # fmt: skip
         out.stamp["settings"] = {**settings, "filter": config.changes(),
                                  "argv": sys.argv[1:], "status": summary["status"]}  # fmt: skip
         files = [*out.files(), "run.json"]

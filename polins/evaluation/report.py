@@ -24,9 +24,11 @@ def write_report(
     truth: pd.DataFrame | None = None,
     plots: bool = True,
     title: str = "",
+    table_format: str = "csv",
 ) -> dict[str, Path]:
-    """Write the run's files (:func:`polins.io.report.write_run_files`: CSVs, ``summary.json``,
-    ``schema.json``) and, optionally, the plots; returns name -> path.
+    """Write the run's files (:func:`polins.io.report.write_run_files`: the tables as CSV or
+    Parquet (``table_format``), ``summary.json``, ``schema.json``) and, optionally, the plots;
+    returns name -> path.
 
     With a reference, ``measurements.csv`` gains ``yaw_error`` [rad] (measured minus reference).
     """
@@ -36,7 +38,7 @@ def write_report(
         ref = truth_at(truth, meas["t"].to_numpy(dtype=float))
         meas["yaw_error"] = wrap_angle(meas["yaw"].to_numpy(dtype=float) - ref["yaw"].to_numpy())
     tables = {"solution.csv": solution, "measurements.csv": meas, "events.csv": events}
-    out = write_run_files(folder, tables, summary)
+    out = write_run_files(folder, tables, summary, table_format=table_format)
     if plots:
         for p in plot_report(folder, solution, measurements, truth=truth, title=title):
             out[p.stem] = p

@@ -117,7 +117,10 @@ def summarize(
             "rejected_by_measurement": {str(k): int(v) for k, v in reasons.items()},
             "rejected_by_filter": {str(k): int(v) for k, v in gate.items()},
         },
-        "imu_samples": len(solution),
+        # the IMU samples filtered (the timing's count), else the solution rows
+        "imu_samples": int(timing["imu_samples"])
+        if timing and "imu_samples" in timing
+        else len(solution),
         "events": {str(k): int(v) for k, v in events["kind"].value_counts().items()}
         if len(events)
         else {},
@@ -130,7 +133,7 @@ def summarize(
         run = float(timing.get("run_s", 0.0))
         if run > 0:
             summary["timing"]["images_per_s"] = len(m) / run
-            summary["timing"]["imu_samples_per_s"] = len(solution) / run
+            summary["timing"]["imu_samples_per_s"] = summary["imu_samples"] / run
     if settings:
         summary["settings"] = dict(settings)
     if truth is not None and len(solution):
@@ -185,6 +188,10 @@ def format_summary(summary: Mapping[str, Any]) -> str:
     if summary.get("events"):
         ev = ", ".join(f"{k} {v}" for k, v in summary["events"].items())
         lines.append(f"events            {ev}")
+    backend = summary.get("settings", {}).get("backend", "eskf")
+    if backend == "graph" and summary.get("nis"):
+        lines.append("from the navigation loop's ESKF (it gave the images their priors and "
+                     "verdicts): the NIS below; from the graph: the solution vs the reference")  # fmt: skip
     for kind, n in summary.get("nis", {}).items():
         lo, hi = n["band95_of_mean"]
         lines.append(f"NIS {kind:<13} {n['mean']:.3g} (expected {n['expected']:.3g}, 95% band "
@@ -194,7 +201,9 @@ def format_summary(summary: Mapping[str, Any]) -> str:
             lines.append(f"  likely cause    {n['likely_cause']}")
     acc = summary.get("accuracy_vs_reference")
     if acc:
-        lines.append(f"vs reference      after the first {acc['settle_s']:g} s "
+        solver = summary.get("settings", {}).get("solver")
+        source = f"{backend} {solver}" if backend == "graph" and solver else backend
+        lines.append(f"vs reference      {source} solution, after the first {acc['settle_s']:g} s "
                      "[deg]: RMS / max / final (final 1-sigma), RMS(err/sigma), within 3 sigma")  # fmt: skip
         for name in ("heading", "roll", "pitch", "measurement_heading", "measurement_residual"):
             st = acc.get(name)

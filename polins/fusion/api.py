@@ -54,10 +54,12 @@ def run_fusion(
     rot_nb0: Rotation | None = None,
     config: FuseConfig | None = None,
     odometry: pd.DataFrame | None = None,
+    progress: bool = False,
 ) -> FusionResult:
     """Fuse an IMU log with measurements: the solution, the update log and the run's facts.
 
-    The arguments are those of :func:`fuse`, with the options in ``config``. One
+    The arguments are those of :func:`fuse`, with the options in ``config``; ``progress``
+    shows a tqdm line while the graph solves. One
     preparation (:func:`polins.fusion.inputs.prepare`: validation, the fault policy of
     docs/faults.md, the resolved configuration), then the backend solves. The GTSAM
     backend (``polins.fusion.graph.fuse_graph``) is imported only when asked for.
@@ -74,7 +76,7 @@ def run_fusion(
     if backend == "graph":
         from polins.fusion.graph import fuse_graph  # gtsam: only when asked for
 
-        result = fuse_graph(prep)
+        result = fuse_graph(prep, progress)
     else:
         result = fuse_eskf(prep)
     check_plausible(result)

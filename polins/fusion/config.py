@@ -29,10 +29,12 @@ from polins.errors import UnknownOptionError, UserInputError
 from polins.fusion.parts import (
     AUTO,
     BACKENDS,
+    IMU_RATE,
     NHC_STD_GROUND,
     ODOMETER_STD,
     OFF,
     OPTION_FIELDS,
+    OUTPUT_RATE_HZ,
     PARTS,
     STANDSTILL_STD,
     VEHICLE_KINDS,
@@ -193,8 +195,10 @@ class FuseConfig:
 
     @property
     def output_rate(self) -> float | None:
-        """Output rows per second, or None: every IMU sample."""
-        return _value(self.output.output_rate_hz, None)
+        """Output rows per second, or None: every IMU sample (``output_rate_hz="imu"``)."""
+        if self.output.output_rate_hz == IMU_RATE:
+            return None
+        return _value(self.output.output_rate_hz, OUTPUT_RATE_HZ)
 
     @property
     def nhc_sigma(self) -> float | None:

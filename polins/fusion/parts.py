@@ -38,7 +38,9 @@ VEHICLE_KINDS = ("free", "ground", "static")
 NHC_STD_GROUND = 0.05  # [m/s] non-holonomic 1-sigma of a ground vehicle (docs/filter.md)
 STANDSTILL_STD = 0.02  # [m/s] zero-velocity 1-sigma at detected standstill
 ODOMETER_STD = 0.05  # [m/s] wheel-odometer speed 1-sigma when odometry is given
-AUTO, OFF = "auto", "off"
+OUTPUT_RATE_HZ = 10.0  # [Hz] solution rows per second by default (docs/outputs.md)
+AUTO, OFF, IMU_RATE = "auto", "off", "imu"
+TABLE_FORMATS = ("csv", "parquet")
 
 _NOT_OPTIONS: dict[str, str] = {
     "zupt_std": "is not an option: give zero-velocity rows at the standstill times (a zupt_std "
@@ -299,7 +301,17 @@ class Output:
     """What the run reports."""
 
     output_rate_hz: float | str = _opt(
-        AUTO, "output rows per second; auto: every IMU sample", "positive", special=(AUTO,)
+        AUTO,
+        f"solution rows per second [Hz]; auto: {OUTPUT_RATE_HZ:g} (every sample of a slower "
+        f"IMU); {IMU_RATE}: every IMU sample",
+        "positive",
+        special=(AUTO, IMU_RATE),
+    )
+    table_format: str = _opt(
+        "csv",
+        f"format of the command line's tables, one of {TABLE_FORMATS} (solution.parquet, ...)",
+        "choice",
+        choices=TABLE_FORMATS,
     )
     smooth: bool = _opt(False, "run the Rauch-Tung-Striebel smoother", "flag",
                         backends=("eskf",))  # fmt: skip
@@ -493,15 +505,18 @@ __all__ = [
     "AUTO",
     "BACKENDS",
     "GRAPH_OUTPUTS",
+    "IMU_RATE",
     "NHC_STD_GROUND",
     "ODOMETER_STD",
     "OFF",
     "OPTIMIZERS",
     "OPTION_FIELDS",
+    "OUTPUT_RATE_HZ",
     "PARTS",
     "PART_OF",
     "SOLVERS",
     "STANDSTILL_STD",
+    "TABLE_FORMATS",
     "VEHICLE_KINDS",
     "Aiding",
     "Gating",

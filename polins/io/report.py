@@ -1,6 +1,7 @@
-"""Files of a fusion run: its CSV tables, ``summary.json`` and ``schema.json``.
+"""Files of a fusion run: its tables (CSV or Parquet), ``summary.json`` and ``schema.json``.
 
-Outputs (all written atomically into the output folder):
+Outputs (all written atomically into the output folder; with ``table_format="parquet"``
+the three tables are ``.parquet`` files of the same columns):
 
 * ``solution.csv``: the fused solution (``polins.fuse`` columns, docs/conventions.md).
 * ``measurements.csv``: one row per image: ``t, ok, reason, yaw, yaw_std, heading_deg,
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from polins.fusion.parts import TABLE_FORMATS
 from polins.io.atomic import write_text_atomic
 from polins.io.schema import schema_for
 from polins.io.tables import write_table
@@ -40,9 +42,14 @@ def _json_default(v: Any) -> Any:
 
 
 def write_run_files(
-    folder: str | Path, tables: Mapping[str, pd.DataFrame], summary: Mapping[str, Any]
+    folder: str | Path,
+    tables: Mapping[str, pd.DataFrame],
+    summary: Mapping[str, Any],
+    *,
+    table_format: str = "csv",
 ) -> dict[str, Path]:
-    """Write the tables as CSV (floats ``%.10g``), ``summary.json`` and ``schema.json``.
+    """Write the tables as CSV (floats ``%.10g``) or Parquet, ``summary.json`` and
+    ``schema.json`` (keyed by the file names written).
 
     Parameters
     ----------
@@ -52,6 +59,9 @@ def write_run_files(
         File name (``solution.csv``, ...) -> table.
     summary
         The run's summary (:func:`polins.evaluation.summarize`).
+    table_format : {"csv", "parquet"}
+        The tables' format (``FuseConfig`` option ``table_format``): the suffix of their
+        files.
 
     Returns
     -------
@@ -60,15 +70,18 @@ def write_run_files(
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    if table_format not in TABLE_FORMATS:
+        raise ValueError(f"table_format={table_format!r}: expected one of {TABLE_FORMATS}")
+    named = {f"{Path(name).stem}.{table_format}": df for name, df in tables.items()}
     out = {
-        name.removesuffix(".csv"): write_table(folder / name, df, float_format=CSV_FLOAT_FORMAT)
-        for name, df in tables.items()
+        Path(name).stem: write_table(folder / name, df, float_format=CSV_FLOAT_FORMAT)
+        for name, df in named.items()
     }
     out["summary"] = write_text_atomic(
         folder / "summary.json", json.dumps(summary, indent=2, default=_json_default) + "\n"
     )
     out["schema"] = write_text_atomic(
-        folder / "schema.json", json.dumps(schema_for(tables), indent=2) + "\n"
+        folder / "schema.json", json.dumps(schema_for(named), indent=2) + "\n"
     )
     return out
 

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 
 import pandas as pd
 
@@ -191,11 +192,12 @@ COLUMNS: dict[str, dict[str, tuple[str, str]]] = {
     "images.csv": _DEMO_IMAGES,
 }
 FILES: dict[str, str] = {
-    "solution.csv": "fused solution, one row per IMU sample used (ESKF) or per output row",
+    "solution.csv": "fused solution, one row per output time (output_rate_hz, default 10 per "
+    "second, and the last IMU sample)",
     "measurements.csv": "one row per image: the measurement and the filter's verdict",
     "events.csv": "data faults skipped and reported (docs/faults.md)",
     "summary.json": "counts, rejections, NIS, timings and (with truth) accuracy statistics",
-    "schema.json": "this table: unit and meaning of every column of the CSV files",
+    "schema.json": "this table: unit and meaning of every column of the CSV (or Parquet) files",
     "run.json": "stamp of the run: polins version, command, settings, files, status",
     "heading.png": "heading vs time (fused, reference, measurements) and the residuals in the fused 3-sigma band",
     "heading_error.png": "fused heading minus the reference, with the reported 3-sigma band",
@@ -205,14 +207,15 @@ FILES: dict[str, str] = {
 
 
 def schema_for(tables: Mapping[str, pd.DataFrame]) -> dict[str, dict[str, dict[str, str]]]:
-    """``{file: {column: {"unit", "meaning"}}}`` for the columns of the tables written.
+    """``{file: {column: {"unit", "meaning"}}}`` for the columns of the tables written
+    (``solution.csv`` or ``solution.parquet``: the same columns).
 
     A column without an entry in :data:`COLUMNS` gets an empty unit and meaning (a test
     keeps the table complete).
     """
     out = {}
-    for name, df in tables.items():
-        known = COLUMNS.get(name, {})
+    for name, df in tables.items():  # a Parquet table has the columns of its CSV namesake
+        known = COLUMNS.get(name, COLUMNS.get(f"{Path(name).stem}.csv", {}))
         out[name] = {
             str(c): {
                 "unit": known.get(str(c), ("", ""))[0],

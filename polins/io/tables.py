@@ -32,6 +32,7 @@ IMU_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 GYRO_UNITS = {"rad/s": 1.0, "deg/s": np.pi / 180.0}  # unit -> [rad/s] per unit
 ACCEL_UNITS = {"m/s^2": 1.0, "g": 9.80665}  # unit -> [m/s^2] per unit
 _PARQUET_KEY = b"polins.units"
+CHUNK_ROWS = 100_000  # rows formatted (CSV) or grouped (Parquet) at a time by write_table
 _UNITS_LINE = re.compile(r"^#\s*units\s*:\s*(?P<body>.*)$", re.IGNORECASE)
 
 
@@ -59,7 +60,8 @@ def write_table(
     header_comment: str | None = None,
     float_format: str = "%.17g",
 ) -> Path:
-    """Write a DataFrame as CSV or Parquet (by suffix), atomically.
+    """Write a DataFrame as CSV or Parquet (by suffix), atomically, :data:`CHUNK_ROWS` rows
+    at a time (a CSV's text and a Parquet row group never hold the whole table).
 
     CSV floats use ``float_format``: the default is the full round-trip precision (logs);
     reports for people use ``"%.10g"``. ``metadata`` goes to the Parquet schema
@@ -72,14 +74,15 @@ def write_table(
             with open(tmp, "w", encoding="utf-8", newline="") as fh:
                 if header_comment:
                     fh.write(f"# {header_comment}\n")
-                df.to_csv(fh, index=False, float_format=float_format, lineterminator="\n")
+                df.to_csv(fh, index=False, float_format=float_format, lineterminator="\n",
+                          chunksize=CHUNK_ROWS)  # fmt: skip
         else:
             pa, pq = _pyarrow()
             table = pa.Table.from_pandas(df, preserve_index=False)
             meta = dict(table.schema.metadata or {})
             for key, value in (metadata or {}).items():
                 meta[key.encode()] = value.encode()
-            pq.write_table(table.replace_schema_metadata(meta), tmp)
+            pq.write_table(table.replace_schema_metadata(meta), tmp, row_group_size=CHUNK_ROWS)
     return path
 
 
@@ -240,6 +243,7 @@ def write_imu(
 
 __all__ = [
     "ACCEL_UNITS",
+    "CHUNK_ROWS",
     "GYRO_UNITS",
     "IMU_COLUMNS",
     "imu_file_units",

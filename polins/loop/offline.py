@@ -25,6 +25,7 @@ from polins.errors import UserInputError
 from polins.fusion.api import run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.result import FusionResult
+from polins.ins.state import NavState, solution_table
 from polins.io.images import ImageIndex
 from polins.io.log import Log
 from polins.loop.options import LoopOptions
@@ -35,6 +36,14 @@ MEASUREMENT_INPUTS = ("t", "yaw", "yaw_std", "sun_bx", "sun_by", "sun_bz", "sun_
                       "sun_nz", "sun_std", "prior_roll", "prior_pitch", "prior_yaw")  # fmt: skip
 
 
+def with_last_state(solution: pd.DataFrame, last: NavState | None) -> pd.DataFrame:
+    """The solution with the filter's last state as its last row (as
+    ``polins.fusion.output_mask`` keeps the last sample whatever the output rate)."""
+    if last is None or (len(solution) and solution["t"].iloc[-1] >= last.t):
+        return solution
+    return pd.concat([solution, solution_table(last.batched())], ignore_index=True)
+
+
 def fuse_measurements(
     imu: pd.DataFrame,
     measurements: pd.DataFrame,
@@ -43,8 +52,10 @@ def fuse_measurements(
     rot_nb0: Rotation | None = None,
     backend: str = "eskf",
     odometry: pd.DataFrame | None = None,
+    progress: bool = False,
 ) -> FusionResult:
-    """A solution from the loop's measurement table (its rows with ``ok``): ``run_fusion``.
+    """A solution from the loop's measurement table (its rows with ``ok``): ``run_fusion``
+    (``progress``: a tqdm line while the graph solves).
 
     ``config`` is the stream's filter configuration (:attr:`NavigationStream.config`): the
     IMU samples the stream accepted meet the same fault policy (docs/faults.md) here, its
@@ -52,7 +63,7 @@ def fuse_measurements(
     """
     ok = measurements["ok"].to_numpy(dtype=bool)
     table = measurements.loc[ok, list(MEASUREMENT_INPUTS)].reset_index(drop=True).astype(float)
-    return run_fusion(imu, table, backend, rot_nb0, config, odometry)
+    return run_fusion(imu, table, backend, rot_nb0, config, odometry, progress)
 
 
 def check_images_exist(log: Log) -> None:
@@ -174,16 +185,24 @@ def run_log(
     t_fuse = time.perf_counter()
     config = stream.config.replace(smooth=base.output.smooth)
     if own_solution:
-        fused = FusionResult(stream.drain_solution(), stream.drain_updates(), events, config)
+        solution = with_last_state(stream.drain_solution(), stream.state().nav)
+        fused = FusionResult(solution, stream.drain_updates(), events, config)
     else:
         fused = fuse_measurements(
-            imu_used, measurements, config, rot_nb0=rot_nb0, backend=backend, odometry=odometry
+            imu_used,
+            measurements,
+            config,
+            rot_nb0=rot_nb0,
+            backend=backend,
+            odometry=odometry,
+            progress=progress,
         )
     end = time.perf_counter()
     measure_s = measurements["measure_s"].to_numpy(dtype=float)
     settings = {
         "manifest": str(log.manifest_path),
         "backend": backend,
+        "solver": base.graph.solver if backend == "graph" else None,
         "smooth": base.output.smooth,
         "workers": n_workers,
         "method": opts.method,

@@ -6,7 +6,7 @@ window is levelled at once (``ESKF.level``), a single sample goes through
 (:func:`polins.fusion.eskf.propagate.advance`), which gives the estimates
 ``polins.fusion.run_fusion`` gives. On the way it keeps the *snapshots* the image priors
 start from (the first sample of every ``snapshot_every_s`` grid cell) and, if asked, the
-estimate at every sample (the solution).
+estimate at the configured output rate (the solution).
 """
 
 from __future__ import annotations
@@ -46,7 +46,8 @@ class FilterRunner:
     snapshot_every_s : float
         Grid of the snapshots [s].
     record_solution : bool
-        Keep the estimate at every sample (:meth:`drain_solution`).
+        Keep the estimate at the output rate of ``config`` (``output_rate_hz``; every sample
+        for ``"imu"``) for :meth:`drain_solution`.
     max_rows : int
         Bound of the solution buffer (entries: one state, or the states of one run).
     """
@@ -66,6 +67,8 @@ class FilterRunner:
         self.t0 = float(t0)
         self.snapshot_every_s = snapshot_every_s
         self.record_solution = record_solution
+        self.output_rate = config.output_rate  # None: every sample
+        self._output_cell = -math.inf  # the output grid cell of the last row kept
         self.snaps: deque[NavState] = deque()
         self.solution: deque[NavState] = deque(maxlen=max_rows)
         self._levelling: list[Sample] = []  # samples of the self-alignment window so far
@@ -115,14 +118,29 @@ class FilterRunner:
         prev = math.floor(self.snaps[-1].t / step) if self.snaps else -math.inf
         return np.asarray(cell > np.concatenate([[prev], cell[:-1]]), dtype=bool)
 
+    def output_rows(self, t: FloatArray) -> NDArray[np.bool_]:
+        """Which of the times ``t`` (increasing) are solution rows: every one without an
+        output rate, else the first sample of each ``1 / output_rate_hz`` cell after ``t0``
+        (``polins.fusion.output_mask``); updates the last cell kept."""
+        if not self.record_solution:
+            return np.zeros(len(t), dtype=bool)
+        if self.output_rate is None:
+            return np.ones(len(t), dtype=bool)
+        cell = np.floor((t - self.t0) * self.output_rate + 1e-9)
+        rows = np.asarray(cell > np.concatenate([[self._output_cell], cell[:-1]]), dtype=bool)
+        if len(t):
+            self._output_cell = float(cell[-1])
+        return rows
+
     def _keep(self, t: float, state: Callable[[], NavState]) -> None:
         new_cell = bool(self.new_cells(np.array([t]))[0])
-        if not (new_cell or self.record_solution):
+        row = bool(self.output_rows(np.array([t]))[0])
+        if not (new_cell or row):
             return
         st = state()
         if new_cell:
             self.snaps.append(st)
-        if self.record_solution:
+        if row:
             self.solution.append(st)
 
     def _fast_run(self, samples: list[Sample]) -> None:
@@ -134,18 +152,20 @@ class FilterRunner:
         t = np.array([s[0] for s in start + samples])
         gyro = np.array([s[1] for s in start + samples])
         accel = np.array([s[2] for s in start + samples])
-        mask = np.ones(len(t), dtype=bool)
-        mask[: len(start)] = False
-        if not self.record_solution:  # only the snapshots
-            mask[len(start) :] = self.new_cells(t[len(start) :])
-        if not mask.any():  # a run inside one snapshot cell: nothing to keep
+        mask = np.zeros(len(t), dtype=bool)
+        rows = self.output_rows(t[len(start) :])
+        mask[len(start) :] = self.new_cells(t[len(start) :]) | rows
+        if not mask.any():  # a run inside one snapshot and output cell: nothing to keep
             advance(f, t, gyro, accel)
             return
         run = advance(f, t, gyro, accel, mask)
         assert run is not None
         states = interpolate(*run, f.layout.index)
-        if self.record_solution:
+        if rows.all():
             self.solution.append(states)
+        elif rows.any():
+            kept = np.flatnonzero(rows[mask[len(start) :]])
+            self.solution.append(concatenate([states.at(int(i)) for i in kept]))
         for i in np.flatnonzero(self.new_cells(np.asarray(states.t))):
             self.snaps.append(states.at(int(i)))
 

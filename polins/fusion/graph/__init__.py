@@ -98,6 +98,9 @@ import math
 import time
 from typing import Any
 
+import numpy as np
+from tqdm import tqdm
+
 try:
     import gtsam  # noqa: F401  (the check for the optional extra)
 except ImportError as exc:  # tests simulate a missing gtsam
@@ -105,6 +108,8 @@ except ImportError as exc:  # tests simulate a missing gtsam
         'the graph backend (backend="graph") needs GTSAM >= 4.3: pip install "polins[graph]"'
     ) from exc
 
+from polins.fusion.config import TIME_TOL_S
+from polins.fusion.eskf.batch import fuse_eskf
 from polins.fusion.graph.factors import (
     bias_from_polins,
     gyro_noise_density,
@@ -132,7 +137,24 @@ from polins.fusion.result import FusionResult, events_table
 from polins.ins.state import solution_table
 
 
-def fuse_graph(prep: Prepared) -> FusionResult:
+def causal_gate(prep: Prepared, prob: Problem) -> dict[int, tuple[float, str]]:
+    """The ESKF's verdicts on the standstill detector's zero-velocity factors
+    (``prob.detected``): index into ``prob.meas`` -> (NIS, reason) of those the ESKF's
+    gate rejected, found by time (both place the detector's updates at the same epochs,
+    :func:`polins.fusion.vehicle.vehicle_items`)."""
+    upd = fuse_eskf(prep).updates
+    gone = upd[(upd["name"] == "zupt") & ~upd["accepted"].to_numpy(dtype=bool)]
+    t_gone = gone["t"].to_numpy(dtype=float)
+    out = {}
+    for i in sorted(prob.detected):
+        t = prob.meas[i].item.t
+        j = int(np.searchsorted(t_gone, t - TIME_TOL_S))
+        if j < len(t_gone) and abs(t_gone[j] - t) <= TIME_TOL_S:
+            out[i] = (float(gone["nis"].iloc[j]), str(gone["reason"].iloc[j]))
+    return out
+
+
+def fuse_graph(prep: Prepared, progress: bool = False) -> FusionResult:
     """Solve a prepared run (:func:`polins.fusion.inputs.prepare`) in a GTSAM factor graph.
 
     ``polins.fusion.api.run_fusion`` calls this for ``backend="graph"``: the IMU samples,
@@ -148,6 +170,9 @@ def fuse_graph(prep: Prepared) -> FusionResult:
         reason``; the batch solver's NIS is post-fit); ``events``: the preparation's and
         a re-acquired yaw (docs/faults.md); ``info``: the solver, iterations, keyframes,
         timings [s].
+
+    ``progress``: a tqdm line while solving (the batch solver's stages, the incremental
+    solvers' keyframes).
     """
     t_start = time.perf_counter()
     config, arrays, items = prep.config, prep.imu, prep.items
@@ -167,8 +192,13 @@ def fuse_graph(prep: Prepared) -> FusionResult:
     ]
     info: dict[str, Any] = {}
     t_built = time.perf_counter()
-    solve = solve_batch if config.graph.solver == "batch" else solve_incremental
-    est = solve(prob, records, info)
+    with tqdm(desc=f"graph {config.graph.solver}", disable=not progress, bar_format=BAR) as bar:
+        if config.graph.solver == "batch":
+            bar.set_postfix_str("causal gate (ESKF)")
+            causal = causal_gate(prep, prob) if prob.detected else {}
+            est = solve_batch(prob, records, info, causal, bar.set_postfix_str)
+        else:
+            est = solve_incremental(prob, records, info, progress=bar)
     t_solved = time.perf_counter()
     if config.graph.graph_output == "keyframes":
         state = keyframe_output(prob, est)
@@ -192,9 +222,12 @@ def fuse_graph(prep: Prepared) -> FusionResult:
     )
 
 
+BAR = "{desc}: {n_fmt}/{total_fmt} {postfix} [{elapsed}]"
+
 __all__ = [
     "ImuSegments",
     "bias_from_polins",
+    "causal_gate",
     "fuse_graph",
     "gauss_newton_qr",
     "gyro_noise_density",

@@ -8,6 +8,7 @@ diagnostics to ``info``, and returns the keyframe
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 from typing import Any
 
@@ -35,8 +36,9 @@ def gauss_newton_qr(
     *,
     max_iterations: int = 20,
     rel_tol: float = 1e-6,
-) -> tuple[gtsam.Values, int]:
-    """Gauss-Newton with sparse multifrontal QR until the cost changes by < ``rel_tol``.
+) -> tuple[gtsam.Values, int, gtsam.GaussianFactorGraph]:
+    """Gauss-Newton with sparse multifrontal QR until the cost changes by < ``rel_tol``;
+    returns the values, the iterations and the graph linearized at the values.
 
     Why not GTSAM's Levenberg-Marquardt or Cholesky: without position (and, with yaw-only
     aiding, velocity) measurements the position and velocity marginals grow to km and tens
@@ -48,22 +50,27 @@ def gauss_newton_qr(
     nonlinearity is the attitude), so undamped Gauss-Newton converges in 3-10 iterations.
     The first step from dead reckoning may raise the cost; convergence is judged on the
     change of the cost, not on a decrease. (The loop is written out: it is ~10x faster
-    than ``gtsam.GaussNewtonOptimizer.iterate`` from Python on these graphs.) Raises
-    :class:`DivergedError` on a non-finite cost.
+    than ``gtsam.GaussNewtonOptimizer.iterate`` from Python on these graphs.) The cost at
+    each iterate is that of the graph linearized there at a zero step (equal for Gaussian
+    noise models): the Python factors are evaluated once per iteration, and the last
+    linearization serves the marginals. Raises :class:`DivergedError` on a non-finite cost.
     """
     ordering = graph.orderingCOLAMD()
     previous = graph.error(values)
+    linear = graph.linearize(values)
     for iteration in range(1, max_iterations + 1):
-        linear = graph.linearize(values)
         delta = linear.eliminateMultifrontal(ordering, gtsam.EliminateQR).optimize()
         values = values.retract(delta)
-        error = graph.error(values)
+        linear = graph.linearize(values)
+        zero = gtsam.VectorValues(delta)
+        zero.setZero()
+        error = linear.error(zero)
         if not np.isfinite(error):
             raise DivergedError("Gauss-Newton diverged (non-finite cost)")
         if iteration > 1 and abs(previous - error) <= rel_tol * max(error, 1.0):
-            return values, iteration
+            return values, iteration, linear
         previous = error
-    return values, max_iterations
+    return values, max_iterations, linear
 
 
 def levenberg_marquardt_qr(
@@ -72,7 +79,7 @@ def levenberg_marquardt_qr(
     *,
     max_iterations: int = 100,
     rel_tol: float = 1e-6,
-) -> tuple[gtsam.Values, int]:
+) -> tuple[gtsam.Values, int, gtsam.GaussianFactorGraph]:
     """GTSAM's Levenberg-Marquardt with multifrontal QR (``optimizer="levenberg-marquardt"``,
     and the fallback if Gauss-Newton fails). Robust far from the solution, but its
     ``lambda I`` damping slows it down in the weakly observed directions (see
@@ -86,7 +93,7 @@ def levenberg_marquardt_qr(
     params.setlambdaLowerBound(1e-15)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     result = optimizer.optimize()
-    return result, int(optimizer.iterations())
+    return result, int(optimizer.iterations()), graph.linearize(result)
 
 
 def marginal_covariance_qr(bayes_tree: gtsam.GaussianBayesTree, key: int) -> FloatArray:
@@ -104,8 +111,9 @@ def marginal_covariance_qr(bayes_tree: gtsam.GaussianBayesTree, key: int) -> Flo
 
 def optimize(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prob: Problem
-) -> tuple[gtsam.Values, int]:
-    """The batch optimizer of ``prob.config``; Levenberg-Marquardt if Gauss-Newton fails."""
+) -> tuple[gtsam.Values, int, gtsam.GaussianFactorGraph]:
+    """The batch optimizer of ``prob.config``; Levenberg-Marquardt if Gauss-Newton fails.
+    Returns the values, the iterations and the graph linearized at the values."""
     c = prob.config
     if c.graph.optimizer == "gauss-newton":
         try:
@@ -154,34 +162,48 @@ def batch_graph(
     return graph, (values if linearization is None else linearization)
 
 
-def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]) -> Estimates:
+def solve_batch(
+    prob: Problem,
+    records: list[UpdateRecord],
+    info: dict[str, Any],
+    causal: dict[int, tuple[float, str]] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Estimates:
     """Gauss-Newton (QR) over the whole log, post-fit gating, QR marginals.
 
     The zero-velocity factors of the standstill detector (``Problem.detected``) are gated
-    first by a causal pass (ISAM2, :func:`solve_incremental`), as the ESKF gates them: the
-    detector also fires at constant speed, and so many wrong factors bend the whole
-    solution, which a post-fit gate cannot undo.
+    first by a causal pass, as the ESKF gates them: the detector also fires at constant
+    speed, and so many wrong factors bend the whole solution, which a post-fit gate cannot
+    undo. ``causal`` gives that pass's verdicts (index into ``prob.meas`` -> NIS, reason;
+    :func:`polins.fusion.graph.fuse_graph` takes them from the ESKF's run); without it an
+    ISAM2 pass (:func:`solve_incremental`) gates them. ``progress`` is told each stage.
     """
     rejected: dict[int, tuple[float, str]] = {}
-    if prob.detected:
-        causal: dict[int, tuple[float, str]] = {}
+    if prob.detected and causal is None:
+        causal = {}
         # (without scale-factor variables: this pass only gates)
         solve_incremental(prob, [], {}, solver="isam2", rejected=causal, scale=False)
+    if prob.detected and causal:
         rejected = {i: (nis, f"causal {why}") for i, (nis, why) in causal.items()
                     if i in prob.detected}  # fmt: skip
     result: gtsam.Values | None = None
     iterations: list[int] = []
     for gate_round in range(1 + MAX_GATE_ROUNDS):
-        for p in range(2 if prob.earth_rate else 1):
-            # Second pass: re-preintegrate with the transport rate and bias of the first.
+        # With the Earth rate, the first solve is repeated once: re-preintegrated with the
+        # transport rate and bias of the first; a re-solve after gating starts from there.
+        for p in range(2 if prob.earth_rate and result is None else 1):
+            if progress is not None:
+                progress(f"gate round {gate_round + 1}, solve {len(iterations) + 1}")
             lin = result if (p > 0 or result is not None) else None
             graph, values = batch_graph(prob, set(rejected), lin)
-            result, it = optimize(graph, values, prob)
+            result, it, linear = optimize(graph, values, prob)
             iterations.append(it)
         assert result is not None
-        bayes_tree = graph.linearize(result).eliminateMultifrontal(
-            graph.orderingCOLAMD(), gtsam.EliminateQR
-        )
+        if progress is not None:
+            progress(f"gate round {gate_round + 1}, marginals")
+        bayes_tree = linear.eliminateMultifrontal(graph.orderingCOLAMD(), gtsam.EliminateQR)
+        zero = bayes_tree.optimize()  # (a zero step: the cost at the result is linear's)
+        zero.setZero()
         est = Estimates.empty(len(prob.t_key), prob.states.n)
         # the scale factors are constants: one marginal (the last keyframe's) for all
         last = prob.scale_values(len(prob.t_key) - 1).keys()
@@ -208,7 +230,7 @@ def solve_batch(prob: Problem, records: list[UpdateRecord], info: dict[str, Any]
     assert result is not None
     info.update(
         iterations=iterations,
-        error=graph.error(result),
+        error=linear.error(zero),
         n_factors=graph.size(),
         rejected=sorted(rejected),
     )
@@ -264,20 +286,25 @@ def solve_incremental(
     solver: str | None = None,
     rejected: dict[int, tuple[float, str]] | None = None,
     scale: bool = True,
+    progress: Any = None,
 ) -> Estimates:
     """ISAM2 (causal estimates) or the incremental fixed-lag smoother (lagged estimates).
 
     ``solver`` overrides ``prob.config.graph.solver``; ``rejected`` (if given) receives the
     gated factors: index into ``prob.meas`` -> (NIS, reason); ``scale=False`` leaves the
-    scale-factor variables out.
+    scale-factor variables out; ``progress`` (a tqdm bar) counts the keyframes.
     """
     run = _IncrementalRun(
         prob, records, solver or prob.config.graph.solver, rejected,
         scale and prob.scale_jac is not None,
     )  # fmt: skip
     run.start()
+    if progress is not None:
+        progress.reset(total=len(prob.t_key) - 1)
     for k in range(len(prob.t_key) - 1):
         run.step(k)
+        if progress is not None:
+            progress.update(1)
     for k in run.pending:
         run.record(k)
     info.update(n_keyframes=len(prob.t_key))
