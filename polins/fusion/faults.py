@@ -375,10 +375,16 @@ class GyroHeadingCheck:
             return
         if a[0] < self._t[0] or b[0] > self._t[-1]:
             return
-        turn_g = float(
-            np.interp(b[0], self._t, self._angle) - np.interp(a[0], self._t, self._angle)
-        )
+        turn_g = self._angle_at(b[0]) - self._angle_at(a[0])
         self._ratios.append(turn_g / turn_m)
+
+    def _angle_at(self, t: float) -> float:
+        """The gyro's turn at ``t`` [rad], interpolated between the two samples around it
+        (the lists are not converted whole: a log's headings would cost its length each)."""
+        if len(self._t) < 2:
+            return float(self._angle[0])
+        k = min(max(bisect_left(self._t, t), 1), len(self._t) - 1)
+        return float(np.interp(t, self._t[k - 1 : k + 1], self._angle[k - 1 : k + 1]))
 
     def _decide(self) -> None:
         if len(self._ratios) < self.n_windows:
