@@ -189,13 +189,16 @@ def test_a_run_inside_one_snapshot_cell_is_filtered():
     from polins.loop.runner import FilterRunner
 
     imu = static_imu(2.0)
-    config = config_with_site(FuseConfig(imu_model=MODEL, site=PAPER_SITE))
+    # a solution row a second: the short run below has neither a snapshot nor a row
+    config = config_with_site(FuseConfig(imu_model=MODEL, site=PAPER_SITE, output_rate_hz=1.0))
     runner = FilterRunner(config, 0.0, 1.0 / RATE_HZ, Rotation.identity(),
-                          snapshot_every_s=0.1, record_solution=False, max_rows=100)  # fmt: skip
+                          snapshot_every_s=0.1, max_rows=100)  # fmt: skip
     samples = [(r[0], r[1:4], r[4:7]) for r in imu]
     runner.run(samples[:101])  # up to t = 0.5 s
     runner.run(samples[101:104])  # 0.505 .. 0.515 s: inside the 0.5 s cell
     assert runner.filter.t == pytest.approx(0.515)
+    runner.finish()  # the last state is the solution's last row, as polins.fuse
+    assert list(runner.drain_solution()["t"]) == pytest.approx([0.0, 0.515])
 
 
 def test_add_imu_checks_units_like_the_cli_and_drops_out_of_range_samples():

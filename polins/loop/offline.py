@@ -3,8 +3,8 @@
 The filter runs once. :func:`run_log` feeds the log to a
 :class:`~polins.loop.stream.NavigationStream` in time order (images measured by a pool of
 processes); the stream's filter is the one the Eq. 13 loop needs for the image priors, and
-with ``record_solution`` it also keeps its estimate at every accepted IMU sample, which *is*
-the final ESKF solution (a second pass through ``polins.fuse`` would only repeat it). The
+it also keeps its estimate at every accepted IMU sample (or at ``output_rate_hz``), which
+*is* the final ESKF solution (a second pass through ``polins.fuse`` would only repeat it). The
 other backends are other estimators, run once on the stream's measurement table
 (:func:`fuse_measurements`): the RTS smoother (a forward pass that stores what the backward
 pass needs) and the GTSAM graph.
@@ -134,7 +134,7 @@ def run_log(
         site=log.site,
         epoch_utc=log.epoch_utc,
         rot_nb0=rot_nb0,
-        options=dataclasses.replace(opts, record_solution=own_solution),
+        options=opts,
         config=base.replace(smooth=False),
         imu_dt=dt_med,
         executor="process" if n_workers > 1 else "inline",
