@@ -354,7 +354,7 @@ def test_a_bug_in_the_measurer_propagates_and_opencv_failures_are_events(sim_log
     measurer = ImageMeasurer(log.camera, "compensated", {"fixed_zenith": False})
     raw = np.zeros(log.camera.shape, np.uint16)
     level = NavState(0.0, Rotation.identity(), np.zeros(3), 0.8, 2.2, 0.0)
-    prior = PriorJob(level, [], 0.0, Mechanization())  # the prior: the state itself
+    prior = PriorJob.of(level, [], 0.0, Mechanization())  # the prior: the state itself
     sun_n = np.array([0.0, 0.6, 0.8])
 
     def bug(*args, **kwargs):

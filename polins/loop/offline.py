@@ -28,7 +28,7 @@ from polins.fusion.result import FusionResult
 from polins.io.images import ImageIndex
 from polins.io.log import Log
 from polins.loop.options import LoopOptions
-from polins.loop.stream import NavigationStream
+from polins.loop.stream import NavigationStream, with_odometer
 from polins.loop.tables import EVENT_COLUMNS
 
 MEASUREMENT_INPUTS = ("t", "yaw", "yaw_std", "sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny",
@@ -73,6 +73,13 @@ def check_images_exist(log: Log) -> None:
     )
 
 
+def log_config(log: Log, config: FuseConfig | None) -> FuseConfig:
+    """The filter configuration of a log's run: ``config``, or the log's own
+    (``FuseConfig.from_log``), with the odometer's sigma when the log has odometry."""
+    base = config if config is not None else FuseConfig.from_log(log)
+    return base if log.odometry is None else with_odometer(base)
+
+
 def run_log(
     log: Log,
     *,
@@ -113,7 +120,7 @@ def run_log(
 
     check_images_exist(log)
     opts = options if options is not None else LoopOptions()
-    base = config if config is not None else FuseConfig.from_log(log)
+    base = log_config(log, config)
     base.check_backend(backend)
     if workers is not None and (isinstance(workers, bool) or workers < 1):
         raise UserInputError(f"workers={workers!r} must be an integer >= 1")
@@ -213,4 +220,4 @@ def run_log(
                                measurements=measurements)  # fmt: skip
 
 
-__all__ = ["MEASUREMENT_INPUTS", "fuse_measurements", "run_log"]
+__all__ = ["MEASUREMENT_INPUTS", "fuse_measurements", "log_config", "run_log"]

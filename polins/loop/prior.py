@@ -79,13 +79,25 @@ class PriorJob:
     image time [s] and the strapdown's Earth terms (:func:`propagate_nominal`)."""
 
     snapshot: NavState
-    samples: list[Sample]
+    t: FloatArray  # (N,) sample times [s]
+    gyro_b: FloatArray  # (N, 3) [rad/s]
+    accel_b: FloatArray  # (N, 3) [m/s^2]
     t_image: float
     mech: Mechanization
 
+    @classmethod
+    def of(cls, snapshot: NavState, samples: list[Sample], t_image: float,
+           mech: Mechanization) -> PriorJob:  # fmt: skip
+        """The job of ``samples`` (as arrays: cheap to send to a worker process)."""
+        t = np.fromiter((s[0] for s in samples), dtype=float, count=len(samples))
+        gyro = np.array([s[1] for s in samples], dtype=float).reshape(-1, 3)
+        accel = np.array([s[2] for s in samples], dtype=float).reshape(-1, 3)
+        return cls(snapshot, t, gyro, accel, float(t_image), mech)
+
     def rotation(self) -> Rotation:
         """The prior attitude body -> ENU at the image time."""
-        return propagate_nominal(self.snapshot, self.samples, self.t_image, self.mech)
+        samples = list(zip(self.t.tolist(), self.gyro_b, self.accel_b, strict=True))
+        return propagate_nominal(self.snapshot, samples, self.t_image, self.mech)
 
     def columns(self, rot_prior: Rotation) -> dict[str, float]:
         """The prior's columns of a measurement row: ``prior_t`` [s], ``prior_roll``,

@@ -124,6 +124,15 @@ FloatArray = NDArray[np.float64]
 BLOCK_S = 0.25
 
 
+def with_odometer(config: FuseConfig) -> FuseConfig:
+    """``config`` for a run with a wheel odometer: an ``"auto"`` ``odometer_std`` becomes
+    its value, as :meth:`FuseConfig.resolve` makes it (without resolving the other
+    ``"auto"`` choices, which the loop makes itself)."""
+    if config.aiding.odometer_std == AUTO:
+        return config.replace(odometer_std=ODOMETER_STD)
+    return config
+
+
 class NavigationStream:
     """Incremental Eq. 13 loop for a vehicle's navigation code (module docstring).
 
@@ -263,8 +272,8 @@ class NavigationStream:
         imu_model = load_imu(model_ref(path.parent, log["imu"]))
         site = Site(log["lat_deg"], log["lon_deg"], log["alt_m"])
         config = config_from_manifest(tables, imu_model, site, path)
-        if "odometer" in vehicle and config.aiding.odometer_std == AUTO:
-            config = config.replace(odometer_std=ODOMETER_STD)  # as FuseConfig.resolve
+        if "odometer" in vehicle:
+            config = with_odometer(config)
         return cls(
             load_camera(model_ref(path.parent, log["camera"])),
             imu_model,
@@ -620,7 +629,7 @@ class NavigationStream:
             if sample[0] >= img.t:
                 break
         # the prior is propagated where the image is measured (off the caller's thread)
-        prior = PriorJob(snap, samples, img.t, self._runner.filter.mech)
+        prior = PriorJob.of(snap, samples, img.t, self._runner.filter.mech)
         img.future = self._executor.submit(self._submit_fn, img.item, img.sun_n, prior)
         img.item = None  # the raw image is the worker's now
 
@@ -779,4 +788,4 @@ class NavigationStream:
             progressed = True
 
 
-__all__ = ["NavigationStream", "StreamState"]
+__all__ = ["NavigationStream", "StreamState", "with_odometer"]
