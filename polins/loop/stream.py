@@ -26,7 +26,8 @@ filter at its image time, so the filter holds back the IMU samples after the old
 whose measurement is not known yet, and those of the last ``max_image_delay_s`` (an image
 may still come). ``add_imu`` collects the samples and, once every ``BLOCK_S`` of IMU time,
 screens the block, hands the measured images over (queued in the filter, applied at their
-times) and runs the samples the filter can take through its fast path
+times) and runs the samples the filter can take, in runs of at least ``RUN_S`` unless an
+image waits for its prior, through its fast path
 (:mod:`polins.fusion.eskf.propagate`), which gives the same estimates as
 ``polins.fusion.run_fusion`` on the stream's measurement table (to 1e-8 rad). The filter's
 covariance steps end where its runs end, so how the samples split into runs (the blocks,
@@ -45,7 +46,7 @@ have arrived (docs/streaming.md): a mistake raises ``ImuUnitsError`` from the ca
 fed the deciding sample or heading.
 
 Memory and latency are bounded: the IMU buffer spans at most ``prior_lag_s +
-max_image_delay_s`` plus one block and the processing time of the images in flight, at
+max_image_delay_s + RUN_S + BLOCK_S`` and the processing time of the images in flight, at
 most ``max_in_flight`` images are in flight (``add_image`` waits for the oldest beyond
 that, at most one image's processing), and the measurement, event and solution buffers
 hold at most ``max_table_rows`` entries (drain them; the events count what they dropped).
@@ -122,6 +123,8 @@ FloatArray = NDArray[np.float64]
 # IMU time [s] add_imu collects before it screens the samples and advances the loop: the
 # per-call overhead of screening, dispatching and running the filter spread over this block
 BLOCK_S = 0.25
+# shortest run of samples [s] the filter takes while no image waits for its prior
+RUN_S = 1.0
 
 
 def with_odometer(config: FuseConfig) -> FuseConfig:
@@ -315,7 +318,6 @@ class NavigationStream:
 
     def drain_events(self) -> pd.DataFrame:
         """Reported events (``t, kind, detail``, oldest first) since the last call."""
-        self._ingest(run=False)
         return self._events.drain()
 
     def drain_measurements(self) -> pd.DataFrame:
@@ -334,9 +336,9 @@ class NavigationStream:
     def drain_solution(self) -> pd.DataFrame:
         """The filter's estimates since the last call: the solution table of
         ``polins.fuse`` (``polins.ins.state.solution_table``), a row per filtered IMU sample
-        or at ``FuseConfig.output_rate_hz``; the filter runs ``max_image_delay_s`` (and up to
-        one ``BLOCK_S``) behind the newest sample, and :meth:`flush` / :meth:`close` filter
-        the rest. Empty (with the columns) before the first filtered sample."""
+        or at ``FuseConfig.output_rate_hz``; the filter runs up to ``max_image_delay_s +
+        RUN_S + BLOCK_S`` behind the newest sample, and :meth:`flush` / :meth:`close` filter
+        the rest. Empty (with the columns once levelled) before the first filtered sample."""
         return pd.DataFrame() if self._runner is None else self._runner.drain_solution()
 
     # ------------------------------------------------------------------ inputs
@@ -363,6 +365,11 @@ class NavigationStream:
             self._pending.append(row)  # dropped by the screen, with its event
             self._ingest(run=True)
             return False
+        if t > self._t_newest + self._screen.max_gap_s:  # a gap: known to the next call
+            self._pending.append(row)
+            self._t_newest = t
+            self._ingest(run=True)
+            return True
         self._pending.append(row)
         self._t_newest = t
         if t >= self._t_advanced + BLOCK_S:
@@ -464,8 +471,7 @@ class NavigationStream:
         takes the place of an image (same ordering policy)."""
         t = float(t)
         index = self.n_images
-        self.n_images += 1
-        self._ingest(run=False)
+        self.n_images += 1  # (the samples add_imu holds have no gap: no need to screen them)
         if not self._usable_time(index, t, "measurement"):
             return False
         row: dict[str, Any] = {"ok": True, "reason": "", "event": "", **columns}
@@ -510,10 +516,11 @@ class NavigationStream:
             self._skip(index, t, "image-during-alignment",
                        f"{what} inside the levelling window ({align_s} s)")  # fmt: skip
             return False
-        if f.ready and t < f.t - self._tol:
+        delay = self.options.max_image_delay_s
+        if f.ready and t < max(f.t, self.t_latest - delay) - self._tol:
             self._skip(index, t, "image-late",
-                       f"{what} arrived after the filter passed t={f.t:.6f} "
-                       f"(max_image_delay_s={self.options.max_image_delay_s})")  # fmt: skip
+                       f"{what} more than max_image_delay_s={delay} s behind the newest IMU "
+                       f"sample (t={self.t_latest:.6f})")  # fmt: skip
             return False
         self._t_last_image = t
         return True
@@ -784,8 +791,17 @@ class NavigationStream:
             late = t_next > self._screen.t_latest - delay and t_next > self._t_last_image
             if not final and f.ready and late:
                 return progressed  # an image up to max_image_delay_s late may still come
-            self._filter_run(self._runnable(final))
+            n = self._runnable(final)
+            if not (final or not f.ready or self._prior_wanted()) and (
+                self._buf[n - 1][0] - t_next < RUN_S
+            ):
+                return progressed  # a longer run later: the run's overhead spread wider
+            self._filter_run(n)
             progressed = True
+
+    def _prior_wanted(self) -> bool:
+        """An image waits for the filter to pass its prior's snapshot time."""
+        return any(not img.dispatched for img in self._images)
 
 
 __all__ = ["NavigationStream", "StreamState", "with_odometer"]
