@@ -223,6 +223,7 @@ class NavigationStream:
         measurer = ImageMeasurer(camera, self.options.method, self.options.measure_kwargs())
         self._executor, self._submit_fn = make_executor(executor, workers, measurer)
         self.sun_at = SunGrid(self.config.site, self.epoch_utc)
+        self.sun_at(0.0)  # the ephemeris of the first minutes here, not at the first image
         self._runner: FilterRunner | None = None
         self._buf: deque[Sample] = deque()  # accepted samples not yet filtered
         self._hist: deque[Sample] = deque()  # filtered samples a prior may still need
