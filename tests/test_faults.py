@@ -139,7 +139,7 @@ def test_imu_gap_in_every_path(logs, tmp_path, capsys, backend):
 
 def test_imu_gap_in_the_stream(logs):
     log = read_log(logs["gap"])
-    nav = stream_of(log, options=LoopOptions(record_solution=True))
+    nav = stream_of(log)
     feed(nav, log)
     assert check_gap_events(nav.drain_events(), np.asarray(log.images.t, dtype=float)) == 0
     m = nav.drain_measurements()

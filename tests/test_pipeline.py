@@ -15,6 +15,7 @@ from polins.frames import euler_from_rot_nb, wrap_angle
 from polins.fusion.config import FuseConfig
 from polins.io import load_raw, read_log
 from polins.loop import LoopOptions, NavigationStream, run_log
+from polins.loop.stream import BLOCK_S, RUN_S
 
 DURATION_S = 12.0
 
@@ -62,28 +63,43 @@ def _stream(log, *, options=None, delay_s=0.05, state_every=25, **kwargs):
     return nav, estimates
 
 
+def acquiring(m: pd.DataFrame) -> pd.Series:
+    """The rows held for the yaw acquisition (docs/filter.md 7.1). The acquisition amends
+    the verdicts of the first headings it used once it finds their consensus; a row shows
+    the verdict the filter had when its run ended (held, or used when the same run of
+    IMU samples also completed the acquisition)."""
+    return m["update_reason"].fillna("").str.startswith("held for the yaw acquisition")
+
+
 def test_streaming_matches_batch(sim_log, batch):
     log = read_log(sim_log)
-    nav, estimates = _stream(log, options=LoopOptions(record_solution=True))
+    nav, estimates = _stream(log)
     sol = nav.drain_solution()
     ref = batch.solution.set_index("t").loc[sol["t"]].reset_index()
     assert len(sol) > 0.9 * len(batch.solution)
-    for col in ("roll", "pitch", "yaw", "yaw_std", "roll_std", "bgx", "bgz", "ve", "lat_deg"):
+    # the runs split elsewhere (the stream's IMU blocks, the log's blocks per image); a
+    # covariance step ends where a run ends: measured 3e-10 rad, sigmas 3e-6 relative
+    for col in ("roll", "pitch", "yaw", "bgx", "bgz", "lat_deg"):
         np.testing.assert_allclose(sol[col], ref[col], rtol=0, atol=1e-9, err_msg=col)
-    # the image stage is identical (same priors), whatever the executor and worker count
+    for col in ("yaw_std", "roll_std"):
+        np.testing.assert_allclose(sol[col], ref[col], rtol=1e-5, atol=0, err_msg=col)
+    np.testing.assert_allclose(sol["ve"], ref["ve"], rtol=0, atol=1e-5)
+    # the image stage: the priors start from snapshots of the filter, which the run splits
+    # above move by 1e-10 rad (measured 1.2e-10 rad in the measured yaw)
     m, mb = nav.drain_measurements(), batch.measurements
     pd.testing.assert_series_equal(m["ok"], mb["ok"])
-    pd.testing.assert_series_equal(m["accepted"], mb["accepted"])
+    # (the verdicts of the yaw acquisition's first headings: see the next test)
+    pd.testing.assert_series_equal(m["accepted"] | acquiring(m), mb["accepted"] | acquiring(mb))
     for col in ("yaw", "yaw_std", "prior_yaw", "prior_roll", "epsilon"):
-        np.testing.assert_allclose(m[col], mb[col], rtol=0, atol=1e-12, err_msg=col)
-    np.testing.assert_allclose(m["nis"], mb["nis"], rtol=1e-9, atol=0)  # summation order
+        np.testing.assert_allclose(m[col], mb[col], rtol=0, atol=1e-9, err_msg=col)
+    np.testing.assert_allclose(m["nis"], mb["nis"], rtol=1e-5, atol=1e-7)  # the sigmas above
     # the live estimate (IMU ahead of the images) ends on the batch solution
     last = nav.state()
     assert not last.aligning and last.heading_known and last.images_pending == 0
     row = last.nav.row()
     assert row["t"] == batch.solution["t"].iloc[-1]
     assert abs(wrap_angle(row["yaw"] - batch.solution["yaw"].iloc[-1])) < 1e-9
-    assert row["yaw_std"] == pytest.approx(batch.solution["yaw_std"].iloc[-1], abs=1e-12)
+    assert row["yaw_std"] == pytest.approx(batch.solution["yaw_std"].iloc[-1], rel=1e-5)
     assert len(estimates) > 50 and all(e.heading_known for e in estimates[-10:])
     assert all(np.isfinite(e.nav.euler_std()[0]) for e in estimates[-10:])
 
@@ -93,9 +109,9 @@ def test_batch_heading_agrees_with_truth_within_sigma(sim_log, batch):
     m = batch.measurements
     # the first headings are held until 3 agree (docs/filter.md 7.1): the stream reports
     # the verdict it had when it applied them
-    held = m["update_reason"].str.startswith("held for the yaw acquisition")
+    held = acquiring(m)
     assert m["ok"].sum() >= 0.85 * len(m) and (m["accepted"] | held).sum() == m["ok"].sum()
-    assert held.sum() == 2 and not m.loc[held, "accepted"].any()
+    assert held.sum() <= 2 and not m.loc[held, "accepted"].any()
     # priors come from a snapshot at least prior_lag_s old (or the first one)
     used = m[m["ok"]]
     assert np.all(
@@ -117,13 +133,17 @@ def test_batch_heading_agrees_with_truth_within_sigma(sim_log, batch):
 
 def test_measurements_do_not_depend_on_workers(sim_log, batch):
     one = run_log(read_log(sim_log), workers=1, progress=False)
+    verdicts = ["measure_s", "accepted", "update_reason"]  # (the acquisition's: acquiring)
     pd.testing.assert_frame_equal(
-        one.measurements.drop(columns="measure_s"), batch.measurements.drop(columns="measure_s")
+        one.measurements.drop(columns=verdicts), batch.measurements.drop(columns=verdicts)
     )
-    # the filter's runs may split differently (timing of the pool): rounding only
-    np.testing.assert_allclose(one.solution["yaw"], batch.solution["yaw"], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(one.solution["yaw_std"], batch.solution["yaw_std"], rtol=0,
-                               atol=1e-12)  # fmt: skip
+    m, mb = one.measurements, batch.measurements
+    pd.testing.assert_series_equal(m["accepted"] | acquiring(m), mb["accepted"] | acquiring(mb))
+    # the filter's runs may split differently (timing of the pool), and a covariance step
+    # ends where a run ends: measured 1.5e-10 rad, sigmas 3e-6 relative
+    np.testing.assert_allclose(one.solution["yaw"], batch.solution["yaw"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(one.solution["yaw_std"], batch.solution["yaw_std"], rtol=1e-5,
+                               atol=0)  # fmt: skip
 
 
 def test_corrupt_and_missing_images_are_skipped(sim_log, batch, tmp_path):
@@ -205,10 +225,9 @@ def test_image_order_policies_and_external_measurements(sim_log):
     err = float(wrap_angle(yaw - truth_at(truth, np.array([est.t]))["yaw"].iloc[0]))
     assert abs(err) < 3 * yaw_std and yaw_std < np.radians(0.2)
     m = nav.drain_measurements()
-    assert (
-        m["accepted"].sum() == len(t_meas) - 2  # two held for the yaw acquisition
-        and (m["reason"].str.contains("out-of-order")).sum() == 2
-    )
+    assert (m["accepted"] | acquiring(m)).sum() == len(t_meas) and (
+        m["reason"].str.contains("out-of-order")
+    ).sum() == 2
 
 
 def test_stream_memory_is_bounded(sim_log):
@@ -224,13 +243,17 @@ def test_stream_memory_is_bounded(sim_log):
         if nxt is not None and imu[k, 0] >= nxt[0] + 0.05:
             nav.add_image(nxt[0], load_raw(nxt[1]))
             nxt = next(images, None)
-        sizes.append((len(nav._buf), len(nav._hist), len(nav._snaps), len(nav._images)))
+        if nav.filter is not None:
+            sizes.append((len(nav._buf) + len(nav._pending), len(nav._hist), len(nav._snaps),
+                          len(nav._images)))  # fmt: skip
     nav.close()
     buf, hist, snaps, pending = np.max(np.array(sizes[400:]), axis=0)
     rate = 200.0
     opts = nav.options
-    assert hist <= (opts.prior_lag_s + opts.max_image_delay_s + 0.5) * rate
-    assert buf <= (opts.max_image_delay_s + 0.5) * rate
+    # the filter runs at the end of a block of IMU time, on runs of at least RUN_S
+    held = opts.max_image_delay_s + RUN_S + BLOCK_S
+    assert hist <= (opts.prior_lag_s + held + 0.5) * rate
+    assert buf <= (held + 0.5) * rate
     assert snaps <= (opts.prior_lag_s + opts.max_image_delay_s) / opts.snapshot_every_s + 3
     assert pending <= nav.max_in_flight + 3
     assert nav.drain_measurements()["ok"].sum() >= 50
@@ -323,14 +346,19 @@ def test_default_ugv_simulate_then_fuse(tmp_path, capsys):
 
 def test_a_bug_in_the_measurer_propagates_and_opencv_failures_are_events(sim_log, monkeypatch):
     import cv2
+    from scipy.spatial.transform import Rotation
 
     import polins.loop.measurer as measurer_module
+    from polins.ins.state import NavState
+    from polins.ins.strapdown import Mechanization
     from polins.loop.measurer import ImageMeasurer
+    from polins.loop.prior import PriorJob
 
     log = read_log(sim_log)
     measurer = ImageMeasurer(log.camera, "compensated", {"fixed_zenith": False})
     raw = np.zeros(log.camera.shape, np.uint16)
-    quat = np.array([0.0, 0.0, 0.0, 1.0])
+    level = NavState(0.0, Rotation.identity(), np.zeros(3), 0.8, 2.2, 0.0)
+    prior = PriorJob.of(level, [], 0.0, Mechanization())  # the prior: the state itself
     sun_n = np.array([0.0, 0.6, 0.8])
 
     def bug(*args, **kwargs):
@@ -338,7 +366,7 @@ def test_a_bug_in_the_measurer_propagates_and_opencv_failures_are_events(sim_log
 
     monkeypatch.setattr(measurer_module, "measure", bug)
     with pytest.raises(TypeError, match="a bug inside"):
-        measurer(raw, sun_n, quat)
+        measurer(raw, sun_n, prior)
     with pytest.raises(TypeError, match="a bug inside"):  # not an "image-error" row
         run_log(log, workers=1, progress=False)
 
@@ -346,9 +374,9 @@ def test_a_bug_in_the_measurer_propagates_and_opencv_failures_are_events(sim_log
         raise cv2.error("OpenCV failed on these pixels")
 
     monkeypatch.setattr(measurer_module, "measure", opencv_fails)
-    row = measurer(raw, sun_n, quat)
+    row = measurer(raw, sun_n, prior)
     assert not row["ok"] and row["event"] == "image-error" and "OpenCV" in row["reason"]
-    row = measurer(np.zeros((3, 3), np.uint16), sun_n, quat)  # wrong size: a data fault
+    row = measurer(np.zeros((3, 3), np.uint16), sun_n, prior)  # wrong size: a data fault
     assert not row["ok"] and row["event"] == "image-unreadable"
 
 
@@ -390,7 +418,8 @@ def test_run_log_runs_the_filter_once(sim_log, batch, monkeypatch):
     for col, atol in (("roll", 1e-9), ("pitch", 1e-9), ("yaw", 1e-9), ("yaw_std", 1e-7),
                       ("bgz", 1e-10), ("ve", 1e-5), ("alt_m", 1e-5)):  # fmt: skip
         np.testing.assert_allclose(result.solution[col], ref[col], rtol=0, atol=atol, err_msg=col)
-    np.testing.assert_allclose(result.solution["yaw"], batch.solution["yaw"], rtol=0, atol=1e-12)
+    # one worker or a pool: the runs split where the images resolve (the same cut steps)
+    np.testing.assert_allclose(result.solution["yaw"], batch.solution["yaw"], rtol=0, atol=1e-9)
 
 
 def test_events_are_bounded_and_the_site_is_never_silent(sim_log):

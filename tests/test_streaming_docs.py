@@ -189,13 +189,16 @@ def test_a_run_inside_one_snapshot_cell_is_filtered():
     from polins.loop.runner import FilterRunner
 
     imu = static_imu(2.0)
-    config = config_with_site(FuseConfig(imu_model=MODEL, site=PAPER_SITE))
+    # a solution row a second: the short run below has neither a snapshot nor a row
+    config = config_with_site(FuseConfig(imu_model=MODEL, site=PAPER_SITE, output_rate_hz=1.0))
     runner = FilterRunner(config, 0.0, 1.0 / RATE_HZ, Rotation.identity(),
-                          snapshot_every_s=0.1, record_solution=False, max_rows=100)  # fmt: skip
+                          snapshot_every_s=0.1, max_rows=100)  # fmt: skip
     samples = [(r[0], r[1:4], r[4:7]) for r in imu]
     runner.run(samples[:101])  # up to t = 0.5 s
     runner.run(samples[101:104])  # 0.505 .. 0.515 s: inside the 0.5 s cell
     assert runner.filter.t == pytest.approx(0.515)
+    runner.finish()  # the last state is the solution's last row, as polins.fuse
+    assert list(runner.drain_solution()["t"]) == pytest.approx([0.0, 0.515])
 
 
 def test_add_imu_checks_units_like_the_cli_and_drops_out_of_range_samples():
@@ -237,3 +240,30 @@ def test_a_wrong_noise_model_is_reported_once():
     assert list(events["kind"]).count("noise-model") == 1
     rows = nav.drain_measurements()
     assert len(rows) == 4 and np.all(rows["noise_ratio"] > 3.0)
+
+
+def test_from_manifest_configures_the_stream_as_the_log(tmp_path):
+    """The manifest's camera, IMU model, site, epoch, [vehicle] and [filter]; its data files
+    are not read (they need not exist); an odometer without odometer_std gets 0.05 m/s."""
+    (tmp_path / "manifest.toml").write_text(
+        '[log]\nepoch_utc = "2023-09-05T07:06:00+00:00"\ncamera = "paper-table1"\n'
+        'imu = "mems-typical"\nlat_deg = 45.6\nlon_deg = 126.7\nalt_m = 150.0\n\n'
+        '[files]\nimu = "imu.csv"\nimages = "images.csv"\n\n'
+        '[vehicle]\nkind = "ground"\nmount_rpy_deg = [0.0, 1.0, 2.0]\nodometer = "odo.csv"\n\n'
+        "[filter]\nnhc_std = 0.1\n"
+    )
+    nav = NavigationStream.from_manifest(tmp_path)  # a folder: its manifest.toml
+    config = nav.config
+    assert nav.camera.name == "paper-table1" and nav.imu_model.name == "mems-typical"
+    assert (nav.site.lat_deg, nav.site.lon_deg, nav.site.alt_m) == (45.6, 126.7, 150.0)
+    assert nav.epoch_utc == pd.Timestamp("2023-09-05T07:06:00Z")
+    assert config.aiding.vehicle == "ground" and config.nhc_sigma == 0.1
+    assert config.odometer_sigma == 0.05 and config.standstill_sigma is not None
+    assert config.aiding.mount_rpy[2] == pytest.approx(math.radians(2.0))
+    assert config.tilt_coupling  # the loop's yaw update: as run_log's stream
+    nav.close()
+    (tmp_path / "manifest.toml").write_text(
+        (tmp_path / "manifest.toml").read_text().replace("nhc_std", "nhc_sd")
+    )
+    with pytest.raises(UserInputError, match=r"manifest.toml: unknown key 'filter.nhc_sd'"):
+        NavigationStream.from_manifest(tmp_path / "manifest.toml")

@@ -136,7 +136,7 @@ class Log:
         return sun_vector_n(sun.azimuth, sun.zenith)
 
 
-def _model_ref(folder: Path, ref: str) -> str | Path:
+def model_ref(folder: Path, ref: str) -> str | Path:
     """Manifest model reference -> shipped name or path (relative to the manifest)."""
     if ref.endswith(".toml") or "/" in ref or "\\" in ref:
         p = Path(ref)
@@ -198,7 +198,7 @@ def read_log(
 
     def load(key: str, loader: Callable[[Any], Any]) -> Any:
         try:
-            return loader(_model_ref(folder, log[key]))
+            return loader(model_ref(folder, log[key]))
         except (FileNotFoundError, ValueError) as exc:
             raise type(exc)(f"{path}: key 'log.{key}': {exc}") from None
 
@@ -407,6 +407,7 @@ __all__ = [
     "ImageSource",
     "Log",
     "ManifestError",
+    "model_ref",
     "parse_manifest",
     "read_log",
     "write_log",

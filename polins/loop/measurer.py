@@ -16,18 +16,18 @@ import time
 import warnings
 from collections.abc import Callable, Mapping
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from polins.compass.measure import NoiseModelWarning, check_measure_options, measure
 from polins.compass.measurement import NOISE_RATIO_BAND
 from polins.fusion.inputs import measurement_row
 from polins.io.images import ImageReadError, load_raw
+from polins.loop.prior import PriorJob
 from polins.loop.tables import EventBuffer
 from polins.models import CameraModel
 
@@ -53,8 +53,9 @@ class ImageMeasurer:
         self.method = method
         self.options = dict(options)
 
-    def __call__(self, item: Any, sun_n: FloatArray, quat_prior: FloatArray) -> dict[str, Any]:
-        """Measure one image; a measurement row (``ok=False``, reason and event on a data fault).
+    def __call__(self, item: Any, sun_n: FloatArray, prior: PriorJob) -> dict[str, Any]:
+        """Measure one image; a measurement row (``ok=False``, reason and event on a data
+        fault) with the prior's columns.
 
         Parameters
         ----------
@@ -62,11 +63,12 @@ class ImageMeasurer:
             What :func:`polins.io.load_raw` loads.
         sun_n : (3,) ndarray
             ENU sun vector at the image time.
-        quat_prior : (4,) ndarray
-            Prior attitude body -> ENU, scipy quaternion order (x, y, z, w).
+        prior : PriorJob
+            What the prior attitude (body -> ENU) at the image time is computed from.
         """
         start = time.perf_counter()
-        row: dict[str, Any] = {"ok": False, "reason": "", "event": ""}
+        rot_prior = prior.rotation()
+        row: dict[str, Any] = {"ok": False, "reason": "", "event": "", **prior.columns(rot_prior)}
         try:
             raw = load_raw(item, shape=self.camera.shape)
         except ImageReadError as exc:
@@ -76,7 +78,7 @@ class ImageMeasurer:
                 with warnings.catch_warnings():  # the loop reports it once per run
                     warnings.simplefilter("ignore", NoiseModelWarning)
                     m = measure(raw, self.camera, sun_n=sun_n,
-                                rot_nb_prior=Rotation.from_quat(quat_prior),
+                                rot_nb_prior=rot_prior,
                                 method=self.method, **self.options)  # fmt: skip
             except cv2.error as exc:
                 row.update(reason=f"measurement failed: OpenCV: {exc}", event="image-error")
@@ -119,10 +121,14 @@ def _worker_init(measurer: ImageMeasurer) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _worker_call(item: Any, sun_n: FloatArray, quat_prior: FloatArray) -> dict[str, Any]:
+def _worker_call(item: Any, sun_n: FloatArray, prior: PriorJob) -> dict[str, Any]:
     if _WORKER is None:
         raise RuntimeError("image worker used before its initializer ran")
-    return _WORKER(item, sun_n, quat_prior)
+    return _WORKER(item, sun_n, prior)
+
+
+def _worker_ready() -> bool:
+    return _WORKER is not None
 
 
 class InlineExecutor(Executor):
@@ -146,8 +152,8 @@ def make_executor(
     Parameters
     ----------
     kind : {"inline", "thread", "process"}
-        In the caller, in ``workers`` threads, or in ``workers`` processes (each initialised
-        once with the measurer).
+        In the caller, in ``workers`` threads, or in ``workers`` processes (started here,
+        each initialised once with the measurer).
     workers : int
         Threads or processes.
     measurer : ImageMeasurer
@@ -164,6 +170,9 @@ def make_executor(
             initializer=_worker_init,
             initargs=(measurer,),
         )
+        # the workers start here, before the caller starts other threads (a process forked
+        # while another thread holds a lock can hang) and not at the first image
+        pool.submit(_worker_ready).result()
         return pool, _worker_call
     raise ValueError(f"executor={kind!r}: expected one of {EXECUTORS}")
 
@@ -177,7 +186,6 @@ class PendingImage:
     item: Any  # raw mosaic, path or bag message; None once dispatched
     sun_n: FloatArray
     future: Future[dict[str, Any]] | None = None
-    prior: dict[str, float] = field(default_factory=dict)
     row: dict[str, Any] | None = None  # the measurement, once known
 
     @property

@@ -3,8 +3,8 @@
 The filter runs once. :func:`run_log` feeds the log to a
 :class:`~polins.loop.stream.NavigationStream` in time order (images measured by a pool of
 processes); the stream's filter is the one the Eq. 13 loop needs for the image priors, and
-with ``record_solution`` it also keeps its estimate at every accepted IMU sample, which *is*
-the final ESKF solution (a second pass through ``polins.fuse`` would only repeat it). The
+it also keeps its estimate at every accepted IMU sample (or at ``output_rate_hz``), which
+*is* the final ESKF solution (a second pass through ``polins.fuse`` would only repeat it). The
 other backends are other estimators, run once on the stream's measurement table
 (:func:`fuse_measurements`): the RTS smoother (a forward pass that stores what the backward
 pass needs) and the GTSAM graph.
@@ -25,23 +25,14 @@ from polins.errors import UserInputError
 from polins.fusion.api import run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.result import FusionResult
-from polins.ins.state import NavState, solution_table
 from polins.io.images import ImageIndex
 from polins.io.log import Log
 from polins.loop.options import LoopOptions
-from polins.loop.stream import NavigationStream
+from polins.loop.stream import NavigationStream, with_odometer
 from polins.loop.tables import EVENT_COLUMNS
 
 MEASUREMENT_INPUTS = ("t", "yaw", "yaw_std", "sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny",
                       "sun_nz", "sun_std", "prior_roll", "prior_pitch", "prior_yaw")  # fmt: skip
-
-
-def with_last_state(solution: pd.DataFrame, last: NavState | None) -> pd.DataFrame:
-    """The solution with the filter's last state as its last row (as
-    ``polins.fusion.output_mask`` keeps the last sample whatever the output rate)."""
-    if last is None or (len(solution) and solution["t"].iloc[-1] >= last.t):
-        return solution
-    return pd.concat([solution, solution_table(last.batched())], ignore_index=True)
 
 
 def fuse_measurements(
@@ -84,6 +75,13 @@ def check_images_exist(log: Log) -> None:
     )
 
 
+def log_config(log: Log, config: FuseConfig | None) -> FuseConfig:
+    """The filter configuration of a log's run: ``config``, or the log's own
+    (``FuseConfig.from_log``), with the odometer's sigma when the log has odometry."""
+    base = config if config is not None else FuseConfig.from_log(log)
+    return base if log.odometry is None else with_odometer(base)
+
+
 def run_log(
     log: Log,
     *,
@@ -124,7 +122,7 @@ def run_log(
 
     check_images_exist(log)
     opts = options if options is not None else LoopOptions()
-    base = config if config is not None else FuseConfig.from_log(log)
+    base = log_config(log, config)
     base.check_backend(backend)
     if workers is not None and (isinstance(workers, bool) or workers < 1):
         raise UserInputError(f"workers={workers!r} must be an integer >= 1")
@@ -145,7 +143,7 @@ def run_log(
         site=log.site,
         epoch_utc=log.epoch_utc,
         rot_nb0=rot_nb0,
-        options=dataclasses.replace(opts, record_solution=own_solution),
+        options=opts,
         config=base.replace(smooth=False),
         imu_dt=dt_med,
         executor="process" if n_workers > 1 else "inline",
@@ -185,8 +183,7 @@ def run_log(
     t_fuse = time.perf_counter()
     config = stream.config.replace(smooth=base.output.smooth)
     if own_solution:
-        solution = with_last_state(stream.drain_solution(), stream.state().nav)
-        fused = FusionResult(solution, stream.drain_updates(), events, config)
+        fused = FusionResult(stream.drain_solution(), stream.drain_updates(), events, config)
     else:
         fused = fuse_measurements(
             imu_used,
@@ -232,4 +229,4 @@ def run_log(
                                measurements=measurements)  # fmt: skip
 
 
-__all__ = ["MEASUREMENT_INPUTS", "fuse_measurements", "run_log"]
+__all__ = ["MEASUREMENT_INPUTS", "fuse_measurements", "log_config", "run_log"]

@@ -47,8 +47,6 @@ class LoopOptions:
         (streaming: the camera's delivery latency).
     max_in_flight : int or None
         Images being measured at once; default ``2 * workers + 1``.
-    record_solution : bool
-        Keep the filter's state at every IMU sample (drain with ``drain_solution``).
     max_table_rows : int
         Bound of the in-memory measurement, event and solution buffers.
     """
@@ -60,7 +58,6 @@ class LoopOptions:
     snapshot_every_s: float = 0.1
     max_image_delay_s: float = 0.5
     max_in_flight: int | None = None
-    record_solution: bool = False
     max_table_rows: int = 1_000_000
 
     def __new__(cls, *args: Any, **kwargs: Any) -> LoopOptions:

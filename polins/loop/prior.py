@@ -3,19 +3,21 @@
 The prior of an image at ``t_i`` is a filter snapshot (a :class:`polins.ins.state.NavState`)
 propagated to ``t_i`` by the strapdown (:func:`polins.ins.strapdown.strapdown`) through the
 raw IMU samples in between, corrected by the snapshot's sensor-error estimates as the filter
-corrects them. The sun vector comes from the NREL SPA ephemeris on a coarse time grid
-(:class:`SunGrid`).
+corrects them; a :class:`PriorJob` carries what it needs to where the image is measured.
+The sun vector comes from the NREL SPA ephemeris on a coarse time grid (:class:`SunGrid`).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from polins.frames import euler_from_rot_nb
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, strapdown
 from polins.site import Site
@@ -70,6 +72,41 @@ def propagate_nominal(
     return Rotation.from_matrix(track.mat_nb[-1])
 
 
+@dataclass(frozen=True, eq=False)
+class PriorJob:
+    """What the prior of an image is computed from, where the image is measured (a worker
+    thread or process): a filter snapshot, the raw IMU samples from it to the image, the
+    image time [s] and the strapdown's Earth terms (:func:`propagate_nominal`)."""
+
+    snapshot: NavState
+    t: FloatArray  # (N,) sample times [s]
+    gyro_b: FloatArray  # (N, 3) [rad/s]
+    accel_b: FloatArray  # (N, 3) [m/s^2]
+    t_image: float
+    mech: Mechanization
+
+    @classmethod
+    def of(cls, snapshot: NavState, samples: list[Sample], t_image: float,
+           mech: Mechanization) -> PriorJob:  # fmt: skip
+        """The job of ``samples`` (as arrays: cheap to send to a worker process)."""
+        t = np.fromiter((s[0] for s in samples), dtype=float, count=len(samples))
+        gyro = np.array([s[1] for s in samples], dtype=float).reshape(-1, 3)
+        accel = np.array([s[2] for s in samples], dtype=float).reshape(-1, 3)
+        return cls(snapshot, t, gyro, accel, float(t_image), mech)
+
+    def rotation(self) -> Rotation:
+        """The prior attitude body -> ENU at the image time."""
+        samples = list(zip(self.t.tolist(), self.gyro_b, self.accel_b, strict=True))
+        return propagate_nominal(self.snapshot, samples, self.t_image, self.mech)
+
+    def columns(self, rot_prior: Rotation) -> dict[str, float]:
+        """The prior's columns of a measurement row: ``prior_t`` [s], ``prior_roll``,
+        ``prior_pitch``, ``prior_yaw`` [rad]."""
+        yaw, pitch, roll = euler_from_rot_nb(rot_prior)
+        return {"prior_t": float(self.snapshot.t), "prior_roll": float(roll),
+                "prior_pitch": float(pitch), "prior_yaw": float(yaw)}  # fmt: skip
+
+
 class SunGrid:
     """ENU sun vector at log times: the NREL SPA on a grid of ``step_s``, interpolated.
 
@@ -119,4 +156,4 @@ class SunGrid:
         return np.asarray(self._blocks[block][i])
 
 
-__all__ = ["Sample", "SunGrid", "propagate_nominal", "sample_at"]
+__all__ = ["PriorJob", "Sample", "SunGrid", "propagate_nominal", "sample_at"]

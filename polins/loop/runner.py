@@ -5,12 +5,15 @@ window is levelled at once (``ESKF.level``), a single sample goes through
 ``ESKF.propagate``, a longer run through the filter's fast path
 (:func:`polins.fusion.eskf.propagate.advance`), which gives the estimates
 ``polins.fusion.run_fusion`` gives. On the way it keeps the *snapshots* the image priors
-start from (the first sample of every ``snapshot_every_s`` grid cell) and, if asked, the
-estimate at the configured output rate (the solution).
+start from (the first sample of every ``snapshot_every_s`` grid cell) and the solution at
+the configuration's output rate (``FuseConfig.output_rate``: the first sample of every
+``1 / output_rate_hz`` cell counted from the first sample, as ``polins.fuse`` reports it;
+every sample when the rate is None).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from collections.abc import Callable
@@ -25,9 +28,19 @@ from polins.fusion.eskf.filter import ESKF
 from polins.fusion.eskf.propagate import advance, interpolate
 from polins.fusion.items import UpdateRecord
 from polins.ins.state import NavState, concatenate, solution_table
+from polins.ins.strapdown import Mechanization, strapdown
 from polins.loop.prior import Sample
 
 FloatArray = NDArray[np.float64]
+
+
+@functools.cache
+def load_kernels() -> None:
+    """Load the filter's compiled strapdown (numba, cached on disk) once per process: a
+    stream's constructor calls it, so that the call that first runs the filter does not."""
+    nav0 = NavState(0.0, Rotation.identity(), np.zeros(3), 0.0, 0.0, 0.0)
+    gravity = np.tile([0.0, 0.0, 9.8], (2, 1))
+    strapdown(nav0, np.array([0.0, 0.01]), np.zeros((2, 3)), gravity, Mechanization())
 
 
 class FilterRunner:
@@ -45,9 +58,6 @@ class FilterRunner:
         Initial attitude; None: self-alignment.
     snapshot_every_s : float
         Grid of the snapshots [s].
-    record_solution : bool
-        Keep the estimate at the output rate of ``config`` (``output_rate_hz``; every sample
-        for ``"imu"``) for :meth:`drain_solution`.
     max_rows : int
         Bound of the solution buffer (entries: one state, or the states of one run).
     """
@@ -60,15 +70,13 @@ class FilterRunner:
         rot_nb0: Rotation | None,
         *,
         snapshot_every_s: float,
-        record_solution: bool,
         max_rows: int,
     ) -> None:
         self.filter = ESKF(config, t0, dt, rot_nb0)
         self.t0 = float(t0)
         self.snapshot_every_s = snapshot_every_s
-        self.record_solution = record_solution
-        self.output_rate = config.output_rate  # None: every sample
-        self._output_cell = -math.inf  # the output grid cell of the last row kept
+        self.output_rate = config.output_rate
+        self._out_cell = -math.inf  # output cell of the last solution row
         self.snaps: deque[NavState] = deque()
         self.solution: deque[NavState] = deque(maxlen=max_rows)
         self._levelling: list[Sample] = []  # samples of the self-alignment window so far
@@ -109,7 +117,28 @@ class FilterRunner:
         """The solution table of the estimates kept since the last call."""
         states = list(self.solution)
         self.solution.clear()
-        return solution_table(concatenate(states)) if states else pd.DataFrame()
+        if states:
+            return solution_table(concatenate(states))
+        f = self.filter  # no row yet: the columns of this filter's table
+        return solution_table(f.state()).iloc[:0] if f.ready else pd.DataFrame()
+
+    def finish(self) -> None:
+        """Keep the filter's last state as the solution's last row (as ``polins.fuse``)."""
+        f = self.filter
+        last = self.solution[-1].t if self.solution else None
+        t_last = None if last is None else float(np.atleast_1d(last)[-1])
+        if f.ready and f.started and t_last != f.t:
+            self.solution.append(f.state())
+
+    def output_rows(self, t: FloatArray) -> NDArray[np.bool_]:
+        """Which of the times ``t`` (increasing) are solution rows (module docstring)."""
+        if self.output_rate is None:
+            return np.ones(len(t), dtype=bool)
+        cell = np.floor((t - self.t0) * self.output_rate + 1e-9)
+        new = cell > np.concatenate([[self._out_cell], cell[:-1]])
+        if len(cell):
+            self._out_cell = float(cell[-1])
+        return np.asarray(new, dtype=bool)
 
     def new_cells(self, t: FloatArray) -> NDArray[np.bool_]:
         """Which of the times ``t`` (increasing) start a new snapshot grid cell."""
@@ -118,29 +147,15 @@ class FilterRunner:
         prev = math.floor(self.snaps[-1].t / step) if self.snaps else -math.inf
         return np.asarray(cell > np.concatenate([[prev], cell[:-1]]), dtype=bool)
 
-    def output_rows(self, t: FloatArray) -> NDArray[np.bool_]:
-        """Which of the times ``t`` (increasing) are solution rows: every one without an
-        output rate, else the first sample of each ``1 / output_rate_hz`` cell after ``t0``
-        (``polins.fusion.output_mask``); updates the last cell kept."""
-        if not self.record_solution:
-            return np.zeros(len(t), dtype=bool)
-        if self.output_rate is None:
-            return np.ones(len(t), dtype=bool)
-        cell = np.floor((t - self.t0) * self.output_rate + 1e-9)
-        rows = np.asarray(cell > np.concatenate([[self._output_cell], cell[:-1]]), dtype=bool)
-        if len(t):
-            self._output_cell = float(cell[-1])
-        return rows
-
     def _keep(self, t: float, state: Callable[[], NavState]) -> None:
         new_cell = bool(self.new_cells(np.array([t]))[0])
-        row = bool(self.output_rows(np.array([t]))[0])
-        if not (new_cell or row):
+        output = bool(self.output_rows(np.array([t]))[0])
+        if not (new_cell or output):
             return
         st = state()
         if new_cell:
             self.snaps.append(st)
-        if row:
+        if output:
             self.solution.append(st)
 
     def _fast_run(self, samples: list[Sample]) -> None:
@@ -152,22 +167,23 @@ class FilterRunner:
         t = np.array([s[0] for s in start + samples])
         gyro = np.array([s[1] for s in start + samples])
         accel = np.array([s[2] for s in start + samples])
-        mask = np.zeros(len(t), dtype=bool)
-        rows = self.output_rows(t[len(start) :])
-        mask[len(start) :] = self.new_cells(t[len(start) :]) | rows
-        if not mask.any():  # a run inside one snapshot and output cell: nothing to keep
+        output = np.zeros(len(t), dtype=bool)
+        output[len(start) :] = self.output_rows(t[len(start) :])
+        mask = output.copy()
+        mask[len(start) :] |= self.new_cells(t[len(start) :])
+        if not mask.any():  # a run inside one snapshot cell: nothing to keep
             advance(f, t, gyro, accel)
             return
         run = advance(f, t, gyro, accel, mask)
         assert run is not None
         states = interpolate(*run, f.layout.index)
+        rows = output[mask]
         if rows.all():
             self.solution.append(states)
         elif rows.any():
-            kept = np.flatnonzero(rows[mask[len(start) :]])
-            self.solution.append(concatenate([states.at(int(i)) for i in kept]))
+            self.solution.append(concatenate([states.at(int(i)) for i in np.flatnonzero(rows)]))
         for i in np.flatnonzero(self.new_cells(np.asarray(states.t))):
             self.snaps.append(states.at(int(i)))
 
 
-__all__ = ["FilterRunner"]
+__all__ = ["FilterRunner", "load_kernels"]

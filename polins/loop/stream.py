@@ -20,16 +20,22 @@ taken at ``tau < t_i - prior_lag_s`` (or the first one, if none is that old), pr
 (:func:`polins.loop.prior.propagate_nominal`). A snapshot at ``tau`` contains the updates of
 all images up to ``tau``, so images closer than ``prior_lag_s`` to each other do not depend
 on each other and are measured in parallel (a sliding window of up to ``max_in_flight``
-images in a process pool, while the filter stays sequential). Each measurement updates the
+images in a process pool, while the filter stays sequential); the prior is propagated where
+the image is measured (:class:`polins.loop.prior.PriorJob`). Each measurement updates the
 filter at its image time, so the filter holds back the IMU samples after the oldest image
-whose measurement is not known yet. The IMU samples the filter can take are run through
-its fast path at once (:mod:`polins.fusion.eskf.propagate`; one sample at a time through
-``ESKF.propagate``), which gives the same estimates as ``polins.fusion.run_fusion`` on the
-stream's measurement table (to 1e-8 rad). The result depends only on the data and the
-options, never on the number of workers or on timing (to rounding: how the samples split
-into runs moves the estimates by ~1e-15 rad). The cost of the lag: the prior misses the last
-``prior_lag_s`` of updates, which typically moves the tilt far less than its sigma
-(simulated UGV drives: median 0.001 deg with a MEMS IMU against a 0.16 deg roll sigma).
+whose measurement is not known yet, and those of the last ``max_image_delay_s`` (an image
+may still come). ``add_imu`` collects the samples and, once every ``BLOCK_S`` of IMU time,
+screens the block, hands the measured images over (queued in the filter, applied at their
+times) and runs the samples the filter can take, in runs of at least ``RUN_S`` unless an
+image waits for its prior, through its fast path
+(:mod:`polins.fusion.eskf.propagate`), which gives the same estimates as
+``polins.fusion.run_fusion`` on the stream's measurement table (to 1e-8 rad). The filter's
+covariance steps end where its runs end, so how the samples split into runs (the blocks,
+the images measured by then) moves the estimates and the image priors by ~1e-10 rad and
+the sigmas by ~1e-5 relative; nothing else depends on timing or on the number of workers.
+The cost of the lag: the prior misses the last ``prior_lag_s`` of updates, which typically
+moves the tilt far less than its sigma (simulated UGV drives: median 0.001 deg with a MEMS
+IMU against a 0.16 deg roll sigma).
 
 Data faults are skipped and reported as events, the run goes on: the fault policy of every
 path (:mod:`polins.fusion.faults`, docs/faults.md). An IMU gap longer than ``max_gap_s``
@@ -40,22 +46,26 @@ have arrived (docs/streaming.md): a mistake raises ``ImuUnitsError`` from the ca
 fed the deciding sample or heading.
 
 Memory and latency are bounded: the IMU buffer spans at most ``prior_lag_s +
-max_image_delay_s`` plus the processing time of the images in flight, at most
-``max_in_flight`` images are in flight (``add_image`` waits for the oldest beyond that, at
-most one image's processing), and the measurement, event and solution buffers hold at most
-``max_table_rows`` rows (drain them; the events count what they dropped). With a thread or
-process executor ``add_imu`` never waits for an image; the inline executor measures in
-whichever call makes the image's prior known. ``state()`` costs one filter copy plus one
-filter step per IMU sample since the last measurement update (the live estimate is the
-filter replayed over the held-back samples).
+max_image_delay_s + RUN_S + BLOCK_S`` and the processing time of the images in flight, at
+most ``max_in_flight`` images are in flight (``add_image`` waits for the oldest beyond
+that, at most one image's processing), and the measurement, event and solution buffers
+hold at most ``max_table_rows`` entries (drain them; the events count what they dropped).
+With a thread or process executor ``add_imu`` never waits for an image and ``add_image``
+never runs the filter; the inline executor measures in whichever call makes the image's
+prior known. ``state()`` costs one filter copy and a fast-path run over the held-back
+samples after a measurement update, else a run over the samples since the last call (the
+live estimate is the filter replayed over the held-back samples). The constructor loads the
+filter's compiled strapdown (:func:`polins.loop.runner.load_kernels`), once per process.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -64,8 +74,14 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
-from polins.frames import euler_from_rot_nb, heading_deg_from_yaw, rot_nb_from_euler, wrap_angle
-from polins.fusion.config import TIME_TOL_S, FuseConfig, config_with_site, site_from_shorthand
+from polins.frames import heading_deg_from_yaw, rot_nb_from_euler
+from polins.fusion.config import (
+    TIME_TOL_S,
+    FuseConfig,
+    config_from_manifest,
+    config_with_site,
+    site_from_shorthand,
+)
 from polins.fusion.eskf.filter import ESKF
 from polins.fusion.faults import (
     EventKind,
@@ -78,8 +94,11 @@ from polins.fusion.faults import (
 )
 from polins.fusion.inputs import PRIOR_COLUMNS, heading_proxy
 from polins.fusion.items import UpdateRecord, records_table
+from polins.fusion.parts import AUTO, ODOMETER_STD
 from polins.fusion.vehicle import odometer_items
 from polins.ins.state import NavState
+from polins.io.log import model_ref
+from polins.io.manifest import MANIFEST_NAME, parse_manifest
 from polins.loop.measurer import (
     EXECUTORS,
     ImageMeasurer,
@@ -88,11 +107,11 @@ from polins.loop.measurer import (
     report_noise_model,
 )
 from polins.loop.options import LoopOptions
-from polins.loop.prior import Sample, SunGrid, propagate_nominal
-from polins.loop.runner import FilterRunner
+from polins.loop.prior import PriorJob, Sample, SunGrid
+from polins.loop.runner import FilterRunner, load_kernels
 from polins.loop.state import StreamState
 from polins.loop.tables import EventBuffer, measurement_frame
-from polins.models import CameraModel, ImuModel
+from polins.models import CameraModel, ImuModel, load_camera, load_imu
 from polins.site import Site, utc_timestamp
 
 # the further columns of a measured row the filter uses: the sun fit's 2x2 covariance and
@@ -101,6 +120,20 @@ SKY_COLUMNS = ("sun_elevation_b", "sun_elevation_b_std", "yaw_std_model", "yaw_s
                "yaw_std_correlated")  # fmt: skip
 
 FloatArray = NDArray[np.float64]
+# IMU time [s] add_imu collects before it screens the samples and advances the loop: the
+# per-call overhead of screening, dispatching and running the filter spread over this block
+BLOCK_S = 0.25
+# shortest run of samples [s] the filter takes while no image waits for its prior
+RUN_S = 1.0
+
+
+def with_odometer(config: FuseConfig) -> FuseConfig:
+    """``config`` for a run with a wheel odometer: an ``"auto"`` ``odometer_std`` becomes
+    its value, as :meth:`FuseConfig.resolve` makes it (without resolving the other
+    ``"auto"`` choices, which the loop makes itself)."""
+    if config.aiding.odometer_std == AUTO:
+        return config.replace(odometer_std=ODOMETER_STD)
+    return config
 
 
 class NavigationStream:
@@ -186,9 +219,11 @@ class NavigationStream:
         self._tol = TIME_TOL_S
         self.workers = workers
         self.max_in_flight = self.options.max_in_flight or (2 * workers + 1)
+        load_kernels()  # here, not in the first call that runs the filter
         measurer = ImageMeasurer(camera, self.options.method, self.options.measure_kwargs())
         self._executor, self._submit_fn = make_executor(executor, workers, measurer)
         self.sun_at = SunGrid(self.config.site, self.epoch_utc)
+        self.sun_at(0.0)  # the ephemeris of the first minutes here, not at the first image
         self._runner: FilterRunner | None = None
         self._buf: deque[Sample] = deque()  # accepted samples not yet filtered
         self._hist: deque[Sample] = deque()  # filtered samples a prior may still need
@@ -200,6 +235,10 @@ class NavigationStream:
         # the fault policy of every path (polins.fusion.faults, docs/faults.md)
         full_scale = imu_model.full_scale()
         self._screen = ImuScreen(full_scale, default_max_gap_s(self.config.gap_s, self.imu_dt))
+        self._gyro_max_sq, self._accel_max_sq = full_scale[0] ** 2, full_scale[1] ** 2
+        self._pending: list[tuple[float, ...]] = []  # added samples not yet screened
+        self._t_newest = -math.inf  # time of the newest sample that passed add_imu's screen
+        self._t_advanced = -math.inf  # newest sample time when the loop last advanced
         self._units = UnitsWindow(self.config.initial.align_s, full_scale[0])
         self._heading_check = GyroHeadingCheck()
         self._last: Sample | None = None  # the newest accepted sample
@@ -208,6 +247,48 @@ class NavigationStream:
         self._head: ESKF | None = None
         self._head_valid = False
         self._closed = False
+
+    @classmethod
+    def from_manifest(
+        cls,
+        manifest_path: str | Path,
+        *,
+        rot_nb0: Rotation | None = None,
+        options: LoopOptions | None = None,
+        executor: str = "inline",
+        workers: int = 1,
+    ) -> NavigationStream:
+        """The stream of the vehicle a log's manifest describes, configured as ``polins
+        fuse`` configures that log (docs/streaming.md).
+
+        From the manifest (a folder means its ``manifest.toml``): the camera and IMU model
+        files, the site and ``epoch_utc`` of ``[log]``, and the filter configuration of
+        ``[vehicle]`` and ``[filter]`` (:meth:`polins.FuseConfig.from_log`'s
+        :func:`~polins.fusion.config.config_from_manifest`; a ``[vehicle] odometer`` gives
+        the odometer scale-factor state, fed by :meth:`add_odometry`). The log's data
+        files are not read; the stream takes SI units whatever ``[units]`` says of them.
+        The other parameters are the constructor's.
+        """
+        path = Path(manifest_path)
+        path = path / MANIFEST_NAME if path.is_dir() else path
+        tables = parse_manifest(path)
+        log, vehicle = tables["log"], tables["vehicle"]
+        imu_model = load_imu(model_ref(path.parent, log["imu"]))
+        site = Site(log["lat_deg"], log["lon_deg"], log["alt_m"])
+        config = config_from_manifest(tables, imu_model, site, path)
+        if "odometer" in vehicle:
+            config = with_odometer(config)
+        return cls(
+            load_camera(model_ref(path.parent, log["camera"])),
+            imu_model,
+            site=site,
+            epoch_utc=log["epoch_utc"],
+            rot_nb0=rot_nb0,
+            options=options,
+            config=config,
+            executor=executor,
+            workers=workers,
+        )
 
     # ------------------------------------------------------------------ reporting
     @property
@@ -224,7 +305,7 @@ class NavigationStream:
     @property
     def t_latest(self) -> float:
         """Time of the newest accepted IMU sample [s] (-inf before the first)."""
-        return self._screen.t_latest
+        return max(self._t_newest, self._screen.t_latest)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -254,23 +335,58 @@ class NavigationStream:
         return records_table(records)
 
     def drain_solution(self) -> pd.DataFrame:
-        """The filter's estimate at every filtered IMU sample since the last call
-        (``record_solution=True``; the solution table of ``polins.ins.state``)."""
+        """The filter's estimates since the last call: the solution table of
+        ``polins.fuse`` (``polins.ins.state.solution_table``), a row per filtered IMU sample
+        or at ``FuseConfig.output_rate_hz``; the filter runs up to ``max_image_delay_s +
+        RUN_S + BLOCK_S`` behind the newest sample, and :meth:`flush` / :meth:`close` filter
+        the rest. Empty (with the columns once levelled) before the first filtered sample."""
         return pd.DataFrame() if self._runner is None else self._runner.drain_solution()
 
     # ------------------------------------------------------------------ inputs
-    def add_imu(self, t: float, gyro_b: ArrayLike, accel_b: ArrayLike) -> bool:
+    def add_imu(
+        self, t: float, gyro_b: Sequence[float] | FloatArray, accel_b: Sequence[float] | FloatArray
+    ) -> bool:
         """One IMU sample: instantaneous body rate [rad/s] and specific force [m/s^2] at ``t``.
 
-        Returns False if the sample was dropped (NaN, not after the previous one; module
-        docstring). Never waits for the image stage.
+        Returns False if the sample was dropped (NaN, not after the previous one, beyond the
+        full scale; module docstring). Never waits for the image stage. The samples are
+        taken in blocks of ``BLOCK_S`` of IMU time: the call that completes a block screens
+        it and runs the filter (module docstring).
         """
-        w = np.array(gyro_b, dtype=float).reshape(1, 3)
-        f = np.array(accel_b, dtype=float).reshape(1, 3)
-        accepted = bool(self._accept(np.array([float(t)]), w, f)[0])
-        if accepted:
+        t = float(t)
+        wx, wy, wz = gyro_b
+        fx, fy, fz = accel_b
+        row = (t, float(wx), float(wy), float(wz), float(fx), float(fy), float(fz))
+        # the screen of polins.fusion.faults on one sample (NaN fails every comparison)
+        if not (
+            t > self._t_newest
+            and row[1] ** 2 + row[2] ** 2 + row[3] ** 2 <= self._gyro_max_sq
+            and row[4] ** 2 + row[5] ** 2 + row[6] ** 2 <= self._accel_max_sq
+        ):
+            self._pending.append(row)  # dropped by the screen, with its event
+            self._ingest(run=True)
+            return False
+        if t > self._t_newest + self._screen.max_gap_s:  # a gap: known to the next call
+            self._pending.append(row)
+            self._t_newest = t
+            self._ingest(run=True)
+            return True
+        self._pending.append(row)
+        self._t_newest = t
+        if t >= self._t_advanced + BLOCK_S:
+            self._ingest(run=True)
+        return True
+
+    def _ingest(self, *, run: bool) -> None:
+        """Screen the pending IMU samples into the buffer; with ``run``, advance the loop
+        (dispatch images, hand measurements over, run the filter)."""
+        if self._pending:
+            block = np.array(self._pending, dtype=float)
+            self._pending.clear()
+            self._accept(block[:, 0], block[:, 1:4], block[:, 4:7])
+        if run:
+            self._t_advanced = self._t_newest
             self._advance(block=False)
-        return accepted
 
     def add_imu_many(
         self, t: ArrayLike, gyro_b: ArrayLike, accel_b: ArrayLike
@@ -286,8 +402,10 @@ class NavigationStream:
                 f"add_imu_many needs t (N,), gyro_b and accel_b (N, 3); got {len(t_a)}, "
                 f"{len(w_a)}, {len(f_a)} samples"
             )
+        self._ingest(run=False)
         accepted = self._accept(t_a.copy(), w_a.copy(), f_a.copy())
         if accepted.any():
+            self._t_newest = self._t_advanced = self._screen.t_latest
             self._advance(block=False)
         return accepted
 
@@ -304,7 +422,6 @@ class NavigationStream:
             self._runner = FilterRunner(self.config, float(t[keep][0]), self.imu_dt,
                                         self.rot_nb0,
                                         snapshot_every_s=self.options.snapshot_every_s,
-                                        record_solution=self.options.record_solution,
                                         max_rows=self.options.max_table_rows)  # fmt: skip
         self._units.add(t[keep], w[keep], f[keep])
         self._heading_check.add_imu(t[keep], w[keep], f[keep])
@@ -315,9 +432,6 @@ class NavigationStream:
                 self._bridge(self._last, sample)
             self._buf.append(sample)
             self._last = sample
-            if self._head is not None and self._head_valid:
-                self._head.propagate(*sample)
-                self._head.records.clear()  # bounded memory: the head's log is not used
         return keep
 
     def _bridge(self, before: Sample, after: Sample) -> None:
@@ -341,14 +455,15 @@ class NavigationStream:
         t = float(t)
         index = self.n_images
         self.n_images += 1
+        self._ingest(run=False)
         if not self._usable_time(index, t, "image"):
             return False
         s_n = self.sun_at(t) if sun_n is None else np.asarray(sun_n, dtype=float).reshape(3)
         self._images.append(PendingImage(index, t, raw, s_n))
-        self._advance(block=False)
+        if self.filter is not None:
+            self._dispatch_ready()  # the filter itself runs in add_imu
         while self._busy() > self.max_in_flight:
             self._wait_oldest()
-            self._advance(block=False)
         return True
 
     def add_measurement(self, t: float, **columns: Any) -> bool:
@@ -357,7 +472,7 @@ class NavigationStream:
         takes the place of an image (same ordering policy)."""
         t = float(t)
         index = self.n_images
-        self.n_images += 1
+        self.n_images += 1  # (the samples add_imu holds have no gap: no need to screen them)
         if not self._usable_time(index, t, "measurement"):
             return False
         row: dict[str, Any] = {"ok": True, "reason": "", "event": "", **columns}
@@ -365,7 +480,6 @@ class NavigationStream:
             row["heading_deg"] = float(heading_deg_from_yaw(row["yaw"]))
         s_n = np.array([row.get(f"sun_n{c}", np.nan) for c in "xyz"], dtype=float)
         self._images.append(PendingImage(index, t, None, s_n, row=row))
-        self._advance(block=False)
         return True
 
     def add_odometry(self, t: ArrayLike, speed: ArrayLike) -> None:
@@ -376,6 +490,7 @@ class NavigationStream:
         std = self.config.odometer_sigma
         if std is None:
             raise UserInputError("add_odometry needs odometer_std [m/s] (FuseConfig, [vehicle])")
+        self._ingest(run=False)
         if self._runner is None:
             raise UserInputError("add_odometry: add the first IMU sample first")
         items = odometer_items({"t": np.atleast_1d(t), "speed": np.atleast_1d(speed)}, std)
@@ -402,10 +517,11 @@ class NavigationStream:
             self._skip(index, t, "image-during-alignment",
                        f"{what} inside the levelling window ({align_s} s)")  # fmt: skip
             return False
-        if f.ready and t < f.t - self._tol:
+        delay = self.options.max_image_delay_s
+        if f.ready and t < max(f.t, self.t_latest - delay) - self._tol:
             self._skip(index, t, "image-late",
-                       f"{what} arrived after the filter passed t={f.t:.6f} "
-                       f"(max_image_delay_s={self.options.max_image_delay_s})")  # fmt: skip
+                       f"{what} more than max_image_delay_s={delay} s behind the newest IMU "
+                       f"sample (t={self.t_latest:.6f})")  # fmt: skip
             return False
         self._t_last_image = t
         return True
@@ -413,21 +529,29 @@ class NavigationStream:
     # ------------------------------------------------------------------ outputs
     def state(self) -> StreamState:
         """Latest estimate: all accepted IMU samples, all measurements known so far."""
-        pending = len(self._images)
+        levelled = self.filter is not None and self.filter.ready
+        self._ingest(run=not levelled)  # the levelling needs no image: done at once
         if self.filter is None or not self.filter.ready:
-            return StreamState(nav=None, aligning=True, images_pending=pending)
+            return StreamState(nav=None, aligning=True, images_pending=len(self._images))
+        self._hand_over_ready(block=False)  # queued in the filter: the head applies them
+        pending = len(self._images)
         if self._head is None or not self._head_valid:
             self._head = self.filter.copy()
-            if self._buf:  # the held-back samples, through the filter's fast path
-                t, gyro, accel = zip(*self._buf, strict=True)
-                self._head.propagate_many(np.array(t), np.array(gyro), np.array(accel))
-            self._head.records.clear()
             self._head_valid = True
-        return StreamState(nav=self._head.state(), aligning=False, images_pending=pending)
+        head = self._head
+        held = [s for s in self._buf if s[0] > head.t + self._tol] if head.started else self._buf
+        if held:  # the held-back samples, through the filter's fast path
+            t, gyro, accel = zip(*held, strict=True)
+            head.propagate_many(np.array(t), np.array(gyro), np.array(accel))
+        head.records.clear()  # bounded memory: the head's log is not used
+        return StreamState(nav=head.state(), aligning=False, images_pending=pending)
 
     def flush(self) -> None:
         """Measure and apply every image added so far; filter every accepted IMU sample."""
+        self._ingest(run=False)
         self._advance(block=True, final=True)
+        if self._runner is not None:
+            self._runner.finish()
         for img in list(self._images):  # after the last IMU sample
             self._skip(img.index, img.t, "image-outside-imu", "image after the last IMU sample")
         self._images.clear()
@@ -506,17 +630,15 @@ class NavigationStream:
                 snap = s
             else:
                 break
-        samples = list(self._hist)
+        k = next((i for i, s in enumerate(self._hist) if s[0] >= snap.t - self._tol), 0)
+        samples = list(itertools.islice(self._hist, max(k - 1, 0), None))
         for sample in self._buf:  # up to the first sample at or after the image
             samples.append(sample)
             if sample[0] >= img.t:
                 break
-        rot_prior = propagate_nominal(snap, samples, img.t, self._runner.filter.mech)
-        yaw, pitch, roll = euler_from_rot_nb(rot_prior)
-        img.prior = {"prior_t": snap.t, "prior_roll": float(roll),
-                     "prior_pitch": float(pitch), "prior_yaw": float(yaw)}  # fmt: skip
-        img.future = self._executor.submit(self._submit_fn, img.item, img.sun_n,
-                                           rot_prior.as_quat())  # fmt: skip
+        # the prior is propagated where the image is measured (off the caller's thread)
+        prior = PriorJob.of(snap, samples, img.t, self._runner.filter.mech)
+        img.future = self._executor.submit(self._submit_fn, img.item, img.sun_n, prior)
         img.item = None  # the raw image is the worker's now
 
     def _hand_over(self, img: PendingImage) -> None:
@@ -527,7 +649,6 @@ class NavigationStream:
             assert img.future is not None
             img.row = dict(img.future.result())
         row = img.row
-        row.update(img.prior)
         row.update(t=img.t, image=img.index)
         for c, v in zip("xyz", img.sun_n, strict=True):
             row[f"sun_n{c}"] = float(v)
@@ -542,8 +663,6 @@ class NavigationStream:
         cols: dict[str, Any] = {"sky": {c: row[c] for c in SKY_COLUMNS if c in row}}
         if "yaw" in row:
             cols.update(yaw=row["yaw"], yaw_std=float(self.config.yaw_sigma(row["yaw_std"])))
-            if f.ready and f.yaw_aligned:
-                row["innovation"] = float(wrap_angle(row["yaw"] - self._predicted_yaw(img.t)))
         if "sun_bx" in row:
             cols.update(sun_b=[row["sun_bx"], row["sun_by"], row["sun_bz"]],
                         sun_std=float(self.config.sun_sigma(row["sun_std"])))  # fmt: skip
@@ -552,17 +671,9 @@ class NavigationStream:
                 row["prior_yaw"], row["prior_pitch"], row["prior_roll"]
             )
         self._by_t[img.t] = row
+        self._head_valid = False  # the head may have passed the measurement's time
         self._collect(f.add_measurement(img.t, sun_n=img.sun_n, **cols))
         f.records.clear()  # bounded memory: verdicts are kept in the measurement rows
-
-    def _predicted_yaw(self, t: float) -> float:
-        f = self.filter
-        assert f is not None
-        st = f.state()
-        samples = [s for s in self._hist if s[0] >= st.t - 1e-9] + list(self._buf)
-        if not samples or samples[-1][0] < t:
-            return float(euler_from_rot_nb(st.rot_nb)[0])
-        return float(euler_from_rot_nb(propagate_nominal(st, samples, t, f.mech))[0])
 
     def _collect(self, records: Iterable[UpdateRecord]) -> None:
         for rec in records:
@@ -573,6 +684,8 @@ class NavigationStream:
                 continue
             row.update(accepted=bool(rec.accepted), update_reason=rec.reason,
                        nis=rec.nis, nis_dof=rec.dim)  # fmt: skip
+            if rec.name == "yaw" and rec.innovation:  # measured minus predicted yaw [rad]
+                row["innovation"] = float(rec.innovation[0])
             self._rows.append(row)
 
     def _filter_run(self, n: int) -> None:
@@ -591,14 +704,15 @@ class NavigationStream:
         and not inside the window where a late image may still come (at least one)."""
         tol = self._tol
         t_image = self._images[0].t - tol if self._images else math.inf
-        t_wait = -math.inf if final else max(self._screen.t_latest - self.options.max_image_delay_s,
-                                              self._t_last_image)  # fmt: skip
+        if final:
+            t_wait = math.inf
+        elif self.filter is not None and not self.filter.ready:  # up to the levelling's end
+            t_wait = self._units.t_first + self.config.initial.align_s + tol
+        else:
+            t_wait = max(self._screen.t_latest - self.options.max_image_delay_s,
+                         self._t_last_image)  # fmt: skip
         n = 1
-        while (
-            n < len(self._buf)
-            and self._buf[n][0] < t_image
-            and (final or self._buf[n][0] <= t_wait)
-        ):
+        while n < len(self._buf) and self._buf[n][0] < t_image and self._buf[n][0] <= t_wait:
             n += 1
         return n
 
@@ -632,6 +746,15 @@ class NavigationStream:
                     continue
                 return
 
+    def _hand_over_ready(self, block: bool) -> bool:
+        """Hand the measured images over in time order (the filter applies each at its
+        time; ``block``: wait for the measurements); True if any was."""
+        progressed = False
+        while self._images and self._images[0].dispatched and (self._images[0].resolved or block):
+            self._hand_over(self._images.popleft())
+            progressed = True
+        return progressed
+
     def _dispatch_ready(self) -> bool:
         """Dispatch the waiting images whose prior is known; True if any was."""
         progressed = False
@@ -652,27 +775,34 @@ class NavigationStream:
         tol = self._tol
         delay = self.options.max_image_delay_s
         progressed = False
-        while self._buf:
+        while True:
+            progressed = self._hand_over_ready(block) or progressed
+            if not self._buf:
+                return progressed
             t_next = self._buf[0][0]
             if self._images and self._images[0].t <= t_next + tol:
                 img = self._images[0]
-                if not img.dispatched and not f.ready:  # no prior can ever come
-                    self._images.popleft()
-                    self._skip(img.index, img.t, "image-during-alignment",
-                               "no attitude yet (self-alignment still levelling)")  # fmt: skip
-                    progressed = True
-                    continue
-                if not img.dispatched or not (img.resolved or block):
-                    break
-                self._images.popleft()
-                self._hand_over(img)
+                if img.dispatched or f.ready:
+                    return progressed  # its prior or its measurement is not known yet
+                self._images.popleft()  # no prior can ever come
+                self._skip(img.index, img.t, "image-during-alignment",
+                           "no attitude yet (self-alignment still levelling)")  # fmt: skip
                 progressed = True
                 continue
-            if not final and t_next > self._screen.t_latest - delay and t_next > self._t_last_image:
-                break  # an image up to max_image_delay_s late may still come
-            self._filter_run(self._runnable(final))
+            late = t_next > self._screen.t_latest - delay and t_next > self._t_last_image
+            if not final and f.ready and late:
+                return progressed  # an image up to max_image_delay_s late may still come
+            n = self._runnable(final)
+            if not (final or not f.ready or self._prior_wanted()) and (
+                self._buf[n - 1][0] - t_next < RUN_S
+            ):
+                return progressed  # a longer run later: the run's overhead spread wider
+            self._filter_run(n)
             progressed = True
-        return progressed
+
+    def _prior_wanted(self) -> bool:
+        """An image waits for the filter to pass its prior's snapshot time."""
+        return any(not img.dispatched for img in self._images)
 
 
-__all__ = ["NavigationStream", "StreamState"]
+__all__ = ["NavigationStream", "StreamState", "with_odometer"]
