@@ -784,10 +784,14 @@ def test_consistency_small_monte_carlo(model_name):
     from scipy.stats import chi2
 
     rms, nis = monte_carlo(model_name, 6, 120.0)
-    for key in ("yaw", "pitch", "roll"):
-        assert 0.7 <= rms[key] <= 1.3, (key, rms[key])
-    for key in ("bgx", "bgy", "bgz"):  # measured 0.66-1.33 over these 6 runs
-        assert 0.6 <= rms[key] <= 1.5, (key, rms[key])
+    assert 0.7 <= rms["yaw"] <= 1.3, rms
+    # pitch and roll: mostly one levelling error per run once the stops' zero-rate updates
+    # know the gyro biases (docs/filter.md §12), so about 6 degrees of freedom: 95 % of
+    # RMS(err/sigma) in 0.49-1.53; measured 0.89-1.33 (0.75-1.27 without the updates)
+    for key in ("pitch", "roll"):
+        assert 0.5 <= rms[key] <= 1.55, (key, rms[key])
+    for key in ("bgx", "bgy", "bgz"):  # measured 0.60-1.50 over these 6 runs
+        assert 0.5 <= rms[key] <= 1.6, (key, rms[key])
     lo, hi = chi2.ppf([0.005, 0.995], nis.size) / nis.size
     assert lo <= nis.mean() <= hi, (nis.mean(), lo, hi)
 
