@@ -142,7 +142,7 @@ def sky_pixels(
     valid = img.valid
     if opt.roi is not None:  # the region of interest of this image (a new mask)
         valid = valid & (cache.rays[2] >= img.dtype(np.cos(opt.roi)))
-    up_c = geo.mat_cl[:, 2].astype(img.dtype)  # the level zenith, camera frame
+    up_c: NDArray = geo.mat_cl[:, 2].astype(img.dtype)  # the level zenith, camera frame
     above = dot_rows(up_c, cache.rays) >= img.dtype(np.sin(HORIZON_MIN))
     if not above.all():
         valid = valid & above
