@@ -243,7 +243,12 @@ class Problem:
 
     def _place_zero_rates(self, zarus: list[MeasurementItem]) -> None:
         """The zero-rate factors at their keyframes, gated as the detector's zero-velocity
-        factors (``self.detected``; docs/filter.md §12.1)."""
+        factors (``self.detected``; docs/filter.md §12.1). Under self-alignment, from the
+        first heading on: before it the yaw is unknown, and the Earth rate's projection
+        would tie the bias to it (the ESKF holds the yaw as a consider state there)."""
+        if not self.yaw_given:
+            first = min((mf.item.t for mf in self.meas), default=math.inf)
+            zarus = [it for it in zarus if it.t >= first]
         for it in zarus:
             key = self.key_of(it.t)
             if key is not None and it.gyro_b is not None:
