@@ -15,8 +15,13 @@ simulated effect off in the drive (the filter's model unchanged): ``novib`` (no 
 vibration), ``nogyrobias`` (no gyro turn-on bias), ``nogyroarw`` (no gyro white noise),
 ``noaccel`` (no accelerometer errors).
 
+``--broad`` runs the BROAD trials without zero-velocity rows instead (ESKF, graph and the
+``ahrs`` package's EKF when installed; docs/filter.md §12.3). ``--replay graph,smooth`` also fuses each drive's recorded headings (with their priors and
+``sun_n``) with the graph backend (batch solver) and the ESKF with the RTS smoother.
+
 Run: ``nice python benchmarks/bench_free_vehicle.py [--seeds 0-7] [--duration 200]
-[--variants all,novib,nogyrobias]`` (about 15 s of CPU per drive of 200 s).
+[--variants all,novib,nogyrobias] [--replay graph]`` (about 5 s of CPU per drive of 200 s
+for the ESKF, 15 s more for the graph).
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import pandas as pd
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.fusion.api import build_filter
+from polins.fusion.api import build_filter, run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.measurement import yaw_kernel
 from polins.ins.state import euler_jacobian
@@ -55,7 +60,8 @@ ANGLES = ("yaw", "pitch", "roll")
 
 def drive(seed: int, duration_s: float, model: ImuModel, vibration: bool = True):
     """The ugv scenario's IMU trajectory and IMU table of ``seed`` (``simulate_log``'s
-    streams), the sun vector at mid-drive and the image-noise generator."""
+    streams), the sun vector at mid-drive, the image-noise generator and the true IMU
+    errors (``imu_errors``' second table)."""
     rng_traj, rng_imu, rng_img, rng_vib, *_ = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)
     )
@@ -66,16 +72,17 @@ def drive(seed: int, duration_s: float, model: ImuModel, vibration: bool = True)
     if vibration:
         ideal[["gx", "gy", "gz"]] += gyro_vib
         ideal[["ax", "ay", "az"]] += accel_vib
-    imu, _ = imu_errors(ideal, model, rng_imu)
+    imu, errors = imu_errors(ideal, model, rng_imu)
     when = pd.DatetimeIndex([pd.Timestamp(DEFAULT_EPOCH) + pd.Timedelta(seconds=duration_s / 2)])
     sun = sun_position(when, **SITE)
-    return traj, imu, sun_vector_n(sun.azimuth, sun.zenith)[0], rng_img
+    return traj, imu, sun_vector_n(sun.azimuth, sun.zenith)[0], rng_img, errors
 
 
-def closed_loop(traj, imu, sun_n, rng, model, rate_hz=5.0, std_deg=0.011, **options):
+def closed_loop(traj, imu, sun_n, rng, model, rate_hz=5.0, std_deg=0.011, rows=None, **options):
     """Run the ESKF with tilt-coupled headings drawn with its own attitude as the prior;
     returns the sample indices, estimated attitudes and attitude covariances at the headings,
-    and the NIS of the accepted headings."""
+    and the NIS of the accepted headings. ``rows`` (a list) receives the headings as rows of
+    a measurements table (``t, yaw, yaw_std``, ``sun_n*``, ``prior_*``)."""
     cfg = FuseConfig.from_options(imu_model=model, **SITE, tilt_coupling=True, **options)
     t = imu["t"].to_numpy()
     gyro, accel = imu[["gx", "gy", "gz"]].to_numpy(), imu[["ax", "ay", "az"]].to_numpy()
@@ -90,6 +97,12 @@ def closed_loop(traj, imu, sun_n, rng, model, rate_hz=5.0, std_deg=0.011, **opti
         lin = yaw_kernel(traj.rot_nb[j].as_matrix(), 0.0, 1.0, sun_n, prior.as_matrix())
         yaw = -float(lin.residual[0]) + std * rng.standard_normal()
         filt.add_measurement(t[j], yaw=yaw, yaw_std=std, sun_n=sun_n, rot_nb_prior=prior)
+        if rows is not None:
+            ypr = prior.as_euler("ZYX")
+            rows.append({"t": t[j], "yaw": yaw, "yaw_std": std, "sun_nx": sun_n[0],
+                         "sun_ny": sun_n[1], "sun_nz": sun_n[2], "prior_yaw": ypr[0],
+                         "prior_pitch": ypr[1], "prior_roll": ypr[2], "sun_bx": np.nan,
+                         "sun_by": np.nan, "sun_bz": np.nan, "sun_std": np.nan})  # fmt: skip
         state = filt.state()
         if state.yaw_aligned:
             index.append(j)
@@ -113,12 +126,74 @@ def scores(traj, index, mats, covs, t_min: float = 5.0) -> dict[str, tuple[float
             for i, a in enumerate(ANGLES)}  # fmt: skip
 
 
+def replay(traj, imu, rows, model, backend="graph", t_min: float = 5.0, **options):
+    """The recorded headings ``rows`` fused by ``run_fusion`` (``backend``, tilt-coupled,
+    output at 5 Hz); per angle: RMS error [deg] and RMS(err/sigma) after ``t_min`` [s]."""
+    cfg = FuseConfig.from_options(imu_model=model, **SITE, tilt_coupling=True,
+                                  output_rate_hz=5.0, **options)  # fmt: skip
+    sol = run_fusion(imu, pd.DataFrame(rows), backend, None, cfg).solution
+    sol = sol[np.isfinite(sol["yaw"].to_numpy()) & (sol["t"].to_numpy() > t_min)]
+    k = np.searchsorted(traj.t, sol["t"].to_numpy() - 1e-9)
+    truth = traj.rot_nb[k].as_euler("ZYX")
+    out = {}
+    for i, a in enumerate(ANGLES):
+        err = np.angle(np.exp(1j * (sol[a].to_numpy() - truth[:, i])))
+        z = err / sol[f"{a}_std"].to_numpy()
+        out[a] = (math.degrees(float(np.sqrt(np.mean(err**2)))), float(np.sqrt(np.mean(z**2))))
+    return out
+
+
+def broad(trial: str) -> None:
+    """A BROAD trial (tests/test_broad.py's set-up: 1 Hz headings of 0.5 deg, the truth as
+    the first attitude) without zero-velocity rows: the ESKF, the graph and, if installed,
+    the ``ahrs`` package's EKF (gyro and accelerometer; it takes no heading without a
+    magnetometer, so only its tilt compares). Prints RMS(err/sigma) and RMS errors [deg]."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from test_broad import SITE as BERLIN
+    from test_broad import broad_trial, score
+
+    imu, meas, truth, rot0 = broad_trial(trial)
+    heading = meas[meas["yaw"].notna()][["t", "yaw", "yaw_std"]]
+    cfg = FuseConfig.from_options(imu_model="broad-aktos-t", output_rate_hz=2.0, **BERLIN)
+    for backend in ("eskf", "graph"):
+        s = score(run_fusion(imu, heading, backend, rot0, cfg).solution, truth)
+        print(f"trial {trial} {backend:5s} RMS(err/sigma) "
+              + " / ".join(f"{s[a][0]:.2f}" for a in ANGLES) + "  RMS error [deg] "
+              + " / ".join(f"{s[a][2]:.3f}" for a in ANGLES), flush=True)  # fmt: skip
+    try:
+        from ahrs.filters import EKF  # optional: not a polins dependency
+    except ImportError:
+        print("ahrs is not installed: no attitude-filter comparison")
+        return
+    t = imu["t"].to_numpy()
+    gyro, accel = imu[["gx", "gy", "gz"]].to_numpy(), imu[["ax", "ay", "az"]].to_numpy()
+    # ahrs' ENU frame takes the accelerometer with the opposite sign (checked at rest)
+    q = EKF(gyr=gyro, acc=-accel, frequency=1.0 / float(np.median(np.diff(t))), frame="ENU",
+            q0=rot0.as_quat()[[3, 0, 1, 2]]).Q  # fmt: skip
+    ypr = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_euler("ZYX")
+    sol = pd.DataFrame({"t": t, **{a: ypr[:, i] for i, a in enumerate(ANGLES)},
+                        **{f"{a}_std": 1.0 for a in ANGLES}}).iloc[::143]  # fmt: skip
+    s = score(sol, truth)
+    print(f"trial {trial} ahrs EKF  RMS error [deg] pitch / roll "
+          + " / ".join(f"{s[a][2]:.3f}" for a in ANGLES[1:]), flush=True)  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0-7", help="first-last or a comma list")
     parser.add_argument("--duration", type=float, default=200.0, help="[s]")
     parser.add_argument("--variants", default="all,novib,nogyrobias")
+    parser.add_argument("--replay", default="", help="also replay the headings: graph,smooth")
+    parser.add_argument("--broad", action="store_true", help="the BROAD trials instead")
     args = parser.parse_args()
+    args.replay = [b for b in args.replay.split(",") if b]
+    if args.broad:
+        for trial in ("02", "15"):
+            broad(trial)
+        return
     if "-" in args.seeds:
         first, last = (int(s) for s in args.seeds.split("-"))
         seeds = list(range(first, last + 1))
@@ -135,24 +210,34 @@ def main() -> None:
     }  # fmt: skip
     for name in args.variants.split(","):
         sim_model, vibration = variants[name]
-        ratios, errors = [], []
+        runs: dict[str, tuple[list, list]] = {b: ([], []) for b in ["eskf", *args.replay]}
         start = time.process_time()
         for seed in seeds:
-            traj, imu, sun_n, rng = drive(seed, args.duration, sim_model, vibration)
-            out = closed_loop(traj, imu, sun_n, rng, model)
-            s = scores(traj, *out[:3])
-            ratios.append([s[a][1] for a in ANGLES])
-            errors.append([s[a][0] for a in ANGLES])
-            print(f"{name:11s} seed {seed:3d}  RMS(err/sigma) "
-                  + " / ".join(f"{r:.2f}" for r in ratios[-1])
-                  + "  RMS error [deg] " + " / ".join(f"{e:.3f}" for e in errors[-1])
-                  + f"  heading NIS mean {np.mean(out[3]):.2f}", flush=True)  # fmt: skip
-        pooled = np.sqrt(np.mean(np.square(ratios), axis=0))
-        err = np.sqrt(np.mean(np.square(errors), axis=0))
-        print(f"{name:11s} pooled over {len(seeds)} drives: RMS(err/sigma) yaw / pitch / roll "
-              + " / ".join(f"{r:.2f}" for r in pooled) + ", RMS error [deg] "
-              + " / ".join(f"{e:.3f}" for e in err)
-              + f" ({time.process_time() - start:.0f} s CPU)", flush=True)  # fmt: skip
+            traj, imu, sun_n, rng, _ = drive(seed, args.duration, sim_model, vibration)
+            rows: list[dict[str, float]] = []
+            out = closed_loop(traj, imu, sun_n, rng, model, rows=rows)
+            found = {"eskf": scores(traj, *out[:3])}
+            for backend in args.replay:  # the same headings, replayed
+                opts = {"smooth": True} if backend == "smooth" else {}
+                found[backend] = replay(
+                    traj, imu, rows, model, "eskf" if backend == "smooth" else backend, **opts
+                )
+            for backend, s in found.items():
+                ratios, errors = runs[backend]
+                ratios.append([s[a][1] for a in ANGLES])
+                errors.append([s[a][0] for a in ANGLES])
+                print(f"{name:11s} {backend:6s} seed {seed:3d}  RMS(err/sigma) "
+                      + " / ".join(f"{r:.2f}" for r in ratios[-1])
+                      + "  RMS error [deg] " + " / ".join(f"{e:.3f}" for e in errors[-1])
+                      + (f"  heading NIS mean {np.mean(out[3]):.2f}" if backend == "eskf" else ""),
+                      flush=True)  # fmt: skip
+        for backend, (ratios, errors) in runs.items():
+            pooled = np.sqrt(np.mean(np.square(ratios), axis=0))
+            err = np.sqrt(np.mean(np.square(errors), axis=0))
+            print(f"{name:11s} {backend:6s} pooled over {len(seeds)} drives: RMS(err/sigma) "
+                  + "yaw / pitch / roll " + " / ".join(f"{r:.2f}" for r in pooled)
+                  + ", RMS error [deg] " + " / ".join(f"{e:.3f}" for e in err)
+                  + f" ({time.process_time() - start:.0f} s CPU)", flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":

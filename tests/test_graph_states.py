@@ -183,15 +183,16 @@ def test_graph_approximate_site_is_consistent(site_deg):
 # ----------------------------------------------------------------------------- no clock
 def test_graph_no_clock_relative_heading_fast():
     # the ESKF's 90 s drives (tests/test_sun_azimuth_state.py); measured on the graph
-    # (batch): RMS(err/sigma) 1.03 (0.89 / 1.51 / 0.35), 100 % within 3 sigma, the sigma
-    # growing at 19-20 deg/h (the ESKF: 1.00, 19 deg/h predicted)
+    # (batch): RMS(err/sigma) within 0.5-1.3, at least 98 % within 3 sigma
     runs = [sky.relative_z(seed, 90.0, "graph") for seed in range(3)]
     z = np.concatenate([r[0] for r in runs])
     assert 0.5 < rms(z) < 1.3, rms(z)
     assert np.mean(np.abs(z) < 3.0) >= 0.98
     sol = runs[0][1]
     rate = np.polyfit(sol["t"], np.degrees(sol["yaw_std"]), 1)[0] * 3600.0
-    assert 12.0 < rate < 24.0, rate
+    # the stops' zero-rate updates observe the z gyro bias (docs/filter.md §12.1): the
+    # sigma grows at 4.3 deg/h instead of the bias model's 19 deg/h
+    assert 1.0 < rate < 12.0, rate
     assert {"sun_azimuth_n", "sun_azimuth_n_std", "sun_azimuth_rate"} <= set(sol.columns)
 
 

@@ -279,7 +279,7 @@ def test_cli_simulate_then_fuse(tmp_path, capsys):
     assert summary["images"]["accepted_by_filter"] >= 40
     assert summary["timing"]["images_per_s"] > 0 and summary["timing"]["imu_samples_per_s"] > 0
     # every kind's NIS with its verdict, printed and in the summary
-    assert set(summary["nis"]) == {"yaw", "odo", "nhc", "zupt"}, summary["nis"]
+    assert set(summary["nis"]) == {"yaw", "odo", "nhc", "zupt", "zaru"}, summary["nis"]
     assert all(f"NIS {kind}" in out for kind in summary["nis"])
     assert all(n["verdict"] and n["n"] > 0 for n in summary["nis"].values())
     meas = pd.read_csv(run / "measurements.csv")
@@ -407,7 +407,7 @@ def test_run_log_runs_the_filter_once(sim_log, batch, monkeypatch):
     # the stream's update log holds every kind's updates, as the batch filter's
     kinds = result.updates["name"].value_counts().to_dict()
     assert kinds == fused.updates["name"].value_counts().to_dict()
-    assert set(kinds) == {"yaw", "nhc", "odo", "zupt"}, kinds
+    assert set(kinds) == {"yaw", "nhc", "odo", "zupt", "zaru"}, kinds
     nis = summarize(result.solution, result.measurements, result.events,
                     updates=result.updates)["nis"]  # fmt: skip
     u = result.updates

@@ -135,9 +135,10 @@ def test_no_clock_relative_heading_fast():
     assert 0.5 < rms < 1.3, rms
     assert np.mean(np.abs(z) < 3.0) >= 0.98
     sol = relative_z(0, 90.0)[1]
-    # the sigma grows about linearly at ~ 24*30/sqrt(24^2+30^2) = 19 deg/h (docs/filter.md)
+    # the sigma would grow at ~ 24*30/sqrt(24^2+30^2) = 19 deg/h (docs/filter.md); the
+    # stops' zero-rate updates observe the z gyro bias (§12.1): 3.9 deg/h on this drive
     rate = np.polyfit(sol["t"], np.degrees(sol["yaw_std"]), 1)[0] * 3600.0
-    assert 12.0 < rate < 24.0, rate
+    assert 1.0 < rate < 12.0, rate
     # the sun's azimuth is reported with its sigma; its rate too
     assert {"sun_azimuth_n", "sun_azimuth_n_std", "sun_azimuth_rate"} <= set(sol.columns)
 

@@ -234,7 +234,9 @@ def test_graph_uses_the_vehicle_pseudo_measurements():
     free = drive.fuse(backend="graph")
     ground_scores = attitude_scores(drive.traj, graph.solution)
     free_scores = attitude_scores(drive.traj, free.solution)
-    assert ground_scores["pitch"][0] < 0.5 * free_scores["pitch"][0], (ground_scores, free_scores)
+    # the free vehicle has the zero-rate updates at the stops (docs/filter.md §12): pitch
+    # 0.22 deg against 0.71 without them; the ground vehicle's NHC does better
+    assert ground_scores["pitch"][0] < 0.85 * free_scores["pitch"][0], (ground_scores, free_scores)
     assert graph.info["n_keyframes"] > free.info["n_keyframes"]
     # the graph's odometer: tests/test_graph_states.py
 

@@ -30,12 +30,14 @@ from polins.fusion.measurement import (
     sun_direction_cov_b,
     sun_kernel,
     yaw_kernel,
+    zero_rate_kernel,
     zero_velocity_kernel,
 )
 
 FloatArray = NDArray[np.float64]
 
-_KIND_ORDER = {"gap": -1, "yaw": 0, "sun": 1, "sun_azimuth": 1, "zupt": 2, "nhc": 3, "odo": 4}
+_KIND_ORDER = {"gap": -1, "yaw": 0, "sun": 1, "sun_azimuth": 1, "zupt": 2, "zaru": 2, "nhc": 3,
+               "odo": 4}  # fmt: skip
 HEADING_KINDS = ("yaw", "sun", "sun_azimuth")  # the measurements of the heading
 # A heading row's model part counts as correlated from image to image beyond this many
 # times its noise part (docs/filter.md §5.7): below it the jackknife may report pixel noise.
@@ -60,8 +62,9 @@ class MeasurementItem:
 
     ``kind`` is ``"yaw"``, ``"sun"``, ``"sun_azimuth"`` (no clock: ``yaw`` holds the sun's
     body azimuth ``sun_azimuth_b``, ``elevation_b`` its body elevation, NaN when unknown),
-    ``"zupt"``, ``"nhc"``, ``"odo"`` (a wheel-odometer
-    ``speed`` [m/s]), or ``"gap"`` (not a
+    ``"zupt"``, ``"zaru"`` (zero angular rate: ``gyro_b`` the mean measured rate over an
+    interval at rest, ``rate_n`` the ENU rate a body at rest senses), ``"nhc"``, ``"odo"``
+    (a wheel-odometer ``speed`` [m/s]), or ``"gap"`` (not a
     measurement: the IMU resumes after a gap, the filter adds ``inflation`` to the
     covariance of its navigation errors, docs/filter.md); ``valid`` is False for rows with NaN values or a
     non-finite or non-positive sigma, or inside an IMU gap (they are logged as rejected
@@ -84,7 +87,9 @@ class MeasurementItem:
     speed: float = math.nan  # "odo": the odometer's forward speed [m/s]
     mat_vb: FloatArray | None = None  # "nhc", "odo": IMU mounting, body -> vehicle frame
     lever_vel_b: FloatArray | None = None  # "nhc", "odo": omega_b x lever_arm_b [m/s]
-    gyro_b: FloatArray | None = None  # "nhc", "odo" with a lever-arm state: omega_b [rad/s]
+    gyro_b: FloatArray | None = None  # "nhc", "odo" with a lever-arm state: omega_b [rad/s];
+    # "zaru": the mean measured rate at rest [rad/s]
+    rate_n: FloatArray | None = None  # "zaru": ENU rate sensed at rest (Earth rate) [rad/s]
     model_std: float = 0.0  # heading kinds: the sigma's part correlated between images [rad]
 
     @property
@@ -104,7 +109,8 @@ def item_model(
     nominal attitude ``mat_nb`` and ENU velocity ``vel_n`` [m/s] (only zero-velocity and
     non-holonomic items use it); ``tilt_coupling`` as ``FuseConfig.tilt_coupling``;
     ``states`` the estimates of the sensor-error blocks by name (a ``"sun_azimuth"`` item
-    needs :data:`SUN_AZIMUTH_STATE`; with :data:`MOUNT_STATES` the non-holonomic and
+    needs :data:`SUN_AZIMUTH_STATE`; a ``"zaru"`` item takes the gyro bias ``"bg"``, zero
+    when absent; with :data:`MOUNT_STATES` the non-holonomic and
     odometer items use the mounting turned by their estimate,
     :func:`~polins.fusion.measurement.mount_rotation`, with :data:`LEVER_STATE` the lever
     arm plus its estimate). The ESKF and the GTSAM graph both linearize their items here.
@@ -123,6 +129,21 @@ def item_model(
             mat_nb, item.yaw, var, float(states[SUN_AZIMUTH_STATE][0]),
             sun_elevation_n(mat_nb, item.yaw, item.elevation_b), axis=item.axis,
         )  # fmt: skip
+    return _vehicle_model(item, mat_nb, vel_n, states)
+
+
+def _vehicle_model(
+    item: MeasurementItem,
+    mat_nb: FloatArray,
+    vel_n: FloatArray | None,
+    states: Mapping[str, FloatArray] | None,
+) -> Linearized:
+    """:func:`item_model` of the vehicle's kinds (zero rate, zero velocity, NHC, odometer)."""
+    var = item.std * item.std
+    if item.kind == "zaru":
+        assert item.gyro_b is not None  # built by VehicleAiding
+        bias = states["bg"] if states is not None and "bg" in states else np.zeros(3)
+        return zero_rate_kernel(mat_nb, item.gyro_b, bias, np.full(3, var), item.rate_n)
     if item.kind not in ("zupt", "nhc", "odo"):  # pragma: no cover - built by measurement_items
         raise ValueError(f"unknown measurement kind {item.kind!r}")
     if vel_n is None:

@@ -56,7 +56,8 @@ class Linearized:
     R : (m, m) ndarray
         Measurement noise covariance [measurement units squared].
     name : str
-        Model name: ``"yaw"``, ``"sun"``, ``"sun_azimuth"``, ``"zupt"``, ``"nhc"`` or ``"odo"``.
+        Model name: ``"yaw"``, ``"sun"``, ``"sun_azimuth"``, ``"zupt"``, ``"zaru"``,
+        ``"level"``, ``"nhc"`` or ``"odo"``.
     vel_v : (3,) ndarray or None
         ``"nhc"``, ``"odo"``: the predicted velocity of the vehicle's reference point in
         the vehicle frame [m/s], for the mounting-error columns (:func:`mount_jacobian`).
@@ -236,6 +237,37 @@ def zero_velocity_kernel(vel_n: FloatArray, var: FloatArray) -> Linearized:
     H = np.zeros((3, N_ERROR))
     H[:, VEL] = np.eye(3)
     return Linearized(-vel_n, H, np.diag(var), "zupt")
+
+
+def zero_rate_kernel(
+    mat_nb: FloatArray,
+    gyro_b: FloatArray,
+    bias_b: FloatArray,
+    var: FloatArray,
+    rate_n: FloatArray | None = None,
+) -> Linearized:
+    """:func:`zero_rate` on validated inputs (``var`` (3,) variances)."""
+    H = np.zeros((3, N_ERROR))
+    H[:, BG] = np.eye(3)
+    predicted = bias_b
+    if (
+        rate_n is not None
+    ):  # mat_bn exp(-[dtheta x]) rate_n ~ mat_bn rate_n + mat_bn [rate_n x] dtheta
+        mat_bn = mat_nb.T
+        predicted = bias_b + mat_bn @ rate_n
+        H[:, ATT] = mat_bn @ skew(rate_n)
+    return Linearized(gyro_b - predicted, H, np.diag(var), "zaru")
+
+
+def level_kernel(
+    mat_nb: FloatArray, force_b: FloatArray, bias_b: FloatArray, var: FloatArray
+) -> Linearized:
+    """:func:`level` on validated inputs (``var`` (2,) variances)."""
+    force_n = mat_nb @ (force_b - bias_b)
+    H = np.zeros((2, N_ERROR))
+    H[:, ATT] = -skew(force_n)[0:2]  # exp([dtheta x]) f_n ~ f_n - [f_n x] dtheta
+    H[:, BA] = -mat_nb[0:2]
+    return Linearized(-force_n[0:2], H, np.diag(var), "level")
 
 
 def non_holonomic_kernel(
@@ -474,6 +506,72 @@ def zero_velocity(vel_n: ArrayLike, std: ArrayLike) -> Linearized:
         1-sigma of the zero-velocity pseudo-measurement [m/s].
     """
     return zero_velocity_kernel(_vector3(vel_n, "vel_n"), _variance(std, 3, "zero-velocity std"))
+
+
+def zero_rate(
+    rot_nb: Rotation | ArrayLike,
+    gyro_b: ArrayLike,
+    bias_b: ArrayLike,
+    std: ArrayLike,
+    *,
+    rate_n: ArrayLike | None = None,
+) -> Linearized:
+    """Zero angular rate (the body at rest): the gyro's mean over an interval at rest
+    observes its bias (docs/filter.md §12, "Zero angular rate").
+
+    ``z = gyro_b`` (the mean measured rate [rad/s]), ``h(x) = b_g + mat_bn rate_n`` with
+    ``rate_n`` the rate a body at rest senses (the Earth rate in ENU when the mechanization
+    has it; None: the bias state carries it). ``H = [mat_bn [rate_n x] | 0 | 0 | I | 0]``
+    (``mat_bn exp(-[dtheta x]) rate_n``, docs/filter.md §2.2), ``R = diag(std^2)``: for the
+    mean of ``m`` samples at the interval ``dt``, ``std = ARW / sqrt(m dt)``.
+
+    Parameters
+    ----------
+    rot_nb : Rotation or (3, 3) array_like
+        Nominal attitude, body FLU -> ENU.
+    gyro_b : (3,) array_like
+        Mean measured body rate over the interval at rest [rad/s].
+    bias_b : (3,) array_like
+        Nominal gyro bias [rad/s].
+    std : float or (3,) array_like
+        1-sigma of the mean rate [rad/s].
+    rate_n : (3,) array_like, optional
+        ENU rate sensed at rest [rad/s] (:func:`polins.ins.earth.earth_rate_n`).
+    """
+    return zero_rate_kernel(
+        as_mat_nb(rot_nb), _vector3(gyro_b, "gyro_b"), _vector3(bias_b, "bias_b"),
+        _variance(std, 3, "zero-rate std"), None if rate_n is None else _vector3(rate_n, "rate_n"),
+    )  # fmt: skip
+
+
+def level(
+    rot_nb: Rotation | ArrayLike, force_b: ArrayLike, bias_b: ArrayLike, std: ArrayLike
+) -> Linearized:
+    """Levelling (the body at rest): the accelerometer's mean over an interval measures
+    gravity, no horizontal specific force in ENU (docs/filter.md §7, §12.1).
+
+    ``z = 0``, ``h(x) = (mat_nb (force_b - b_a))[E, N]`` [m/s^2] with ``force_b`` the mean
+    measured specific force; ``H_theta = -[f_n x]`` (rows E, N; ``f_n`` the specific force
+    in ENU, ``exp([dtheta x]) f_n``), ``H_ba = -mat_nb`` (rows E, N), ``R = diag(std^2)``:
+    for the mean of ``m`` samples at the interval ``dt``, ``std = VRW / sqrt(m dt)``. The
+    vertical component is not used (it would measure gravity's magnitude, not the tilt).
+    The graph's self-alignment factor uses this model (``levelling_factor``).
+
+    Parameters
+    ----------
+    rot_nb : Rotation or (3, 3) array_like
+        Nominal attitude, body FLU -> ENU.
+    force_b : (3,) array_like
+        Mean measured specific force over the interval at rest [m/s^2].
+    bias_b : (3,) array_like
+        Nominal accelerometer bias [m/s^2].
+    std : float or (2,) array_like
+        1-sigma of the mean's horizontal components [m/s^2].
+    """
+    return level_kernel(
+        as_mat_nb(rot_nb), _vector3(force_b, "force_b"), _vector3(bias_b, "bias_b"),
+        _variance(std, 2, "levelling std"),
+    )  # fmt: skip
 
 
 def non_holonomic(

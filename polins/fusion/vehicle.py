@@ -51,7 +51,7 @@ from scipy.stats import chi2
 from polins.errors import UserInputError
 from polins.fusion.config import NHC_RATE_HZ, STANDSTILL_WINDOW_S, FuseConfig
 from polins.fusion.items import MeasurementItem
-from polins.ins.earth import OMEGA_IE
+from polins.ins.earth import OMEGA_IE, earth_rate_n
 from polins.models import ImuModel
 
 FloatArray = NDArray[np.float64]
@@ -122,6 +122,14 @@ def standstill_mask(
     return standstill_statistic(w, f, n, gv, av) <= standstill_threshold(n)
 
 
+def zero_rate_std(model: ImuModel, m: int, dt: float) -> float | None:
+    """1-sigma [rad/s] of the mean of ``m`` gyro samples at the interval ``dt`` [s] at rest,
+    ``ARW / sqrt(m dt)`` (docs/filter.md §12, "Zero angular rate"); None for a model
+    without gyro white noise."""
+    std = model.gyro_arw / math.sqrt(m * dt)
+    return float(std) if std > 0.0 else None
+
+
 def window_samples(window_s: float, dt: float) -> int:
     """Samples in a window of ``window_s`` [s] at the interval ``dt`` [s] (at least 2)."""
     return max(2, round(window_s / dt))
@@ -142,14 +150,19 @@ class VehicleAiding:
         self.n = window_samples(STANDSTILL_WINDOW_S, dt)
         self.gyro_var, self.accel_var = standstill_variances(config.imu, dt)
         self.threshold = standstill_threshold(self.n)
+        # zero angular rate: the mean of the `every` samples up to an epoch at rest
+        self.zaru_std = zero_rate_std(config.imu, self.every, dt)
+        mech = config.mechanize_earth_rate and config.site is not None
+        self.rate_n = earth_rate_n(config.site.lat) if mech else None  # type: ignore[union-attr]
         mount = np.asarray(config.aiding.mount_rpy, dtype=float)
         self.mat_vb = mat_vb_from_mount(mount) if np.any(mount) else None
         lever = np.asarray(config.aiding.lever_arm_b, dtype=float)
         self.lever_arm_b = lever if np.any(lever) else None
         self.lever_state = config.lever_sigma is not None  # the items carry omega_b
-        self.detect = self.zupt_std is not None and not self.static
-        self.active = self.nhc_std is not None or self.zupt_std is not None
-        self._gyro = np.zeros((0, 3))  # the last n - 1 samples
+        self.detect = not self.static
+        self.active = any(s is not None for s in (self.nhc_std, self.zupt_std, self.zaru_std))
+        self._keep = max(self.n, self.every) - 1  # samples kept between calls
+        self._gyro = np.zeros((0, 3))  # the last `_keep` samples
         self._accel = np.zeros((0, 3))
 
     def copy(self) -> VehicleAiding:
@@ -164,23 +177,45 @@ class VehicleAiding:
         ``t``; raw ``gyro_b`` [rad/s], ``accel_b`` [m/s^2]."""
         if not self.active:
             return []
-        still = None
+        w = np.concatenate([self._gyro, gyro_b])
+        f = np.concatenate([self._accel, accel_b])
+        old = len(w) - len(t)  # samples before t
         if self.detect:
-            w = np.concatenate([self._gyro, gyro_b])
-            f = np.concatenate([self._accel, accel_b])
             stat = standstill_statistic(w, f, self.n, self.gyro_var, self.accel_var)
-            still = stat[len(w) - len(t) :] <= self.threshold
-            keep = max(0, len(w) - self.n + 1)  # the last n - 1 samples
-            self._gyro, self._accel = w[keep:], f[keep:]
+            still = stat[old:] <= self.threshold
+        else:
+            still = np.full(len(t), self.static)
+        keep = max(0, len(w) - self._keep)
+        self._gyro, self._accel = w[keep:], f[keep:]
         g = index0 + np.arange(len(t))
-        out: list[tuple[int, MeasurementItem]] = []
-        for i in np.flatnonzero((g >= 1) & (g % self.every == 0)).tolist():
-            ti = float(t[i])
-            if self.zupt_std is not None and (self.static or (still is not None and still[i])):
-                out.append((i, MeasurementItem(ti, "zupt", self.zupt_std)))
-            if self.nhc_std is not None:
-                out.append((i, self.attach(MeasurementItem(ti, "nhc", self.nhc_std), gyro_b[i])))
+        epochs = np.flatnonzero((g >= 1) & (g % self.every == 0))
+        rest = epochs[still[epochs]]
+        out: list[tuple[int, MeasurementItem]] = [
+            (i, MeasurementItem(float(t[i]), "zupt", self.zupt_std))
+            for i in rest.tolist() if self.zupt_std is not None
+        ]  # fmt: skip
+        out += self._zero_rate(t, w, old, rest)
+        if self.nhc_std is not None:
+            out += [(i, self.attach(MeasurementItem(float(t[i]), "nhc", self.nhc_std), gyro_b[i]))
+                    for i in epochs.tolist()]  # fmt: skip
+        out.sort(key=lambda pair: (pair[0], pair[1].order))
         return out
+
+    def _zero_rate(
+        self, t: FloatArray, w: FloatArray, old: int, rest: NDArray[np.int_]
+    ) -> list[tuple[int, MeasurementItem]]:
+        """The zero-angular-rate items at the epochs ``rest`` (positions in ``t``): the mean
+        of the ``every`` raw rates ``w`` up to each (``w`` holds ``old`` samples before
+        ``t``), where all of them are at hand."""
+        if self.zaru_std is None:
+            return []
+        end = rest + old + 1  # one past the epoch's sample in w
+        rest, end = rest[end >= self.every], end[end >= self.every]
+        c = np.concatenate([np.zeros((1, 3)), np.cumsum(w, axis=0)])
+        mean = (c[end] - c[end - self.every]) / self.every
+        return [(i, MeasurementItem(float(t[i]), "zaru", self.zaru_std, gyro_b=m,
+                                    rate_n=self.rate_n))
+                for i, m in zip(rest.tolist(), mean, strict=True)]  # fmt: skip
 
     def attach(self, item: MeasurementItem, gyro_b: FloatArray) -> MeasurementItem:
         """``item`` with the mounting and ``omega_b x lever_arm_b`` at the rate ``gyro_b``
@@ -300,4 +335,5 @@ __all__ = [
     "window_samples",
     "with_standstill",
     "yaw_consider_update",
+    "zero_rate_std",
 ]

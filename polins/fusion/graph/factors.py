@@ -1,4 +1,4 @@
-"""GTSAM factors of the graph: IMU preintegration, sun, yaw, zero-velocity, non-holonomic, levelling
+"""GTSAM factors of the graph: IMU preintegration, sun, yaw, zero-velocity, zero-rate, levelling, non-holonomic
 
 Every ``CustomFactor`` here evaluates the shared measurement models of
 :mod:`polins.fusion.measurement` (the ESKF's ``(z, H, R)``) and maps their navigation-frame
@@ -14,8 +14,17 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.frames import skew
-from polins.fusion.measurement import ATT, VEL, as_mat_nb, non_holonomic_kernel, yaw_kernel
+from polins.fusion.measurement import (
+    ATT,
+    BA,
+    BG,
+    VEL,
+    as_mat_nb,
+    level_kernel,
+    non_holonomic_kernel,
+    yaw_kernel,
+    zero_rate_kernel,
+)
 from polins.models import ImuModel
 
 FloatArray = NDArray[np.float64]
@@ -189,6 +198,41 @@ def zero_velocity_factor(vel_key: int, std: float) -> gtsam.PriorFactorVector:
     )
 
 
+def zero_rate_factor(
+    pose_key: int,
+    bias_key: int,
+    gyro_b: FloatArray,
+    std: float,
+    rate_n: FloatArray | None = None,
+) -> gtsam.CustomFactor:
+    """Zero-angular-rate factor (the body at rest): the mean measured rate ``gyro_b``
+    [rad/s] is the gyro bias plus ``mat_bn rate_n`` (the Earth rate, when mechanized)
+    (``CustomFactor`` on ``X(k)``, ``B(k)``; docs/filter.md §12).
+
+    Residual and Jacobian of :func:`polins.fusion.measurement.zero_rate`; the attitude
+    columns are mapped to GTSAM's body-right tangent (:func:`body_jacobian`), the bias
+    columns to ``ConstantBias``' tangent (accelerometer, then gyro).
+    """
+    var = np.full(3, float(std) ** 2)
+    rate = np.asarray(gyro_b, dtype=float)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
+        pkey, bkey = this.keys()
+        mat_nb = values.atPose3(pkey).rotation().matrix()
+        bias_g = values.atConstantBias(bkey).gyroscope()
+        lin = zero_rate_kernel(mat_nb, rate, bias_g, var, rate_n)
+        if jacobians is not None:
+            jacobians[0] = body_jacobian(lin.H[:, ATT], mat_nb)
+            jac_bias = np.zeros((3, 6))
+            jac_bias[:, 3:] = lin.H[:, BG]
+            jacobians[1] = jac_bias
+        return -lin.residual
+
+    return gtsam.CustomFactor(
+        gtsam.noiseModel.Isotropic.Sigma(3, float(std)), [pose_key, bias_key], error
+    )
+
+
 def non_holonomic_factor(
     pose_key: int,
     vel_key: int,
@@ -221,30 +265,28 @@ def non_holonomic_factor(
 
 
 def levelling_factor(
-    pose_key: int, bias_key: int, force_b: ArrayLike, gravity_mps2: float, std: float
+    pose_key: int, bias_key: int, force_b: ArrayLike, std: float
 ) -> gtsam.CustomFactor:
-    """Static levelling: a mean specific force ``force_b`` [m/s^2] of a body at rest.
+    """Levelling: a mean specific force ``force_b`` [m/s^2] of a body at rest.
 
-    Model ``force_b = C_bn (0, 0, g) + b_a``; the factor uses the horizontal (E, N)
-    components of ``C_nb (force_b - b_a) - (0, 0, g)`` [m/s^2] (as the ESKF's levelling,
-    which does not use the vertical component), with sigma ``std`` (``VRW / sqrt(T)``).
-    Jacobians: ``-C_nb [force_b - b_a x]`` (body-right rotation), ``-C_nb`` (accel bias).
+    The shared model :func:`polins.fusion.measurement.level`: the horizontal (E, N)
+    components of ``C_nb (force_b - b_a)`` are zero [m/s^2], sigma ``std`` (``VRW /
+    sqrt(T)``): the self-alignment's levelling (docs/filter.md §7, §9). Jacobians: the attitude columns on GTSAM's body-right tangent
+    (:func:`body_jacobian`), the accelerometer-bias columns on ``ConstantBias``' tangent.
     """
     f_b = np.asarray(force_b, dtype=float)
-    up_g = np.array([0.0, 0.0, float(gravity_mps2)])
+    var = np.full(2, float(std) ** 2)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
         pkey, bkey = this.keys()
         mat_nb = values.atPose3(pkey).rotation().matrix()
-        f = f_b - values.atConstantBias(bkey).accelerometer()
+        lin = level_kernel(mat_nb, f_b, values.atConstantBias(bkey).accelerometer(), var)
         if jacobians is not None:
-            jac_pose = np.zeros((2, 6))
-            jac_pose[:, :3] = -(mat_nb @ skew(f))[:2]
+            jacobians[0] = body_jacobian(lin.H[:, ATT], mat_nb)
             jac_bias = np.zeros((2, 6))
-            jac_bias[:, :3] = -mat_nb[:2]
-            jacobians[0] = jac_pose
+            jac_bias[:, :3] = lin.H[:, BA]
             jacobians[1] = jac_bias
-        return (mat_nb @ f - up_g)[:2]
+        return -lin.residual
 
     return gtsam.CustomFactor(
         gtsam.noiseModel.Isotropic.Sigma(2, float(std)), [pose_key, bias_key], error

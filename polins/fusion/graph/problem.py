@@ -39,6 +39,7 @@ from polins.fusion.graph.factors import (
     preintegration_params,
     sun_factor,
     yaw_factor,
+    zero_rate_factor,
     zero_velocity_factor,
 )
 from polins.fusion.graph.imu import (
@@ -160,6 +161,7 @@ class Problem:
         n_given = len(zupts)
         zupts += [it for it in ground if it.kind == "zupt"]
         nhcs = [it for it in ground if it.kind == "nhc"]
+        zarus = [it for it in ground if it.kind == "zaru"]
         # Times within TIME_TOL_S of an IMU sample are moved onto it (as the ESKF does).
         t_aid = snap_times([it.t for it in aiding], t_imu, TIME_TOL_S).tolist()
         t_zupt = snap_times([it.t for it in zupts], t_imu, TIME_TOL_S).tolist()
@@ -168,7 +170,8 @@ class Problem:
         self.gaps = [(t_a, t_b, np.asarray(var)[[0, 3]]) for t_a, t_b, var in gaps]
         t_gaps = [t for a, b, _ in self.gaps for t in (a, b)]
         t_odo = snap_times([it.t for it in odos], t_imu, TIME_TOL_S).tolist()
-        events = np.concatenate([t_aid, t_zupt, nhc_t, t_gaps, t_odo])
+        zaru_t = np.array([it.t for it in zarus], dtype=float)
+        events = np.concatenate([t_aid, t_zupt, nhc_t, zaru_t, t_gaps, t_odo])
         self.t_key = keyframe_times(t0, t1, events, MAX_KEYFRAME_DT_S)
         self.segments = imu_segments(t_imu, gyro, accel, self.t_key)
         n_key = len(self.t_key)
@@ -198,6 +201,7 @@ class Problem:
         # a constant speed; the ESKF's gate rejects those updates too).
         self.detected: set[int] = set()  # those of the standstill detector
         self._place_zupts(zupts, t_zupt, n_given)
+        self._place_zero_rates(zarus)
         keys = [self.key_of(t) for t in t_odo]
         self.meas += [MeasFactor(*m) for m in self.states.odometer(odos, keys, t_imu, gyro)]
         self.meas_at: list[list[int]] = [[] for _ in range(n_key)]
@@ -236,6 +240,21 @@ class Problem:
                 if j >= n_given:
                     self.detected.add(len(self.meas))
                 self.meas.append(MeasFactor(k, it, zero_velocity_factor(V(k), it.std)))
+
+    def _place_zero_rates(self, zarus: list[MeasurementItem]) -> None:
+        """The zero-rate factors at their keyframes, gated as the detector's zero-velocity
+        factors (``self.detected``; docs/filter.md §12.1). Under self-alignment, from the
+        first heading on: before it the yaw is unknown, and the Earth rate's projection
+        would tie the bias to it (the ESKF holds the yaw as a consider state there)."""
+        if not self.yaw_given:
+            first = min((mf.item.t for mf in self.meas), default=math.inf)
+            zarus = [it for it in zarus if it.t >= first]
+        for it in zarus:
+            key = self.key_of(it.t)
+            if key is not None and it.gyro_b is not None:
+                self.detected.add(len(self.meas))
+                factor = zero_rate_factor(X(key), B(key), it.gyro_b, it.std, it.rate_n)
+                self.meas.append(MeasFactor(key, it, factor))
 
     def _params(self, **densities: Any) -> gtsam.PreintegrationCombinedParams:
         """Preintegration parameters of the run with the densities ``densities`` replaced
@@ -340,7 +359,7 @@ class Problem:
             tilt_var = np.full(2, (std**2 + m.accel_bias_turn_on**2) / self.gravity**2)
             rot = Rotation.from_rotvec([0.0, 0.0, self._acquire(level, vel_n0, None, tilt_var)])
             rot = rot * level
-            priors.append(levelling_factor(X(0), B(0), f_mean, self.gravity, std))
+            priors.append(levelling_factor(X(0), B(0), f_mean, std))
             # Tilt from the levelling factor only (1e4 rad is no information); yaw 1 rad
             # until the first yaw / sun measurement (the ESKF's P[2, 2] = 1).
             att_var = np.array([1e8, 1e8, 1.0])

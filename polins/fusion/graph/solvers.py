@@ -258,7 +258,7 @@ def post_fit_gate(
     exceed: dict[int, tuple[float, str]] = {}
     for i, mf in enumerate(prob.meas):
         lin = prob.states.model(mf.item, est.mat_nb[mf.k], est.vel_n[mf.k], prob.tilt_coupling,
-                                est.extra[mf.k])  # fmt: skip
+                                est.extra[mf.k], est.bias[mf.k, :3])  # fmt: skip
         if i in rejected:
             nis, reason = rejected[i]
             rows.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
@@ -385,16 +385,23 @@ class _IncrementalRun:
             self.est.store_scale(k, engine.calculateEstimateVector, engine.marginalCovariance)
 
     def gated(
-        self, k: int, state: gtsam.NavState, cov_prev: FloatArray, extra: FloatArray
+        self,
+        k: int,
+        state: gtsam.NavState,
+        cov_prev: FloatArray,
+        extra: FloatArray,
+        bias: gtsam.imuBias.ConstantBias,
     ) -> list[gtsam.NonlinearFactor]:
-        """Measurement factors at keyframe k that pass the chi-square gate."""
+        """Measurement factors at keyframe k that pass the chi-square gate (``bias``: the
+        bias estimate, for the zero-rate factors)."""
         prob, records = self.prob, self.records
         out = []
         mat = state.attitude().matrix()
         for i in prob.meas_at[k]:
             mf = prob.meas[i]
             heading = mf.item.kind in HEADING_KINDS
-            lin = prob.states.model(mf.item, mat, state.velocity(), prob.tilt_coupling, extra)
+            lin = prob.states.model(mf.item, mat, state.velocity(), prob.tilt_coupling, extra,
+                                    bias.gyroscope())  # fmt: skip
             if not np.isfinite(cov_prev).all():
                 nis = np.nan  # first keyframe
             else:
@@ -436,7 +443,7 @@ class _IncrementalRun:
         graph = gtsam.NonlinearFactorGraph()
         n_cov = N_ERROR + prob.states.n
         guess = prob.states.guess
-        first = self.gated(0, prob.state0, np.full((n_cov, n_cov), np.nan), guess)
+        first = self.gated(0, prob.state0, np.full((n_cov, n_cov), np.nan), guess, prob.bias0)
         for f in prob.priors + list(prob.aux[0]) + first:
             graph.add(f)
         values = gtsam.Values()
@@ -476,7 +483,7 @@ class _IncrementalRun:
         pred = pim.predict(state, bias)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(prob.imu_factor(k, pim, self.scale))
-        for f in list(prob.aux[k + 1]) + self.gated(k + 1, pred, cov_prev, extra):
+        for f in list(prob.aux[k + 1]) + self.gated(k + 1, pred, cov_prev, extra, bias):
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(k + 1), pred.pose())

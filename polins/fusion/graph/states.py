@@ -387,9 +387,11 @@ class GraphStates:
         vel_n: FloatArray | None,
         tilt_coupling: bool,
         extra: FloatArray,
+        bias_g: FloatArray | None = None,
     ) -> Linearized:
         """The shared model of ``item`` (:func:`~polins.fusion.items.item_model`) at the
-        nominal state and the estimates ``extra``, over ``15 + n`` columns: ``H[:, 15:]`` the
+        nominal state, the gyro bias ``bias_g`` [rad/s] (a zero-rate item's; zero when
+        None) and the estimates ``extra``, over ``15 + n`` columns: ``H[:, 15:]`` the
         columns of the variables, the residual taken at their estimates (the ESKF's
         ``Layout.linearize``). A sun vector uses the shared kernel
         (:func:`~polins.fusion.measurement.sun_kernel`) in the tangent basis of the measured
@@ -401,7 +403,7 @@ class GraphStates:
         estimate and its columns :func:`~polins.fusion.measurement.mount_jacobian`; with the
         lever-arm variable, the lever arm plus its estimate and
         :func:`~polins.fusion.measurement.lever_jacobian`."""
-        it, lin = self._base_model(item, mat_nb, vel_n, tilt_coupling, extra)
+        it, lin = self._base_model(item, mat_nb, vel_n, tilt_coupling, extra, bias_g)
         if self.n == 0:
             return lin
         H, res = self._variable_columns(item, it, lin, extra)
@@ -414,11 +416,14 @@ class GraphStates:
         vel_n: FloatArray | None,
         tilt_coupling: bool,
         extra: FloatArray,
+        bias_g: FloatArray | None = None,
     ) -> tuple[MeasurementItem, Linearized]:
         """The item as modelled (an odometer speed scaled by ``1 + k``) and its shared model
         over the 15 navigation errors, with the variables' estimates ``extra`` as states."""
         idx = self.index
         states: dict[str, FloatArray] = {}
+        if bias_g is not None:
+            states["bg"] = np.asarray(bias_g, dtype=float)
         if "sun_azimuth_n" in idx:
             states[SUN_AZIMUTH_STATE] = extra[idx["sun_azimuth_n"]]
         for name in (*MOUNT_STATES, LEVER_STATE):
