@@ -138,18 +138,19 @@ from polins.ins.state import solution_table
 
 
 def causal_gate(prep: Prepared, prob: Problem) -> dict[int, tuple[float, str]]:
-    """The ESKF's verdicts on the standstill detector's zero-velocity factors
+    """The ESKF's verdicts on the standstill detector's zero-velocity and zero-rate factors
     (``prob.detected``): index into ``prob.meas`` -> (NIS, reason) of those the ESKF's
-    gate rejected, found by time (both place the detector's updates at the same epochs,
-    :func:`polins.fusion.vehicle.vehicle_items`)."""
+    gate rejected, found by kind and time (both place the detector's updates at the same
+    epochs, :func:`polins.fusion.vehicle.vehicle_items`)."""
     upd = fuse_eskf(prep).updates
-    gone = upd[(upd["name"] == "zupt") & ~upd["accepted"].to_numpy(dtype=bool)]
-    t_gone = gone["t"].to_numpy(dtype=float)
+    rejected = upd[~upd["accepted"].to_numpy(dtype=bool)]
     out = {}
     for i in sorted(prob.detected):
-        t = prob.meas[i].item.t
-        j = int(np.searchsorted(t_gone, t - TIME_TOL_S))
-        if j < len(t_gone) and abs(t_gone[j] - t) <= TIME_TOL_S:
+        item = prob.meas[i].item
+        gone = rejected[rejected["name"] == item.kind]
+        t_gone = gone["t"].to_numpy(dtype=float)
+        j = int(np.searchsorted(t_gone, item.t - TIME_TOL_S))
+        if j < len(t_gone) and abs(t_gone[j] - item.t) <= TIME_TOL_S:
             out[i] = (float(gone["nis"].iloc[j]), str(gone["reason"].iloc[j]))
     return out
 
