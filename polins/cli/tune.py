@@ -43,14 +43,16 @@ def cmd_tune(args: argparse.Namespace) -> int:
     assert first.measurements is not None  # the loop's: one row per image
     result = tune(log.imu, first.measurements, options.filter_config(config), params,
                   odometry=log.odometry)  # fmt: skip
-    model = dataclasses.replace(result.config.imu, name=out.stem,
+    # one file: the tuned IMU terms, and in its [filter] table every option the tuned filter
+    # ran with beyond the manifest's (the start file's, --set's, the tuned noise options)
+    options = {**dict(config.imu.filter_options), **changes, **result.fuse_options()}
+    model = dataclasses.replace(result.config.imu, name=out.stem, filter_options=tuple(options.items()),
                                 description=f"{log.imu_model.name} tuned on {args.manifest}")  # fmt: skip
-    sets = "".join(f" --set {k}={v:.6g}" for k, v in result.fuse_options().items())
-    command = f"polins fuse {args.manifest} --imu {out}{sets} --out RUN"
+    command = f"polins fuse {args.manifest} --imu {out} --out RUN"
     write_text_atomic(out, imu_model_toml(model, comments=[*result.comment_lines(),
                                                            f"fuse with: {command}"]))  # fmt: skip
     print(result.report())
-    print(f"wrote {out}; fuse with the tuned values:\n  {command}")
+    print(f"wrote {out} (IMU model and [filter] options); fuse with the tuned values:\n  {command}")
     return 0
 
 
@@ -63,9 +65,11 @@ def add_tune(sub: Any) -> None:
     p.add_argument("manifest", help="manifest.toml of the log (or its folder)")
     p.add_argument("--params", default="gyro_arw,yaw_floor_deg",
                    help="comma-separated noise parameters: gyro_arw, gyro_bias_rw, accel_vrw, "
-                   "accel_bias_rw, yaw_floor_deg, yaw_std_scale, sun_floor_deg, sun_std_scale "
-                   "(docs/tuning.md)")  # fmt: skip
-    p.add_argument("--out", required=True, help="tuned IMU model TOML to write")
+                   "accel_bias_rw, yaw_floor_deg, yaw_std_scale, sun_floor_deg, sun_std_scale, "
+                   "nhc_std, standstill_std, odometer_std (docs/tuning.md)")  # fmt: skip
+    p.add_argument("--out", required=True,
+                   help="tuned file to write: the IMU model with a [filter] table of the tuned "
+                   "options; polins fuse --imu takes it whole")  # fmt: skip
     p.add_argument("--imu", default=None,
                    help="IMU model name or .toml path to start from (None: the manifest's)")  # fmt: skip
     p.add_argument("--set", action="append", metavar="KEY=VALUE", default=None,

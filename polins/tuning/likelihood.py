@@ -50,11 +50,17 @@ PARAMETERS: dict[str, str] = {
     "sun_floor_deg": "floor added in quadrature to every sun_std [deg]",
     "yaw_std_scale": "factor on every yaw_std [-]",
     "sun_std_scale": "factor on every sun_std [-]",
+    "nhc_std": "non-holonomic constraint 1-sigma [m/s] (the vehicle's slip and mounting)",
+    "standstill_std": "zero-velocity 1-sigma at standstill [m/s] (vibration, rocking)",
+    "odometer_std": "wheel-odometer speed 1-sigma [m/s]",
 }
-_FLOOR_COLUMNS = {"yaw_floor_deg": "yaw_std", "sun_floor_deg": "sun_std"}
-_SCALE_COLUMNS = {"yaw_std_scale": "yaw_std", "sun_std_scale": "sun_std"}
-_TABLE_PARAMS = {**_FLOOR_COLUMNS, **_SCALE_COLUMNS}
+_IMU_PARAMS = ("gyro_arw", "gyro_bias_rw", "accel_vrw", "accel_bias_rw")
+# the measurement-noise options and the kind of update each acts on
+_OPTION_KIND = {"yaw_floor_deg": "yaw", "yaw_std_scale": "yaw", "sun_floor_deg": "sun",
+                "sun_std_scale": "sun", "nhc_std": "nhc", "standstill_std": "zupt",
+                "odometer_std": "odo"}  # fmt: skip
 _FLOOR_START_DEG = 0.05  # a floor's start when none is given and the log asks for none
+N_SCORE_BLOCKS = 20  # time blocks of the robust (sandwich) information's score sums
 
 
 def check_params(params: Sequence[str]) -> tuple[str, ...]:
@@ -81,28 +87,82 @@ def with_values(
     tuned values act in ``polins fuse`` (``--set``, a manifest's ``[filter]``) as in the
     tuning. The measurements are returned as given.
     """
-    imu_values: dict[str, Any] = {k: float(v) for k, v in values.items() if k not in _TABLE_PARAMS}
+    imu_values: dict[str, Any] = {k: float(v) for k, v in values.items() if k in _IMU_PARAMS}
     if imu_values:
         model = dataclasses.replace(config.imu, **imu_values)
         config = config.replace(imu_model=model)
-    noise = {k: float(v) for k, v in values.items() if k in _TABLE_PARAMS}
+    noise = {k: float(v) for k, v in values.items() if k not in _IMU_PARAMS}
     if noise:
         config = config.replace(**noise)
     return config, measurements
 
 
-def negative_log_likelihood(updates: pd.DataFrame) -> float:
-    """``1/2 sum [log det(2 pi S) + nu' S^-1 nu]`` over the accepted updates with an
-    innovation (the ``updates`` table of :class:`polins.fusion.FusionResult`)."""
-    total = 0.0
+def update_terms(updates: pd.DataFrame) -> pd.DataFrame:
+    """Each accepted update's term ``1/2 [log det(2 pi S) + nu' S^-1 nu]`` of the negative
+    log-likelihood: columns ``name``, ``t`` [s], ``k`` (the update's number among its kind's
+    at that time) and ``nll``, in time order within each kind."""
+    parts = []
     for kind in pd.unique(updates["name"]):
-        _, nu, S = innovation_arrays(updates, str(kind))
+        t, nu, S = innovation_arrays(updates, str(kind))
         if nu.shape[0] == 0:
             continue
         _, logdet = np.linalg.slogdet(2.0 * np.pi * S)
         nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S, nu[..., None])[..., 0])
-        total += 0.5 * float(np.sum(logdet + nis))
-    return total
+        part = pd.DataFrame({"name": str(kind), "t": t, "nll": 0.5 * (logdet + nis)})
+        part.insert(2, "k", part.groupby("t").cumcount())
+        parts.append(part)
+    if not parts:
+        return pd.DataFrame({"name": [], "t": [], "k": [], "nll": []})
+    return pd.concat(parts, ignore_index=True)
+
+
+def negative_log_likelihood(updates: pd.DataFrame) -> float:
+    """``1/2 sum [log det(2 pi S) + nu' S^-1 nu]`` over the accepted updates with an
+    innovation (the ``updates`` table of :class:`polins.fusion.FusionResult`)."""
+    return float(update_terms(updates)["nll"].sum())
+
+
+def score_information(
+    plus: Sequence[pd.DataFrame],
+    minus: Sequence[pd.DataFrame],
+    step: float,
+    n_blocks: int = N_SCORE_BLOCKS,
+) -> FloatArray:
+    """The variance ``J`` of the log-likelihood's score from its time-block sums.
+
+    ``plus[i]`` / ``minus[i]`` are the :func:`update_terms` of runs at ``theta +- step e_i``
+    (log space); each update's score is their central difference. Scores of updates close
+    in time are correlated (the NHC and zero-velocity innovations follow the slowly varying
+    velocity error), so ``J`` is the covariance of the scores summed over ``n_blocks``
+    equal time blocks, times the number of blocks (batch means). Under the filter's model
+    ``J`` equals the Fisher information; the sandwich ``H^-1 J H^-1`` stays honest when the
+    model is wrong (docs/tuning.md, "Identifiable").
+    """
+    keys = ["name", "t", "k"]
+    base = plus[0][keys]
+    cols = []
+    for p, m in zip(plus, minus, strict=True):
+        both = base.merge(p, on=keys, how="left").merge(m, on=keys, how="left",
+                                                        suffixes=("_p", "_m"))  # fmt: skip
+        cols.append(((both["nll_p"] - both["nll_m"]) / (2.0 * step)).to_numpy(dtype=float))
+    scores = np.nan_to_num(np.stack(cols, axis=-1))  # an update missing in one run: no score
+    t = base["t"].to_numpy(dtype=float)
+    edges = np.linspace(t.min(), t.max(), n_blocks + 1)[1:-1]
+    block = np.searchsorted(edges, t)
+    sums = np.zeros((n_blocks, scores.shape[1]))
+    np.add.at(sums, block, scores)
+    return n_blocks * np.atleast_2d(np.cov(sums, rowvar=False))
+
+
+def sandwich_sigma(H: FloatArray, J: FloatArray) -> FloatArray:
+    """``sqrt(diag(H^-1 J H^-1))``: the robust sigma of a maximum-likelihood estimate
+    under a possibly wrong model (Huber); inf along a direction without information."""
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    tiny = 1e-9 * max(float(np.max(np.abs(w))), 1e-300)
+    if np.any(w <= tiny):
+        return _fisher_sigma(H)
+    Hinv = (V / w) @ V.T
+    return np.sqrt(np.clip(np.diag(Hinv @ J @ Hinv), 0.0, None))
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,9 +177,13 @@ class TuneResult:
         Start values; the maximum-likelihood estimates (of every parameter, identifiable or
         not); the values of the tuned run (the estimate if identifiable, else the start).
     cr_sigma_log : dict of str to float
-        Cramér-Rao sigma of each parameter's natural logarithm (inf: no information).
+        Cramér-Rao sigma of each parameter's natural logarithm (inf: no information): the
+        precision under the filter's model.
+    robust_sigma_log : dict of str to float
+        The sandwich sigma of the same (:func:`sandwich_sigma`), honest when the model is
+        wrong or the innovations are not white; at least the Cramér-Rao sigma.
     identifiable : dict of str to bool
-        ``cr_sigma_log <= max_log_sigma``.
+        ``robust_sigma_log <= max_log_sigma``.
     nll_before, nll_after : float
         Negative log-likelihood (ungated) at the start and at ``values``.
     stats_before, stats_after : dict of str to InnovationStats
@@ -140,6 +204,7 @@ class TuneResult:
     estimate: dict[str, float]
     values: dict[str, float]
     cr_sigma_log: dict[str, float]
+    robust_sigma_log: dict[str, float]
     identifiable: dict[str, bool]
     nll_before: float
     nll_after: float
@@ -152,11 +217,12 @@ class TuneResult:
     n_evaluations: int
 
     def moved(self, p: str, n_sigma: float = 3.0) -> bool:
-        """Whether an identified IMU term left its start by more than ``n_sigma`` Cramér-Rao
+        """Whether an identified IMU term left its start by more than ``n_sigma`` robust
         sigmas: the innovations ask for another value than the model file's."""
-        if p in _TABLE_PARAMS or not self.identifiable[p]:
+        if p not in _IMU_PARAMS or not self.identifiable[p]:
             return False
-        return abs(math.log(self.values[p] / self.initial[p])) > n_sigma * self.cr_sigma_log[p]
+        step = abs(math.log(self.values[p] / self.initial[p]))
+        return step > n_sigma * self.robust_sigma_log[p]
 
     def notes(self) -> list[str]:
         """What an identified value means when it moved far from the model file's."""
@@ -165,9 +231,8 @@ class TuneResult:
             if self.moved(p):
                 ratio = self.values[p] / self.initial[p]
                 out.append(
-                    f"{p} moved x{ratio:.3g} from the start, beyond its Cramér-Rao interval: "
-                    "the interval is the log's precision under the filter's model, not the "
-                    "sensor's truth. Either the start (the model file) is wrong (compare with "
+                    f"{p} moved x{ratio:.3g} from the start, beyond its interval: the "
+                    "interval is the log's precision, not the sensor's truth. Either the start (the model file) is wrong (compare with "
                     "polins imu-model on a static record), or the filter lacks an error source "
                     "(vibration, an unfused aiding, mounting, scale factors) that this term now "
                     "absorbs: the tuned value is then an effective one for this vehicle"
@@ -176,7 +241,7 @@ class TuneResult:
 
     def fuse_options(self) -> dict[str, float]:
         """The tuned measurement-noise values, as ``polins fuse --set`` / ``[filter]`` options."""
-        return {p: self.values[p] for p in self.params if p in _TABLE_PARAMS}
+        return {p: self.values[p] for p in self.params if p not in _IMU_PARAMS}
 
     @property
     def unidentifiable(self) -> list[str]:
@@ -187,12 +252,13 @@ class TuneResult:
         """The tuning as comment lines of a tuned IMU model file (``polins tune --out``)."""
         lines = ["tuned by maximum likelihood of the filter's innovations (polins.tuning.tune):"]
         for p in self.params:
-            state = (f"identified, Cramér-Rao x/÷ {math.exp(self.cr_sigma_log[p]):.3g}"
+            state = (f"identified, x/÷ {math.exp(self.robust_sigma_log[p]):.3g}"
                      if self.identifiable[p] else "NOT identifiable from this log: kept")  # fmt: skip
-            lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state})")
-            if p in _TABLE_PARAMS:
-                lines.append(f"    a filter option on every {_TABLE_PARAMS[p]}, not an IMU term: "
-                             f"polins fuse --set {p}={self.values[p]:.6g}")  # fmt: skip
+            where = (
+                "" if p in _IMU_PARAMS else f"; [filter] option of the {_OPTION_KIND[p]} updates"
+            )
+            lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state}"
+                         f"{where})")  # fmt: skip
         lines += [f"  note: {n}" for n in self.notes()]
         for kind, st in self.stats_after.items():
             lines.append(f"  {kind}: mean NIS {st.nis_mean:.3g} in {st.nis_band[0]:.3g} .. "
@@ -201,13 +267,12 @@ class TuneResult:
 
     def report(self) -> str:
         """A few lines: per parameter start -> tuned (CR sigma), then NIS before/after."""
-        lines = ["parameter        start        tuned        CR sigma (x/÷)  identifiable"]
+        lines = ["parameter        start        tuned        x/÷ CR   robust  identifiable"]
         for p in self.params:
-            sigma = self.cr_sigma_log[p]
-            factor = f"{math.exp(sigma):.3g}" if sigma < math.log(1e3) else "> 1000"
+            cr, robust = (_factor(s[p]) for s in (self.cr_sigma_log, self.robust_sigma_log))
             lines.append(
-                f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} "
-                f"{factor:<15} {'yes' if self.identifiable[p] else 'no: kept at start'}"
+                f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} {cr:<8} "
+                f"{robust:<7} {'yes' if self.identifiable[p] else 'no: kept at start'}"
             )
         lines += [f"note: {n}" for n in self.notes()]
         lines.append(f"negative log-likelihood {self.nll_before:.1f} -> {self.nll_after:.1f}")
@@ -226,6 +291,26 @@ class TuneResult:
         return "\n".join(lines)
 
 
+def _factor(sigma_log: float) -> str:
+    """A log-space sigma as its factor ``x/÷ exp(sigma)``."""
+    return f"{math.exp(sigma_log):.3g}" if sigma_log < math.log(1e3) else "> 1000"
+
+
+def _option_start(config: FuseConfig, p: str) -> float:
+    """The start of a measurement-noise option: its value in use (a floor of 0 starts at
+    0.05 deg); an update kind that is off has nothing to tune."""
+    if p in ("nhc_std", "standstill_std", "odometer_std"):
+        sigma = {"nhc_std": config.nhc_sigma, "standstill_std": config.standstill_sigma,
+                 "odometer_std": config.odometer_sigma}[p]  # fmt: skip
+        if sigma is None:
+            raise UserInputError(
+                f"{p} is off in this configuration (the vehicle kind, the option or no "
+                f"odometry): the {_OPTION_KIND[p]} updates it would tune are not fused"
+            )
+        return float(sigma)
+    return float(getattr(config.noise, p)) or _FLOOR_START_DEG
+
+
 def _start_values(
     config: FuseConfig, params: tuple[str, ...], initial: Mapping[str, float]
 ) -> dict[str, float]:
@@ -234,10 +319,10 @@ def _start_values(
     start: dict[str, float] = {}
     for p in params:
         value = initial.get(p)
-        if value is None and p in _TABLE_PARAMS:
-            value = float(getattr(config.noise, p)) or _FLOOR_START_DEG
-        elif value is None:
+        if value is None and p in _IMU_PARAMS:
             value = float(getattr(config.imu, p))
+        elif value is None:
+            value = _option_start(config, p)
         if not (math.isfinite(value) and value > 0):
             raise UserInputError(
                 f"the start value of {p} must be > 0 (the search runs over its logarithm), "
@@ -270,6 +355,24 @@ def _hessian(f: Callable[[FloatArray], float], x: FloatArray, step: float) -> Fl
 
     res = hessian(vectorized, x, order=2, maxiter=1, initial_step=step)
     return np.asarray(res.ddf, dtype=float)
+
+
+def _robust_sigma(
+    terms: Callable[[FloatArray], pd.DataFrame],
+    theta: FloatArray,
+    H: FloatArray,
+    cr_sigma: FloatArray,
+    step: float = 0.05,
+) -> FloatArray:
+    """The larger of the Cramér-Rao and the sandwich sigma at ``theta`` (log space), the
+    scores from central differences of each update's term (:func:`score_information`)."""
+    if not np.all(np.isfinite(cr_sigma)):
+        return cr_sigma
+    eye = np.eye(theta.size) * step
+    plus = [terms(theta + e) for e in eye]
+    minus = [terms(theta - e) for e in eye]
+    J = score_information(plus, minus, step)
+    return np.maximum(cr_sigma, sandwich_sigma(H, J))
 
 
 def tune(
@@ -306,7 +409,8 @@ def tune(
         the one that fuses, with every aiding the log has; without it the IMU noise absorbs
         the velocity errors the odometer would have removed.
     max_log_sigma : float
-        Largest Cramér-Rao sigma of ``log(parameter)`` of an identifiable parameter.
+        Largest robust sigma of ``log(parameter)`` of an identifiable parameter (the larger
+        of the Cramér-Rao and the sandwich sigma, :func:`sandwich_sigma`).
     search_factor : float
         The search stays within start ``/ search_factor .. * search_factor``.
     hessian_step : float
@@ -320,7 +424,7 @@ def tune(
     """
     params = check_params(params)
     cfg = config or FuseConfig()
-    start = _start_values(cfg, params, initial or {})
+    start = _start_values(cfg.resolve(odometry=odometry is not None), params, initial or {})
     ungated = cfg.replace(gate_prob="off", smooth=False)
     count = [0]
 
@@ -332,9 +436,14 @@ def tune(
         except ImplausibleRunError as exc:  # a candidate far off: its likelihood says so
             return exc.result
 
-    def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
+    def terms(
+        theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]
+    ) -> pd.DataFrame:
         values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}
-        return negative_log_likelihood(run(values, ungated).updates)
+        return update_terms(run(values, ungated).updates)
+
+    def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
+        return float(terms(theta, names, fixed)["nll"].sum())
 
     def fit(names: tuple[str, ...], fixed: Mapping[str, float], x0: FloatArray) -> FloatArray:
         theta0 = np.log([start[p] for p in names])
@@ -349,7 +458,8 @@ def tune(
     theta = fit(params, {}, theta_start)
     H = _hessian(lambda th: nll(th, params, {}), theta, hessian_step)
     sigma = _fisher_sigma(H)
-    ident = {p: bool(s <= max_log_sigma) for p, s in zip(params, sigma, strict=True)}
+    robust = _robust_sigma(lambda th: terms(th, params, {}), theta, H, sigma)
+    ident = {p: bool(s <= max_log_sigma) for p, s in zip(params, robust, strict=True)}
     estimate = dict(zip(params, np.exp(theta).tolist(), strict=True))
     values = {p: estimate[p] if ident[p] else start[p] for p in params}
     free = tuple(p for p in params if ident[p])
@@ -366,6 +476,7 @@ def tune(
         estimate=estimate,
         values=values,
         cr_sigma_log=dict(zip(params, sigma.tolist(), strict=True)),
+        robust_sigma_log=dict(zip(params, robust.tolist(), strict=True)),
         identifiable=ident,
         nll_before=nll(theta_start, params, {}),
         nll_after=nll(np.log([values[p] for p in params]), params, {}),
@@ -384,6 +495,9 @@ __all__ = [
     "TuneResult",
     "check_params",
     "negative_log_likelihood",
+    "sandwich_sigma",
+    "score_information",
     "tune",
+    "update_terms",
     "with_values",
 ]
