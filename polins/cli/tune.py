@@ -12,8 +12,6 @@ from polins.errors import UserInputError
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from polins.fusion.config import FuseConfig
     from polins.io import read_log, write_text_atomic
     from polins.io.model_files import imu_model_toml
@@ -45,9 +43,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
                   odometry=log.odometry)  # fmt: skip
     # one file: the tuned IMU terms, and in its [filter] table every option the tuned filter
     # ran with beyond the manifest's (the start file's, --set's, the tuned noise options)
-    options = {**dict(config.imu.filter_options), **changes, **result.fuse_options()}
-    model = dataclasses.replace(result.config.imu, name=out.stem, filter_options=tuple(options.items()),
-                                description=f"{log.imu_model.name} tuned on {args.manifest}")  # fmt: skip
+    model = result.tuned_model(changes, name=out.stem,
+                               description=f"{log.imu_model.name} tuned on {args.manifest}")  # fmt: skip
     command = f"polins fuse {args.manifest} --imu {out} --out RUN"
     write_text_atomic(out, imu_model_toml(model, comments=[*result.comment_lines(),
                                                            f"fuse with: {command}"]))  # fmt: skip

@@ -8,17 +8,26 @@ noise model is right, so the negative log-likelihood of a log under noise parame
 
 summed over the accepted updates of :func:`polins.fusion.run_fusion` run without a gate
 (a gate would make ``L`` jump where an update crosses it). :func:`tune` minimizes ``L`` over
-the logarithms of the parameters (bounded L-BFGS-B), and judges each parameter by its
-Cramér-Rao sigma in log space from the observed Fisher information, the numerical Hessian
-of ``L`` at the optimum (``scipy.differentiate.hessian``): a parameter whose log-sigma
-exceeds ``max_log_sigma`` (default log 2: the log cannot tell it from half or double) is
-unidentifiable. Unidentifiable parameters keep their starting values; the identifiable ones
+the logarithms of the parameters (bounded L-BFGS-B), and judges each parameter by its sigma
+in log space. The Cramér-Rao sigma, from the observed Fisher information (the numerical
+Hessian ``H`` of ``L`` at the optimum, :func:`central_hessian`), is the precision under the
+filter's model; when that model is wrong (a pseudo-measurement sigma far from the vehicle's
+truth) or the innovations are not white, the estimate's spread is the sandwich
+``H^-1 J H^-1`` with ``J`` the variance of the score summed over time blocks
+(:func:`score_information`, :func:`sandwich_sigma`). A parameter whose larger sigma exceeds
+``max_log_sigma`` (default log 2: the log cannot tell it from half or double) is
+unidentifiable. Unidentifiable parameters keep their starting values; one whose estimate
+lies on the search bound (start ``/ search_factor`` or ``* search_factor``) is not
+identified either, but takes the bound: the likelihood keeps rising beyond it (a
+simulator's exact standstill asks for a zero-velocity sigma of 0). The identifiable ones
 are refitted with the others held there.
 
 Parameters (:data:`PARAMETERS`): the white-noise and random-walk densities of the IMU model
-(SI, :class:`polins.models.ImuModel` fields), ``yaw_floor_deg`` / ``sun_floor_deg``, a
-floor [deg] added in quadrature to every ``yaw_std`` / ``sun_std`` of the measurements, and
-``yaw_std_scale`` / ``sun_std_scale``, a factor on them (applied before the floor).
+(SI, :class:`polins.models.ImuModel` fields) and the measurement-noise filter options:
+``yaw_floor_deg`` / ``sun_floor_deg``, a floor [deg] added in quadrature to every
+``yaw_std`` / ``sun_std`` of the measurements, ``yaw_std_scale`` / ``sun_std_scale``, a
+factor on them (applied before the floor), and the sigmas of the vehicle's
+pseudo-measurements and odometer, ``nhc_std``, ``standstill_std``, ``odometer_std``.
 """
 
 from __future__ import annotations
@@ -32,11 +41,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
-from scipy.differentiate import hessian
 from scipy.optimize import minimize
 
 from polins.errors import UserInputError
 from polins.fusion import FuseConfig, FusionResult, ImplausibleRunError, run_fusion
+from polins.models import ImuModel
 from polins.tuning.innovations import InnovationStats, innovation_arrays, innovation_stats
 
 FloatArray = NDArray[np.float64]
@@ -175,7 +184,8 @@ class TuneResult:
         The tuned parameters (:data:`PARAMETERS`).
     initial, estimate, values : dict of str to float
         Start values; the maximum-likelihood estimates (of every parameter, identifiable or
-        not); the values of the tuned run (the estimate if identifiable, else the start).
+        not); the values of the tuned run (the estimate if identifiable or on its bound,
+        else the start).
     cr_sigma_log : dict of str to float
         Cramér-Rao sigma of each parameter's natural logarithm (inf: no information): the
         precision under the filter's model.
@@ -183,7 +193,10 @@ class TuneResult:
         The sandwich sigma of the same (:func:`sandwich_sigma`), honest when the model is
         wrong or the innovations are not white; at least the Cramér-Rao sigma.
     identifiable : dict of str to bool
-        ``robust_sigma_log <= max_log_sigma``.
+        ``robust_sigma_log <= max_log_sigma`` and not on the search bound.
+    at_bound : dict of str to int
+        -1 / +1: the estimate is on the search's lower / upper bound (the log asks for a
+        smaller / larger value); 0: inside.
     nll_before, nll_after : float
         Negative log-likelihood (ungated) at the start and at ``values``.
     stats_before, stats_after : dict of str to InnovationStats
@@ -192,7 +205,7 @@ class TuneResult:
     config : FuseConfig
         The tuned configuration (its IMU model carries the tuned densities).
     measurements : DataFrame
-        The measurements table with the tuned floors.
+        The measurements table (the tuned noise options act through ``config``).
     before, after : FusionResult
         The two runs the statistics come from.
     n_evaluations : int
@@ -206,6 +219,7 @@ class TuneResult:
     cr_sigma_log: dict[str, float]
     robust_sigma_log: dict[str, float]
     identifiable: dict[str, bool]
+    at_bound: dict[str, int]
     nll_before: float
     nll_after: float
     stats_before: dict[str, InnovationStats]
@@ -243,6 +257,22 @@ class TuneResult:
         """The tuned measurement-noise values, as ``polins fuse --set`` / ``[filter]`` options."""
         return {p: self.values[p] for p in self.params if p not in _IMU_PARAMS}
 
+    def tuned_model(self, options: Mapping[str, Any] | None = None, **fields: Any) -> ImuModel:
+        """The tuned file's model: the tuned IMU terms, and a ``filter_options`` table of
+        ``options`` (the other options the tuned filter ran with) and the tuned noise
+        options; ``fields`` replace others (``name``, ``description``). Every
+        configuration built with it runs the tuned filter (``polins fuse --imu``)."""
+        table = {**dict(self.config.imu.filter_options), **(options or {}),
+                 **self.fuse_options()}  # fmt: skip
+        return dataclasses.replace(self.config.imu, filter_options=tuple(table.items()), **fields)
+
+    def _not_identified(self, p: str) -> str:
+        """Why a parameter is not identified, and the value it takes."""
+        if self.at_bound[p]:
+            side = "smaller" if self.at_bound[p] < 0 else "larger"
+            return f"on the search bound, the log asks for a {side} value"
+        return "kept at start"
+
     @property
     def unidentifiable(self) -> list[str]:
         """The parameters the log cannot identify (kept at their start values)."""
@@ -253,7 +283,7 @@ class TuneResult:
         lines = ["tuned by maximum likelihood of the filter's innovations (polins.tuning.tune):"]
         for p in self.params:
             state = (f"identified, x/÷ {math.exp(self.robust_sigma_log[p]):.3g}"
-                     if self.identifiable[p] else "NOT identifiable from this log: kept")  # fmt: skip
+                     if self.identifiable[p] else self._not_identified(p))  # fmt: skip
             where = (
                 "" if p in _IMU_PARAMS else f"; [filter] option of the {_OPTION_KIND[p]} updates"
             )
@@ -272,7 +302,7 @@ class TuneResult:
             cr, robust = (_factor(s[p]) for s in (self.cr_sigma_log, self.robust_sigma_log))
             lines.append(
                 f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} {cr:<8} "
-                f"{robust:<7} {'yes' if self.identifiable[p] else 'no: kept at start'}"
+                f"{robust:<7} {'yes' if self.identifiable[p] else 'no: ' + self._not_identified(p)}"
             )
         lines += [f"note: {n}" for n in self.notes()]
         lines.append(f"negative log-likelihood {self.nll_before:.1f} -> {self.nll_after:.1f}")
@@ -344,17 +374,26 @@ def _fisher_sigma(H: FloatArray) -> FloatArray:
     return np.sqrt(out)
 
 
-def _hessian(f: Callable[[FloatArray], float], x: FloatArray, step: float) -> FloatArray:
-    """Central-difference Hessian of ``f`` at ``x`` (``scipy.differentiate.hessian``)."""
+def central_hessian(f: Callable[[FloatArray], float], x: FloatArray, step: float) -> FloatArray:
+    """Hessian of ``f`` at ``x`` by second-order central differences with ``step``.
 
-    def vectorized(xi: FloatArray) -> FloatArray:
-        out = np.empty(xi.shape[1:])
-        for idx in np.ndindex(*xi.shape[1:]):
-            out[idx] = f(xi[(slice(None), *idx)])
-        return out
-
-    res = hessian(vectorized, x, order=2, maxiter=1, initial_step=step)
-    return np.asarray(res.ddf, dtype=float)
+    ``1 + 2n + n(n-1)`` evaluations of ``f`` for ``n`` parameters, among them ``f(x +- step
+    e_i)`` that :func:`score_information` reuses; each evaluation is a filter run, and
+    ``scipy.differentiate.hessian`` nests two derivatives (``9 n^2`` evaluations: 81
+    instead of 13 runs for 3 parameters).
+    """
+    eye = np.eye(x.size) * step
+    f0 = f(x)
+    fp = [f(x + e) for e in eye]
+    fm = [f(x - e) for e in eye]
+    H = np.empty((x.size, x.size))
+    for i in range(x.size):
+        H[i, i] = (fp[i] - 2.0 * f0 + fm[i]) / step**2
+        for j in range(i):
+            fpp, fmm = f(x + eye[i] + eye[j]), f(x - eye[i] - eye[j])
+            mixed = fpp - fp[i] - fp[j] + 2.0 * f0 - fm[i] - fm[j] + fmm
+            H[i, j] = H[j, i] = mixed / (2.0 * step**2)
+    return H
 
 
 def _robust_sigma(
@@ -425,51 +464,41 @@ def tune(
     params = check_params(params)
     cfg = config or FuseConfig()
     start = _start_values(cfg.resolve(odometry=odometry is not None), params, initial or {})
-    ungated = cfg.replace(gate_prob="off", smooth=False)
-    count = [0]
-
-    def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
-        c, m = with_values(base, measurements, values)
-        count[0] += 1
-        try:
-            return run_fusion(imu, m, rot_nb0=rot_nb0, config=c, odometry=odometry)
-        except ImplausibleRunError as exc:  # a candidate far off: its likelihood says so
-            return exc.result
-
-    def terms(
-        theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]
-    ) -> pd.DataFrame:
-        values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}
-        return update_terms(run(values, ungated).updates)
+    lik = _Likelihood(imu, measurements, cfg, rot_nb0, odometry)
 
     def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
-        return float(terms(theta, names, fixed)["nll"].sum())
+        return lik.nll({**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))})
 
     def fit(names: tuple[str, ...], fixed: Mapping[str, float], x0: FloatArray) -> FloatArray:
-        theta0 = np.log([start[p] for p in names])
         half = math.log(search_factor)
-        res = minimize(
-            nll, x0, args=(names, fixed), method="L-BFGS-B",
-            bounds=[(t - half, t + half) for t in theta0], options={"eps": 1e-3, "ftol": 1e-7},
-        )  # fmt: skip
+        bounds = [(t - half, t + half) for t in np.log([start[p] for p in names])]
+        # converged when a step gains less than about 0.01 nats: far below the 0.5 nats of
+        # a Cramér-Rao sigma, so the estimate is as good as the log allows
+        ftol = 0.01 / max(abs(nll(x0, names, fixed)), 1.0)
+        res = minimize(nll, x0, args=(names, fixed), method="L-BFGS-B", bounds=bounds,
+                       options={"eps": 1e-3, "ftol": ftol, "gtol": 0.05})  # fmt: skip
         return np.asarray(res.x, dtype=float)
 
     theta_start = np.log([start[p] for p in params])
     theta = fit(params, {}, theta_start)
-    H = _hessian(lambda th: nll(th, params, {}), theta, hessian_step)
+    half = math.log(search_factor)
+    side = np.where(theta <= theta_start - half + 1e-6, -1, 0)
+    side = np.where(theta >= theta_start + half - 1e-6, 1, side)
+    bound = dict(zip(params, side.tolist(), strict=True))
+    H = central_hessian(lambda th: nll(th, params, {}), theta, hessian_step)
     sigma = _fisher_sigma(H)
-    robust = _robust_sigma(lambda th: terms(th, params, {}), theta, H, sigma)
-    ident = {p: bool(s <= max_log_sigma) for p, s in zip(params, robust, strict=True)}
+    at = lambda th: lik.terms(dict(zip(params, np.exp(th).tolist(), strict=True)))  # noqa: E731
+    robust = _robust_sigma(at, theta, H, sigma, hessian_step)
+    ident = {p: bool(s <= max_log_sigma) and not bound[p]
+             for p, s in zip(params, robust, strict=True)}  # fmt: skip
     estimate = dict(zip(params, np.exp(theta).tolist(), strict=True))
-    values = {p: estimate[p] if ident[p] else start[p] for p in params}
+    values = {p: estimate[p] if ident[p] or bound[p] else start[p] for p in params}
     free = tuple(p for p in params if ident[p])
-    if free and len(free) < len(params):  # refit with the unidentifiable at their start
-        fixed = {p: start[p] for p in params if not ident[p]}
+    if free and len(free) < len(params):  # refit with the others held
+        fixed = {p: values[p] for p in params if not ident[p]}
         theta_free = fit(free, fixed, np.log([estimate[p] for p in free]))
         values.update(zip(free, np.exp(theta_free).tolist(), strict=True))
-    before = run(start, cfg)
-    after = run(values, cfg)
-    tuned_config, tuned_meas = with_values(cfg, measurements, values)
+    before, after = lik.run(start, gated=True), lik.run(values, gated=True)
     return TuneResult(
         params=params,
         initial=start,
@@ -478,21 +507,58 @@ def tune(
         cr_sigma_log=dict(zip(params, sigma.tolist(), strict=True)),
         robust_sigma_log=dict(zip(params, robust.tolist(), strict=True)),
         identifiable=ident,
-        nll_before=nll(theta_start, params, {}),
-        nll_after=nll(np.log([values[p] for p in params]), params, {}),
+        at_bound=bound,
+        nll_before=lik.nll(start),
+        nll_after=lik.nll(values),
         stats_before=innovation_stats(before.updates, prob=prob, gate_prob=cfg.gate_probability),
         stats_after=innovation_stats(after.updates, prob=prob, gate_prob=cfg.gate_probability),
-        config=tuned_config,
-        measurements=tuned_meas,
+        config=with_values(cfg, measurements, values)[0],
+        measurements=measurements,
         before=before,
         after=after,
-        n_evaluations=count[0],
+        n_evaluations=lik.count,
     )
+
+
+class _Likelihood:
+    """The filter runs of one tuning: the log, the configuration, and a memory of the
+    ungated runs' likelihood terms by parameter values (the search revisits points)."""
+
+    def __init__(self, imu: pd.DataFrame, measurements: pd.DataFrame, config: FuseConfig,
+                 rot_nb0: Any, odometry: pd.DataFrame | None) -> None:  # fmt: skip
+        self.imu, self.measurements, self.config = imu, measurements, config
+        self.ungated = config.replace(gate_prob="off", smooth=False)
+        self.rot_nb0, self.odometry = rot_nb0, odometry
+        self.count = 0
+        self._terms: dict[tuple[tuple[str, float], ...], pd.DataFrame] = {}
+
+    def run(self, values: Mapping[str, float], *, gated: bool = False) -> FusionResult:
+        """The filter with ``values`` (gated as the configuration, or without a gate)."""
+        config, meas = with_values(self.config if gated else self.ungated, self.measurements,
+                                   values)  # fmt: skip
+        self.count += 1
+        try:
+            return run_fusion(self.imu, meas, rot_nb0=self.rot_nb0, config=config,
+                              odometry=self.odometry)  # fmt: skip
+        except ImplausibleRunError as exc:  # a candidate far off: its likelihood says so
+            return exc.result
+
+    def terms(self, values: Mapping[str, float]) -> pd.DataFrame:
+        """The ungated run's :func:`update_terms` at ``values``."""
+        key = tuple(sorted((k, float(v)) for k, v in values.items()))
+        if key not in self._terms:
+            self._terms[key] = update_terms(self.run(values).updates)
+        return self._terms[key]
+
+    def nll(self, values: Mapping[str, float]) -> float:
+        """The negative log-likelihood at ``values``."""
+        return float(self.terms(values)["nll"].sum())
 
 
 __all__ = [
     "PARAMETERS",
     "TuneResult",
+    "central_hessian",
     "check_params",
     "negative_log_likelihood",
     "sandwich_sigma",
