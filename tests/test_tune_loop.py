@@ -1,0 +1,85 @@
+"""Tuning closes the loop on a simulated UGV: tune, write the tuned file, fuse with it, and every tuned kind's NIS sits in its band (docs/tuning.md)."""
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import polins
+from polins.cli import main
+from polins.fusion import FuseConfig, run_fusion
+from polins.io import read_log
+from polins.io.model_files import imu_model_toml
+from polins.sim.scenario import simulate_log
+from polins.tuning import innovation_stats, tune
+
+CLAIMED_STD = math.radians(0.05)  # the compass's yaw_std
+TRUE_STD = math.radians(0.03)  # its errors: yaw_std_scale 0.6
+
+
+@pytest.fixture(scope="module")
+def ugv(tmp_path_factory):
+    """A 20 s MEMS UGV log (odometer, mounting, road vibration, stops) with 5 Hz headings
+    from the truth whose sigma is claimed 5/3 too large."""
+    folder = tmp_path_factory.mktemp("tune-loop") / "log"
+    simulate_log(folder, scenario="ugv", duration_s=20.0, image_rate_hz=0.2, imu="mems-typical",
+                 seed=3, progress=False)  # fmt: skip
+    log = read_log(folder)
+    t = np.arange(1.0, 20.0, 0.2)
+    yaw = np.interp(t, log.truth["t"], np.unwrap(log.truth["yaw"]))
+    noise = np.random.default_rng(4).normal(0.0, TRUE_STD, t.size)
+    meas = pd.DataFrame({"t": t, "yaw": polins.wrap_angle(yaw + noise), "yaw_std": CLAIMED_STD})
+    return log, meas
+
+
+def test_tune_then_fuse_with_the_tuned_file_ends_inside_the_nis_bands(ugv, tmp_path):
+    log, meas = ugv
+    config = FuseConfig.from_log(log)
+    res = tune(log.imu, meas, config, ("yaw_std_scale", "nhc_std"), odometry=log.odometry)
+    before = res.stats_before
+    assert not before["yaw"].consistent and not before["nhc"].consistent  # the defaults
+    assert res.identifiable == {"yaw_std_scale": True, "nhc_std": True}
+    assert (
+        abs(math.log(res.values["yaw_std_scale"] / 0.6)) < 3 * res.robust_sigma_log["yaw_std_scale"]
+    )
+    assert res.values["nhc_std"] < 0.01  # the simulator's wheels do not slip
+
+    path = tmp_path / "tuned.toml"
+    path.write_text(imu_model_toml(res.tuned_model(name="tuned")))
+    tuned_log = read_log(log.manifest_path, imu_model=polins.load_imu(path))
+    tuned = FuseConfig.from_log(tuned_log)
+    fused = run_fusion(tuned_log.imu, meas, config=tuned, odometry=tuned_log.odometry)
+    stats = innovation_stats(fused.updates, gate_prob=tuned.gate_probability)
+    for kind in ("yaw", "nhc", "odo"):
+        assert stats[kind].consistent, (kind, stats[kind])
+    assert stats["nhc"].autocorr[0] < 0.3 < before["nhc"].autocorr[0]  # whiter innovations
+
+
+@pytest.mark.slow
+def test_polins_tune_then_polins_fuse_ends_inside_the_nis_bands(tmp_path, capsys):
+    """The command-line loop on a 120 s UGV log: ``polins tune`` writes one file, ``polins
+    fuse --imu`` applies every tuned value, and the tuned kinds' NIS verdicts are
+    consistent in summary.json."""
+    log = tmp_path / "log"
+    argv = ["simulate", "--scenario", "ugv", "--imu", "mems-typical", "--duration", "120",
+            "--seed", "0", "--out", str(log), "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    tuned = tmp_path / "tuned.toml"
+    params = "gyro_arw,yaw_std_scale,nhc_std,standstill_std"
+    argv = ["tune", str(log), "--params", params, "--out", str(tuned), "--workers", "1", "--quiet"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert f"polins fuse {log} --imu {tuned} --out RUN" in printed and "--set" not in printed
+    model = polins.load_imu(tuned)
+    assert {"yaw_std_scale", "nhc_std", "standstill_std"} <= dict(model.filter_options).keys()
+    arw = model.gyro_arw / polins.load_imu("mems-typical").gyro_arw
+    assert 0.8 < arw < 1.25  # the true ARW: the pseudo-measurement sigmas tuned beside it
+    run = tmp_path / "run"
+    argv = ["fuse", str(log), "--imu", str(tuned), "--out", str(run), "--workers", "1",
+            "--quiet", "--no-plots"]  # fmt: skip
+    assert main(argv) == 0
+    nis = json.loads((run / "summary.json").read_text())["nis"]
+    for kind in ("yaw", "nhc", "odo"):
+        assert nis[kind]["verdict"] == "consistent", (kind, nis[kind])
