@@ -1,7 +1,10 @@
-"""The tuned file: an IMU model whose ``[filter]`` table every configuration built with it applies (docs/tuning.md)."""
+"""The tuned file (an IMU model whose ``[filter]`` table every configuration built with it applies), the default parameters and the sandwich sigma of polins tune (docs/tuning.md)."""
 
 import dataclasses
+import math
 
+import numpy as np
+import pandas as pd
 import pytest
 
 import polins
@@ -10,6 +13,12 @@ from polins.fusion import FuseConfig
 from polins.fusion.config import config_from_manifest
 from polins.io.model_files import imu_model_toml
 from polins.site import PAPER_SITE
+from polins.tuning.likelihood import (
+    central_hessian,
+    default_params,
+    sandwich_sigma,
+    score_information,
+)
 
 TUNED = (("yaw_std_scale", 0.8), ("nhc_std", 0.01), ("standstill_std", "off"))
 
@@ -66,3 +75,38 @@ def test_a_bad_filter_table_is_one_line_naming_the_file(tuned_path, table, match
     with pytest.raises(UserInputError, match=match) as info:
         FuseConfig(tuned_path)
     assert "\n" not in str(info.value)
+
+
+def test_default_parameters_are_the_gyro_and_every_fused_sigma():
+    ground = FuseConfig("mems-typical", PAPER_SITE, vehicle="ground")
+    assert default_params(ground, odometry=True) == (
+        "gyro_arw", "yaw_std_scale", "nhc_std", "standstill_std", "odometer_std")  # fmt: skip
+    assert default_params(ground.replace(nhc_std="off")) == (
+        "gyro_arw", "yaw_std_scale", "standstill_std")  # fmt: skip
+    assert default_params(FuseConfig("mems-typical", PAPER_SITE)) == ("gyro_arw", "yaw_std_scale")
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_the_sandwich_sigma_sees_correlated_innovations(rho):
+    """The log-variance of AR(1) samples: the Cramér-Rao sigma assumes independent terms;
+    the sandwich's is larger by sqrt((1 + rho^2) / (1 - rho^2)) (the variance of a mean
+    of x^2 whose autocorrelation is rho^2k)."""
+    rng = np.random.default_rng(5)
+    n = 20000
+    x = np.empty(n)
+    x[0] = rng.normal()
+    for k in range(1, n):
+        x[k] = rho * x[k - 1] + math.sqrt(1.0 - rho**2) * rng.normal()
+
+    def terms(theta):
+        nll = 0.5 * (math.log(2.0 * math.pi) + theta[0] + x**2 * math.exp(-theta[0]))
+        return pd.DataFrame({"name": "x", "t": np.arange(n, dtype=float), "k": 0, "nll": nll})
+
+    theta = np.array([math.log(np.mean(x**2))])
+    step = 0.2
+    H = central_hessian(lambda th: float(terms(th)["nll"].sum()), theta, step)
+    assert H[0, 0] == pytest.approx(n / 2, rel=0.01)
+    J = score_information([terms(theta + step)], [terms(theta - step)], step)
+    ratio = sandwich_sigma(H, J)[0] / math.sqrt(1.0 / H[0, 0])
+    expected = math.sqrt((1 + rho**2) / (1 - rho**2))
+    assert ratio == pytest.approx(expected, rel=0.35), (ratio, expected)

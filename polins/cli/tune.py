@@ -18,14 +18,15 @@ def cmd_tune(args: argparse.Namespace) -> int:
     from polins.loop import LoopOptions, run_log
     from polins.models import load_imu
     from polins.tuning import tune
-    from polins.tuning.likelihood import check_params
+    from polins.tuning.likelihood import check_params, default_params
 
     out = Path(args.out)
     check(out.suffix == ".toml", f"--out {out}: the tuned IMU model file must end in .toml")
     check(not out.is_dir(), f"--out {out} is a folder; give a .toml file name")
     check(args.workers is None or args.workers >= 1, f"--workers {args.workers}: expected >= 1")
+    names = [p.strip() for p in args.params.split(",") if p.strip()]
     try:
-        params = check_params([p.strip() for p in args.params.split(",") if p.strip()])
+        params = None if names == ["auto"] else check_params(names)
     except UserInputError as exc:
         raise ArgumentError(f"--params {args.params}: {exc}") from None
     changes = filter_changes(args)
@@ -34,6 +35,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
                    imu_model=imu)  # fmt: skip
     config = FuseConfig.from_log(log).replace(**changes)
     config.check_backend("eskf")
+    if params is None:
+        params = default_params(config, odometry=log.odometry is not None)
     # every image measured with the filter's prior (the loop), then the likelihood
     options = LoopOptions(method=args.method)
     first = run_log(log, options=options, config=config, workers=args.workers,
@@ -60,10 +63,11 @@ def add_tune(sub: Any) -> None:
         epilog=filter_options_text(),
     )  # fmt: skip
     p.add_argument("manifest", help="manifest.toml of the log (or its folder)")
-    p.add_argument("--params", default="gyro_arw,yaw_floor_deg",
+    p.add_argument("--params", default="auto",
                    help="comma-separated noise parameters: gyro_arw, gyro_bias_rw, accel_vrw, "
                    "accel_bias_rw, yaw_floor_deg, yaw_std_scale, sun_floor_deg, sun_std_scale, "
-                   "nhc_std, standstill_std, odometer_std (docs/tuning.md)")  # fmt: skip
+                   "nhc_std, standstill_std, odometer_std (docs/tuning.md); auto: gyro_arw, "
+                   "yaw_std_scale and the sigma of each aiding the run fuses")  # fmt: skip
     p.add_argument("--out", required=True,
                    help="tuned file to write: the IMU model with a [filter] table of the tuned "
                    "options; polins fuse --imu takes it whole")  # fmt: skip

@@ -85,6 +85,17 @@ def check_params(params: Sequence[str]) -> tuple[str, ...]:
     return tuple(params)
 
 
+def default_params(config: FuseConfig, *, odometry: bool = False) -> tuple[str, ...]:
+    """The parameters ``polins tune`` fits by default: the gyro's white noise and the
+    sigma of every kind of update the run fuses (the yaw scale; the NHC, zero-velocity and
+    odometer sigmas when on). Tuning the IMU without the pseudo-measurement sigmas lets
+    it absorb their mismatch (docs/tuning.md, "What a log can identify")."""
+    run = config.resolve(odometry=odometry)
+    sigmas = {"nhc_std": run.nhc_sigma, "standstill_std": run.standstill_sigma,
+              "odometer_std": run.odometer_sigma}  # fmt: skip
+    return ("gyro_arw", "yaw_std_scale", *(p for p, v in sigmas.items() if v is not None))
+
+
 def with_values(
     config: FuseConfig, measurements: pd.DataFrame, values: Mapping[str, float]
 ) -> tuple[FuseConfig, pd.DataFrame]:
@@ -560,6 +571,7 @@ __all__ = [
     "TuneResult",
     "central_hessian",
     "check_params",
+    "default_params",
     "negative_log_likelihood",
     "sandwich_sigma",
     "score_information",
