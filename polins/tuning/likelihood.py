@@ -251,17 +251,26 @@ class TuneResult:
 
     def notes(self) -> list[str]:
         """What an identified value means when it moved far from the model file's."""
+        tuned_kinds = {_OPTION_KIND[p] for p in self.params if p in _OPTION_KIND}
+        untuned = [kind for kind, st in self.stats_before.items()
+                   if not st.consistent and kind not in tuned_kinds]  # fmt: skip
         out = []
         for p in self.params:
-            if self.moved(p):
-                ratio = self.values[p] / self.initial[p]
-                out.append(
-                    f"{p} moved x{ratio:.3g} from the start, beyond its interval: the "
-                    "interval is the log's precision, not the sensor's truth. Either the start (the model file) is wrong (compare with "
-                    "polins imu-model on a static record), or the filter lacks an error source "
-                    "(vibration, an unfused aiding, mounting, scale factors) that this term now "
-                    "absorbs: the tuned value is then an effective one for this vehicle"
-                )
+            if not self.moved(p):
+                continue
+            ratio = self.values[p] / self.initial[p]
+            note = (
+                f"{p} moved x{ratio:.3g} from the start, beyond its interval: the interval is "
+                "the log's precision, not the sensor's truth. Either the start (the model "
+                "file) is wrong (compare with polins imu-model on a static record), or the "
+                "filter lacks an error source (vibration, an unfused aiding, mounting, scale "
+                "factors) or holds a sigma far from the log's, that this term now absorbs: the "
+                "tuned value is then an effective one for this vehicle"
+            )
+            if untuned:
+                note += (f"; the {', '.join(untuned)} updates are inconsistent and their sigmas "
+                         "were not tuned: tune them with it (polins tune --params auto)")  # fmt: skip
+            out.append(note)
         return out
 
     def fuse_options(self) -> dict[str, float]:
