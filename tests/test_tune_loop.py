@@ -80,6 +80,7 @@ def test_polins_tune_then_polins_fuse_ends_inside_the_nis_bands(tmp_path, capsys
     argv = ["fuse", str(log), "--imu", str(tuned), "--out", str(run), "--workers", "1",
             "--quiet", "--no-plots"]  # fmt: skip
     assert main(argv) == 0
+    assert f"filter options of {tuned}: " in capsys.readouterr().out
     nis = json.loads((run / "summary.json").read_text())["nis"]
     for kind in ("yaw", "nhc", "odo"):
         assert nis[kind]["verdict"] == "consistent", (kind, nis[kind])
