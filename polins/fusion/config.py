@@ -78,7 +78,9 @@ class FuseConfig:
     are a shorthand for ``site``. Read them from their part: ``config.aiding.nhc_std``; the
     resolved behaviour from the properties (``nhc_sigma``, ``mechanize_earth_rate``, ...).
     ``option_table()`` lists every option; options of one backend are refused by the other
-    when set away from their defaults.
+    when set away from their defaults. An IMU model with a ``[filter]`` table (a file of
+    ``polins tune``, ``ImuModel.filter_options``) sets those options, under the ones given
+    explicitly; ``replace(imu_model=...)`` with such a model applies them too.
     """
 
     imu_model: ImuModel
