@@ -286,6 +286,12 @@ class TuneResult:
                  **self.fuse_options()}  # fmt: skip
         return dataclasses.replace(self.config.imu, filter_options=tuple(table.items()), **fields)
 
+    def _identified_word(self, p: str) -> str:
+        """The report's identifiability column of ``p``."""
+        if not self.identifiable[p]:
+            return "no: " + self._not_identified(p)
+        return "yes, an effective value (note)" if self.moved(p) else "yes"
+
     def _not_identified(self, p: str) -> str:
         """Why a parameter is not identified, and the value it takes."""
         if self.at_bound[p]:
@@ -322,7 +328,7 @@ class TuneResult:
             cr, robust = (_factor(s[p]) for s in (self.cr_sigma_log, self.robust_sigma_log))
             lines.append(
                 f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} {cr:<8} "
-                f"{robust:<7} {'yes' if self.identifiable[p] else 'no: ' + self._not_identified(p)}"
+                f"{robust:<7} {self._identified_word(p)}"
             )
         lines += [f"note: {n}" for n in self.notes()]
         lines.append(f"negative log-likelihood {self.nll_before:.1f} -> {self.nll_after:.1f}")
@@ -505,16 +511,24 @@ def tune(
     side = np.where(theta <= theta_start - half + 1e-6, -1, 0)
     side = np.where(theta >= theta_start + half - 1e-6, 1, side)
     bound = dict(zip(params, side.tolist(), strict=True))
-    H = central_hessian(lambda th: nll(th, params, {}), theta, hessian_step)
-    sigma = _fisher_sigma(H)
-    at = lambda th: lik.terms(dict(zip(params, np.exp(th).tolist(), strict=True)))  # noqa: E731
-    robust = _robust_sigma(at, theta, H, sigma, hessian_step)
-    ident = {p: bool(s <= max_log_sigma) and not bound[p]
-             for p, s in zip(params, robust, strict=True)}  # fmt: skip
     estimate = dict(zip(params, np.exp(theta).tolist(), strict=True))
+    # the information of the parameters inside the search, those on a bound held there
+    inner = tuple(p for p in params if not bound[p])
+    held = {p: estimate[p] for p in params if bound[p]}
+    cr = dict.fromkeys(params, math.inf)
+    robust = dict.fromkeys(params, math.inf)
+    if inner:
+        th_in = np.log([estimate[p] for p in inner])
+        H = central_hessian(lambda th: nll(th, inner, held), th_in, hessian_step)
+        sig = _fisher_sigma(H)
+        at = lambda th: lik.terms({**held, **dict(zip(inner, np.exp(th).tolist(), strict=True))})  # noqa: E731
+        cr.update(zip(inner, sig.tolist(), strict=True))
+        robust.update(zip(inner, _robust_sigma(at, th_in, H, sig, hessian_step).tolist(),
+                          strict=True))  # fmt: skip
+    ident = {p: bool(robust[p] <= max_log_sigma) and not bound[p] for p in params}
     values = {p: estimate[p] if ident[p] or bound[p] else start[p] for p in params}
     free = tuple(p for p in params if ident[p])
-    if free and len(free) < len(params):  # refit with the others held
+    if free and any(not ident[p] and not bound[p] for p in params):  # refit, the others held
         fixed = {p: values[p] for p in params if not ident[p]}
         theta_free = fit(free, fixed, np.log([estimate[p] for p in free]))
         values.update(zip(free, np.exp(theta_free).tolist(), strict=True))
@@ -524,8 +538,8 @@ def tune(
         initial=start,
         estimate=estimate,
         values=values,
-        cr_sigma_log=dict(zip(params, sigma.tolist(), strict=True)),
-        robust_sigma_log=dict(zip(params, robust.tolist(), strict=True)),
+        cr_sigma_log=cr,
+        robust_sigma_log=robust,
         identifiable=ident,
         at_bound=bound,
         nll_before=lik.nll(start),
