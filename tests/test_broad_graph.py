@@ -85,6 +85,7 @@ def test_graph_is_consistent_on_the_broad_trials(name):
     assert res.updates["accepted"].mean() > 0.98  # headings and the zero-velocity gate
 
 
+@pytest.mark.slow
 def test_without_rotation_noise_the_graph_is_overconfident_on_real_data():
     # The cause, shown: the same trial with the gyro noise of the ARW alone (no
     # misalignment, scale factors off) reports sigmas several times too small.
@@ -94,6 +95,7 @@ def test_without_rotation_noise_the_graph_is_overconfident_on_real_data():
     assert max(rms_z for _, rms_z, _ in score.values()) > 3.0, score
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", ["isam2", "fixed_lag"])
 def test_incremental_solvers_are_consistent_on_the_fast_trial(solver):
     # ISAM2 with the velocity never relinearized leaves the tilt at rest 1 deg off with a

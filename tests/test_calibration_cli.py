@@ -318,6 +318,7 @@ def test_calibrate_camera_imu_from_a_log(turning_log, capsys, extra, mode, tol_d
         assert "attitude: the log's truth table" in text
 
 
+@pytest.mark.slow
 def test_calibrate_sky_rotation_with_the_clock(tmp_path, capsys):
     """``--times-utc FILE --lat --lon``: the sun's motion over a 20-minute sequence from the
     ephemeris, as ``fit_sky_rotation(..., times_utc=, site=)`` does."""

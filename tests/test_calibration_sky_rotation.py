@@ -203,6 +203,7 @@ def test_sky_rotation_with_the_sun_moving_for_20_minutes():
         fit_sky_rotation(raws, base, times_utc=times[:5], site=site)
 
 
+@pytest.mark.slow
 def test_sky_rotation_clock_with_a_tilted_turn_axis():
     """The same 20 minutes with the optical (turn) axis tilted 30 deg from the zenith: the
     ephemeris correction needs the axis (``axis_n``); taken as the zenith it corrects only
@@ -222,6 +223,7 @@ def test_sky_rotation_clock_with_a_tilted_turn_axis():
     assert angle_err_deg(right) <= 0.1 and right.noise_ratio < 1.2  # measured: 0.07 deg, 0.84
 
 
+@pytest.mark.slow
 def test_sky_rotation_ifov_correction():
     """The DoFP IFOV error (each channel sees from its own pixel) biases the channel angles
     and efficiencies, and the noise ratio shows it; the channels interpolated to the

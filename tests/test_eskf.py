@@ -395,7 +395,11 @@ def _compare(a, b):
 
 @pytest.mark.parametrize(
     ("model_name", "scale_factors"),
-    [("mems-typical", True), ("mems-typical", False), ("fins-paper", True)],
+    [
+        ("mems-typical", True),
+        pytest.param("mems-typical", False, marks=pytest.mark.slow),
+        pytest.param("fins-paper", True, marks=pytest.mark.slow),
+    ],
 )
 def test_fast_path_and_streaming_agree_with_a_fine_step_reference(model_name, scale_factors):
     # The default covariance step (0.1 s, rows interpolated between steps) and the

@@ -27,12 +27,7 @@ def _zenith_estimate(raw, cam, sun_n, rot):
     opt = MeasureOptions()
     img = image_stokes(check_raw(raw, cam), cam, opt)
     geo = image_geometry(cam, None, rot)
-    mask = zenith_cone(img, geo.mat_lc) & img.valid
-    rays_l = geo.mat_lc @ img.cache.rays[:, mask].astype(float)
-    inv = img.inv_sigma_l2
-    zm = zenith_mean(img.estimate[:, mask], inv[mask] if isinstance(inv, np.ndarray) else inv,
-                     img.cache.basis[:, :, mask], geo.mat_lc, img.noise_ratio,
-                     np.arctan2(rays_l[1], rays_l[0]))  # fmt: skip
+    zm, _ = zenith_mean(img, img.valid, geo.mat_lc, zenith_cone(img, geo.mat_lc))
     dop_std, mixing_std = instrumental_stds(cam, opt)
     std_instr = np.hypot(dop_std * zm.g_delta, mixing_std * zm.g_mixing)
     sun_l = geo.mat_lb @ rot.inv().apply(sun_n)

@@ -447,7 +447,80 @@ def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cann
         out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
 
 
-_REDUCTIONS = ("moment_pass", "ml_pass")
+ZENITH_SUMS = 13
+"""Length of :func:`zenith_pass`'s sums."""
+
+
+def zenith_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    est: NDArray, inv: NDArray, basis: NDArray, rays: NDArray, valid: NDArray,
+    mat_lc: NDArray, cos_edge: float, mask: NDArray, sums: NDArray,
+    contrib: NDArray, ray_l: NDArray,
+) -> int:  # fmt: skip
+    """The zenith cone's sums in one pass over the field-of-view pixels
+    (:func:`polins.compass.zenith.zenith_mean`, docs/measurement.md §13), in float64.
+
+    A pixel is used when ``valid`` and its ray's level zenith cosine exceeds ``cos_edge``
+    (``mask`` out). Per used pixel, with ``w = inv`` (``(n,)`` or ``(1,)``) and the
+    doubled rows ``q1, q2`` of its basis ``(3, 2, n)`` turned by ``mat_lc`` (camera ->
+    level): ``c = w (S1 q1 + S2 q2)`` goes to ``contrib[:, k]`` and the horizontal part of
+    its level ray to ``ray_l[:, k]`` (``k`` the used pixels so far, returned), and ``sums`` (13,) holds
+    ``sum c`` (2), ``sum w (q1 q1^T + q2 q2^T)`` (xx, xy, yy) and the four sums
+    ``sum w (q1 d1 + q2 d2)`` (2 each) of the camera-fixed perturbations ``(d1, d2)`` =
+    ``(S0, 0), (0, S0), (S1, -S2), (S2, S1)``."""
+    n = valid.size
+    per_pixel = inv.size > 1
+    acc = np.zeros(ZENITH_SUMS)
+    k = 0
+    for i in range(n):
+        up = mat_lc[2, 0] * rays[0, i] + mat_lc[2, 1] * rays[1, i] + mat_lc[2, 2] * rays[2, i]
+        if not valid[i] or not up > cos_edge:
+            mask[i] = False
+            continue
+        mask[i] = True
+        h1x = h1y = h2x = h2y = 0.0
+        for j in range(3):
+            h1x += mat_lc[0, j] * basis[j, 0, i]
+            h1y += mat_lc[1, j] * basis[j, 0, i]
+            h2x += mat_lc[0, j] * basis[j, 1, i]
+            h2y += mat_lc[1, j] * basis[j, 1, i]
+        norm = 0.5 * (h1x * h1x + h1y * h1y + h2x * h2x + h2y * h2y)
+        q1x = 0.5 * (h1x * h1x - h1y * h1y - h2x * h2x + h2y * h2y) / norm
+        q1y = (h1x * h1y - h2x * h2y) / norm
+        q2x = (h1x * h2x - h1y * h2y) / norm
+        q2y = (h1x * h2y + h2x * h1y) / norm
+        w = float(inv[i] if per_pixel else inv[0])
+        s0, s1, s2 = float(est[0, i]), float(est[1, i]), float(est[2, i])
+        cx = w * (q1x * s1 + q2x * s2)
+        cy = w * (q1y * s1 + q2y * s2)
+        contrib[0, k] = cx
+        contrib[1, k] = cy
+        ray_l[0, k] = (
+            mat_lc[0, 0] * rays[0, i] + mat_lc[0, 1] * rays[1, i] + mat_lc[0, 2] * rays[2, i]
+        )
+        ray_l[1, k] = (
+            mat_lc[1, 0] * rays[0, i] + mat_lc[1, 1] * rays[1, i] + mat_lc[1, 2] * rays[2, i]
+        )
+        k += 1
+        acc[0] += cx
+        acc[1] += cy
+        acc[2] += w * (q1x * q1x + q2x * q2x)
+        acc[3] += w * (q1x * q1y + q2x * q2y)
+        acc[4] += w * (q1y * q1y + q2y * q2y)
+        ws0 = w * s0
+        acc[5] += q1x * ws0
+        acc[6] += q1y * ws0
+        acc[7] += q2x * ws0
+        acc[8] += q2y * ws0
+        acc[9] += w * (q1x * s1 - q2x * s2)
+        acc[10] += w * (q1y * s1 - q2y * s2)
+        acc[11] += w * (q1x * s2 + q2x * s1)
+        acc[12] += w * (q1y * s2 + q2y * s1)
+    for j in range(ZENITH_SUMS):
+        sums[j] = acc[j]
+    return k
+
+
+_REDUCTIONS = ("moment_pass", "ml_pass", "zenith_pass")
 """Kernels that sum in float64 over long loops: compiled with reassociation (vector
 lanes), which moves their results by float64 rounding only (:func:`ml_pass`: its per-pixel
 terms by the rows' rounding), and with numpy's error model (no checks of the divisions,

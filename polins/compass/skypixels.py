@@ -24,7 +24,12 @@ from polins.compass.prediction import PixelData, pixel_data
 from polins.compass.selection import Selection
 from polins.models import CameraModel
 
-__all__ = ["SNR_MIN", "SkyPixels", "sky_pixels"]
+__all__ = ["HORIZON_MIN", "SNR_MIN", "SkyPixels", "sky_pixels"]
+
+HORIZON_MIN = float(np.radians(3.0))
+"""Lowest elevation [rad] above the prior's level horizon of a used pixel: the ground and
+the scenery at the horizon of a tilted wide field are not sky, and the few degrees above
+the horizon are depolarized by multiple scattering (docs/measurement.md §4)."""
 
 SNR_MIN = 3.0
 """Smallest polarized intensity of a used pixel in units of its noise sigma_L: rejects
@@ -137,6 +142,10 @@ def sky_pixels(
     valid = img.valid
     if opt.roi is not None:  # the region of interest of this image (a new mask)
         valid = valid & (cache.rays[2] >= img.dtype(np.cos(opt.roi)))
+    up_c: NDArray = geo.mat_cl[:, 2].astype(img.dtype)  # the level zenith, camera frame
+    above = dot_rows(up_c, cache.rays) >= img.dtype(np.sin(HORIZON_MIN))
+    if not above.all():
+        valid = valid & above
     rows_sub = img.estimate.take(sub.index, axis=1)
     valid_sub = valid[sub.index]
     eig0 = _starting_sun(img, geo, opt, rows_sub, valid_sub, weighted)

@@ -31,6 +31,7 @@ from scipy.ndimage import binary_erosion
 from polins.compass.branch import sun_angle_variances
 from polins.compass.heading import Geometry
 from polins.compass.image import ImageStokes
+from polins.compass.kernels import ZENITH_SUMS, compiled, dot_rows
 from polins.compass.measurement import MeasureOptions
 from polins.compass.pixels import PixelSet
 from polins.compass.skypixels import SkyPixels
@@ -86,46 +87,36 @@ def _edge_pixels(pixels: PixelSet) -> NDArray:
 CONE_MAX = np.radians(45.0)
 
 
-def zenith_cone(img: ImageStokes, mat_lc: NDArray) -> NDArray | None:
-    """Field-of-view pixels ``(n,)`` bool inside the largest cone about the level zenith
-    that lies inside the field (its edge and occlusions), or None when the zenith is
-    outside the field or the cone is wider than :data:`CONE_MAX`."""
+def zenith_cone(img: ImageStokes, mat_lc: NDArray) -> float | None:
+    """Cosine of the half-angle of the largest cone about the level zenith that lies inside
+    the field (its edge and occlusions), or None when the zenith is outside the field or
+    the cone is wider than :data:`CONE_MAX`."""
     rays = img.cache.rays
-    up = mat_lc[2].astype(rays.dtype) @ rays  # cosine of the zenith angle
     edge = _edge_pixels(img.cache.pixels)
     if edge.size == 0:
         return None
-    up_edge = float(np.max(up[edge]))
-    if not float(np.max(up)) > up_edge:  # the zenith is on the edge or outside
-        return None
+    up_c = mat_lc[2].astype(rays.dtype)
+    up_edge = float(np.max(dot_rows(up_c, rays.take(edge, axis=1))))
     if up_edge < np.cos(CONE_MAX):  # a wide field: the eigen solution fixes the elevation
         return None
-    return up > up_edge
-
-
-def _doubled_rows(basis: NDArray, mat_lc: NDArray) -> tuple[NDArray, NDArray]:
-    """``q1, q2`` ``(2, n)``: the level horizontal doubled-angle vectors of the E-vector
-    tensor per unit ``S1`` and ``S2`` (docs/measurement.md §13), normalised by
-    ``(|h1|^2 + |h2|^2)/2``."""
-    h1 = (mat_lc[:2] @ basis[:, 0]).astype(np.float64)
-    h2 = (mat_lc[:2] @ basis[:, 1]).astype(np.float64)
-    norm = 0.5 * (np.sum(h1 * h1, axis=0) + np.sum(h2 * h2, axis=0))
-    q1 = 0.5 * np.stack([h1[0] ** 2 - h1[1] ** 2 - h2[0] ** 2 + h2[1] ** 2,
-                         2.0 * (h1[0] * h1[1] - h2[0] * h2[1])])  # fmt: skip
-    q2 = np.stack([h1[0] * h2[0] - h1[1] * h2[1], h1[0] * h2[1] + h2[0] * h1[1]])
-    return q1 / norm, q2 / norm
+    if not float(np.max(dot_rows(up_c, rays))) > up_edge:  # the zenith is on the edge or outside
+        return None
+    return up_edge
 
 
 MIRROR_SECTORS = 8
 """Groups of the mirror-pair jackknife: sectors of ``|pixel azimuth - sun azimuth|``."""
 
 
-def _mirror_jackknife(contrib: NDArray, azimuth_px: NDArray, azimuth_sun: float) -> float:
+def _mirror_jackknife(contrib: NDArray, ray_l: NDArray, azimuth_sun: float) -> float:
     """Delete-one-group jackknife variance [rad^2] of the azimuth of ``sum contrib`` (2, n)
-    over groups of pixels mirrored about the sun's vertical plane: on a symmetric sky every
-    group's sum lies on that plane's doubled angle, so only asymmetries move it."""
-    rel = np.abs(np.angle(np.exp(1j * (azimuth_px - azimuth_sun))))
-    group = np.minimum((rel / np.pi * MIRROR_SECTORS).astype(int), MIRROR_SECTORS - 1)
+    over groups of pixels mirrored about the sun's vertical plane (by the angle between
+    the horizontal parts of their level rays ``ray_l`` (2, n) and the sun's azimuth): on
+    a symmetric sky every group's sum lies on that plane's doubled angle, so only
+    asymmetries move it."""
+    c, s = np.cos(azimuth_sun), np.sin(azimuth_sun)
+    rel = np.abs(np.arctan2(c * ray_l[1] - s * ray_l[0], c * ray_l[0] + s * ray_l[1]))
+    group = np.minimum((rel * (MIRROR_SECTORS / np.pi)).astype(np.intp), MIRROR_SECTORS - 1)
     sums = np.stack([np.bincount(group, c, MIRROR_SECTORS) for c in contrib])  # (2, G)
     total = sums.sum(axis=1, keepdims=True)
     left = total - sums
@@ -139,44 +130,48 @@ def _mirror_jackknife(contrib: NDArray, azimuth_px: NDArray, azimuth_sun: float)
 
 
 def zenith_mean(
-    stokes: NDArray, inv_sigma_l2: NDArray | float, basis: NDArray, mat_lc: NDArray,
-    noise_ratio: float, azimuth_px: NDArray,
-) -> ZenithMean:  # fmt: skip
+    img: ImageStokes, valid: NDArray, mat_lc: NDArray, cos_edge: float
+) -> tuple[ZenithMean, NDArray]:
     """The zenith cone's sun azimuth, its noise variance and instrumental sensitivities.
 
     Parameters
     ----------
-    stokes : (3, n)
-        (S0, S1, S2) [DN] of the cone's pixels.
-    inv_sigma_l2 : (n,) or float
-        ``1/sigma_L^2`` [1/DN^2].
-    basis : (3, 2, n)
-        Inverse lens basis of the pixels (camera frame).
+    img : ImageStokes
+        The image's Stokes rows, noise and camera constants.
+    valid : (n,) bool
+        The pixels that may be used.
     mat_lc : (3, 3)
         Camera -> level.
-    noise_ratio : float
-        Measured / declared noise; scales the variance when finite.
-    azimuth_px : (n,)
-        Level-frame azimuths of the pixels' rays [rad] (for the jackknife).
+    cos_edge : float
+        Cosine of the cone's half-angle about the level zenith (:func:`zenith_cone`).
+
+    Returns
+    -------
+    ZenithMean
+        The estimate (``azimuth_l`` NaN when no pixel is used).
+    mask : (n,) bool
+        The pixels used.
     """
-    s0, s1, s2 = (np.asarray(r, dtype=np.float64) for r in stokes)
-    w = np.broadcast_to(np.asarray(inv_sigma_l2, dtype=np.float64), s1.shape)
-    q1, q2 = _doubled_rows(basis, mat_lc)
-    contrib = q1 * (w * s1) + q2 * (w * s2)
-    m = contrib.sum(axis=1)
+    n = valid.size
+    inv = img.inv_sigma_l2
+    inv_rows = inv if isinstance(inv, np.ndarray) else np.array([inv], dtype=img.dtype)
+    mask, sums = np.empty(n, bool), np.empty(ZENITH_SUMS)
+    contrib, ray_l = np.empty((2, n)), np.empty((2, n))
+    k = compiled("zenith_pass")(img.estimate, inv_rows, img.cache.basis, img.cache.rays, valid,
+                                np.ascontiguousarray(mat_lc, dtype=np.float64), float(cos_edge),
+                                mask, sums, contrib, ray_l)  # fmt: skip
+    m = sums[0:2]
     norm = float(np.hypot(m[0], m[1]))
     perp = np.array([-m[1], m[0]]) / norm  # d(2 phi) per unit change of M along it: 1/|M|
-    scale = noise_ratio**2 if np.isfinite(noise_ratio) else 1.0
-    var_2phi = scale * float(np.sum(w * ((perp @ q1) ** 2 + (perp @ q2) ** 2))) / norm**2
-
-    def d_azimuth(d1: NDArray, d2: NDArray) -> float:
-        return 0.5 * float(perp @ (q1 @ (w * d1) + q2 @ (w * d2))) / norm
-
-    g_delta = np.hypot(d_azimuth(s0, 0 * s0), d_azimuth(0 * s0, s0))
-    g_mixing = np.hypot(d_azimuth(s1, -s2), d_azimuth(s2, s1))
+    scale = img.noise_ratio**2 if np.isfinite(img.noise_ratio) else 1.0
+    a = np.array([[sums[2], sums[3]], [sums[3], sums[4]]])
+    var_2phi = scale * float(perp @ a @ perp) / norm**2
+    d_azimuth = 0.5 * (sums[5:13].reshape(4, 2) @ perp) / norm  # per (S0, 0), (0, S0), mixing
+    g_delta = float(np.hypot(d_azimuth[0], d_azimuth[1]))
+    g_mixing = float(np.hypot(d_azimuth[2], d_azimuth[3]))
     azimuth = 0.5 * float(np.arctan2(m[1], m[0])) + 0.5 * np.pi
-    var_jack = _mirror_jackknife(contrib, azimuth_px, azimuth)
-    return ZenithMean(azimuth, 0.25 * var_2phi, var_jack, float(g_delta), float(g_mixing))
+    var_jack = _mirror_jackknife(contrib[:, :k], ray_l[:, :k], azimuth)
+    return ZenithMean(azimuth, 0.25 * var_2phi, var_jack, g_delta, g_mixing), mask
 
 
 def total_std(
@@ -205,18 +200,12 @@ def zenith_solution(
     cone's vertical half-plane nearest to ``sol``'s, at ``sol``'s elevation; its 180 deg
     branch is then chosen as for any solution."""
     mat_lc = geo.mat_lc
-    cone = zenith_cone(img, mat_lc)
-    if cone is None:
+    cos_edge = zenith_cone(img, mat_lc)
+    if cos_edge is None:
         return None
-    mask = cone & px.valid
-    idx = np.flatnonzero(mask)
-    if idx.size < opt.min_pixels:
+    zm, mask = zenith_mean(img, px.valid, mat_lc, cos_edge)
+    if np.count_nonzero(mask) < opt.min_pixels:
         return None
-    inv = img.inv_sigma_l2
-    inv_m = inv.take(idx) if isinstance(inv, np.ndarray) else inv
-    rays_l = mat_lc[:2] @ img.cache.rays.take(idx, axis=1).astype(np.float64)
-    zm = zenith_mean(img.estimate.take(idx, axis=1), inv_m, img.cache.basis.take(idx, axis=2),
-                     mat_lc, img.noise_ratio, np.arctan2(rays_l[1], rays_l[0]))  # fmt: skip
     std_zm = float(np.hypot(instrumental[0] * zm.g_delta, instrumental[1] * zm.g_mixing))
     std_sol = total_std(sol.var_yaw, sol.var_jack, std_instrumental, model_scale)
     if not total_std(zm.var_azimuth, zm.var_jack, std_zm, model_scale) < std_sol:

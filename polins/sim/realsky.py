@@ -112,6 +112,9 @@ class RealSky:
         file, e.g. +-0.005).
     sun_disc : float
         Angular radius of the saturated sun disc [rad].
+    ground : float
+        Radiance of the unpolarized ground below the horizon relative to ``zenith_dn`` [-]
+        (before vignetting; grass or asphalt in sunlight: 0.2-0.4).
     """
 
     sky_type: int = 12
@@ -124,6 +127,7 @@ class RealSky:
     vignetting: float = 0.3
     gain_residual: FloatArray = field(default_factory=lambda: np.zeros(4))
     sun_disc: float = float(np.radians(1.0))
+    ground: float = 0.3
 
     def __post_init__(self) -> None:
         if self.sky_type not in CIE_SKY_TYPES:
@@ -324,9 +328,10 @@ def render_real_raw(
         s2 = s2 - u * np.sin(two_a)
     theta = np.arccos(np.clip(rays_c[..., 2], -1.0, 1.0))
     vig = 1.0 - sky.vignetting * (theta / (0.5 * np.pi)) ** 2
-    stokes = np.stack([s0, s1, s2], -1) * np.where(sky_px, vig, 0.0)[..., None]
-    stokes = np.nan_to_num(stokes)
-    stokes[ok & ~sky_px, 0] = 0.05 * sky.zenith_dn  # dark, unpolarized ground
+    stokes = np.stack([s0, s1, s2], -1)
+    stokes[~sky_px] = 0.0
+    stokes[ok & ~sky_px, 0] = sky.ground * sky.zenith_dn  # unpolarized ground
+    stokes = np.nan_to_num(stokes * np.where(ok, vig, 0.0)[..., None])
     gain = cam.gain * (1.0 + np.asarray(sky.gain_residual, dtype=float))
     alpha, eta = cam.transmission_angle, cam.efficiency
     response = (
