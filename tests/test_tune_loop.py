@@ -38,10 +38,15 @@ def ugv(tmp_path_factory):
 def test_tune_then_fuse_with_the_tuned_file_ends_inside_the_nis_bands(ugv, tmp_path):
     log, meas = ugv
     config = FuseConfig.from_log(log)
-    res = tune(log.imu, meas, config, ("yaw_std_scale", "nhc_std"), odometry=log.odometry)
+    params = ("yaw_std_scale", "nhc_std", "standstill_std")
+    res = tune(log.imu, meas, config, params, odometry=log.odometry)
     before = res.stats_before
     assert not before["yaw"].consistent and not before["nhc"].consistent  # the defaults
-    assert res.identifiable == {"yaw_std_scale": True, "nhc_std": True}
+    # the simulator's standstills are exact: the zero-velocity sigma runs into the search's
+    # lower bound, and the others are fitted and identified with it held there
+    assert res.at_bound == {"yaw_std_scale": 0, "nhc_std": 0, "standstill_std": -1}
+    assert res.identifiable == {"yaw_std_scale": True, "nhc_std": True, "standstill_std": False}
+    assert res.values["standstill_std"] == pytest.approx(0.02 / 100)
     assert (
         abs(math.log(res.values["yaw_std_scale"] / 0.6)) < 3 * res.robust_sigma_log["yaw_std_scale"]
     )

@@ -515,6 +515,9 @@ def tune(
     # the information of the parameters inside the search, those on a bound held there
     inner = tuple(p for p in params if not bound[p])
     held = {p: estimate[p] for p in params if bound[p]}
+    if held and inner:  # the search that ran into a bound refitted without it
+        theta_in = fit(inner, held, np.log([estimate[p] for p in inner]))
+        estimate.update(zip(inner, np.exp(theta_in).tolist(), strict=True))
     cr = dict.fromkeys(params, math.inf)
     robust = dict.fromkeys(params, math.inf)
     if inner:
