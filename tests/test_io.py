@@ -321,6 +321,7 @@ images = "images.csv"
         ('images = "images.csv"', "", r"missing key 'files.images'"),
         ("[files]", "[file]", r"unknown key 'file'; did you mean 'files'"),
         ("lat_deg = 45.6", "lat_deg = 45.6 = 3", "not valid TOML"),
+        ('epoch_utc = "2023-09-05T07:06:00Z"', "", r"missing key 'log.epoch_utc' .*only a ROS bag"),
     ],
 )  # fmt: skip
 def test_bad_manifest_names_the_key(tmp_path, old, new, message):

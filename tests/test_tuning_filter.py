@@ -12,6 +12,7 @@ import pytest
 import polins
 from polins.errors import UserInputError
 from polins.fusion import FuseConfig, run_fusion
+from polins.io.model_files import imu_model_toml
 from polins.sim.imu import ideal_imu, imu_errors
 from polins.sim.trajectory import ugv_drive
 from polins.site import PAPER_SITE
@@ -119,20 +120,22 @@ def test_tune_runs_the_filter_that_fuses_with_the_odometer(drive):
     imu, meas, config = drive
     traj = ugv_drive(duration_s=DURATION_S, rate_hz=100.0, rng=np.random.default_rng(1))
     odometry = pd.DataFrame({"t": traj.t[::10], "speed": forward_speed(traj)[::10]})
+    imu, meas, odometry = (x[x["t"] < 20.0] for x in (imu, meas, odometry))  # 20 s suffice
     res = tune(imu, meas, config, params=("yaw_floor_deg",), odometry=odometry)
     for run in (res.before, res.after):
         assert (run.updates["name"] == "odo").sum() > 0.9 * len(odometry)
     assert not (run_fusion(imu, meas, config=config).updates["name"] == "odo").any()
 
 
-def test_every_tuned_value_acts_in_the_filter_that_fuses(drive):
-    """The tuned IMU model and measurement-noise options, given to ``run_fusion`` as
-    ``polins fuse --imu ... --set ...`` gives them, reproduce the tuned run exactly."""
+def test_every_tuned_value_acts_in_the_filter_that_fuses(drive, tmp_path):
+    """The tuned file (the IMU model with its [filter] table), given to ``run_fusion`` as
+    ``polins fuse --imu tuned.toml`` gives it, reproduces the tuned run exactly."""
     imu, meas, config = drive
     res = tune(imu, meas, config, params=("yaw_floor_deg",))
-    options = res.fuse_options()
-    assert set(options) == {"yaw_floor_deg"} and res.identifiable["yaw_floor_deg"]
-    fused = run_fusion(imu, meas, config=config.replace(imu_model=res.config.imu, **options))
+    assert set(res.fuse_options()) == {"yaw_floor_deg"} and res.identifiable["yaw_floor_deg"]
+    path = tmp_path / "tuned.toml"
+    path.write_text(imu_model_toml(res.tuned_model(name="tuned"), res.comment_lines()))
+    assert dict(polins.load_imu(path).filter_options) == res.fuse_options()
+    fused = run_fusion(imu, meas, config=config.replace(imu_model=path))
     np.testing.assert_array_equal(fused.updates["nis"], res.after.updates["nis"])
     assert res.stats_after["yaw"].consistent
-    assert f"--set yaw_floor_deg={options['yaw_floor_deg']:.6g}" in "\n".join(res.comment_lines())

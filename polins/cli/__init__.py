@@ -1,4 +1,4 @@
-"""Command line: ``polins sun | demo | simulate | heading | fuse | imu-model | calibrate``.
+"""Command line: ``polins sun | demo | simulate | heading | fuse | imu-model | calibrate | tune | manifest``.
 
 The fault policy of docs/faults.md: a user mistake (a bad argument, file, unit, manifest or
 naive time: :class:`polins.errors.UserInputError`, or a file that cannot be opened) prints
@@ -12,7 +12,8 @@ Output folders are written whole (:mod:`polins.io.outputs`, docs/outputs.md).
 One module per command group, each with ``add_<command>(sub)`` that registers its
 sub-parser and handler: :mod:`~polins.cli.sun` (sun, heading),
 :mod:`~polins.cli.simulate` (demo, simulate), :mod:`~polins.cli.fuse`,
-:mod:`~polins.cli.models` (imu-model), :mod:`~polins.cli.calibrate`; the shared argument
+:mod:`~polins.cli.models` (imu-model), :mod:`~polins.cli.calibrate`, :mod:`~polins.cli.tune`,
+:mod:`~polins.cli.bag` (manifest); the shared argument
 checks are in :mod:`~polins.cli.common`. A new command gets its own module and one line in
 :func:`build_parser`.
 """
@@ -24,7 +25,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from polins.cli import calibrate, fuse, models, simulate, sun, tune
+from polins.cli import bag, calibrate, fuse, models, simulate, sun, tune
 from polins.cli.common import USER_ERRORS, ArgumentError, Handler, Parser
 from polins.cli.fuse import filter_options_text
 from polins.cli.sun import sun_report
@@ -51,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     models.add_imu_model(sub)
     calibrate.add_calibrate(sub)
     tune.add_tune(sub)
+    bag.add_manifest(sub)
     return parser
 
 

@@ -97,6 +97,9 @@ def cmd_fuse(args: argparse.Namespace) -> int:
         raise ArgumentError(str(exc)) from None
     config = FuseConfig.from_log(log).replace(**changes)  # the CLI overrides [filter]
     config.check_backend(args.backend)
+    if log.imu_model.filter_options:  # a tuned file: say which options it set
+        told = ", ".join(f"{k}={v}" for k, v in log.imu_model.filter_options if k not in changes)
+        print(f"filter options of {log.imu_model.path}: {told or 'all overridden by --set'}")
     for note in preflight_warnings(log):
         print(f"polins fuse: warning: {note}", file=sys.stderr)
     with output_set(args.out, command="fuse", known=FUSE_FILES) as out:

@@ -80,7 +80,9 @@ class FuseConfig:
     are a shorthand for ``site``. Read them from their part: ``config.aiding.nhc_std``; the
     resolved behaviour from the properties (``nhc_sigma``, ``mechanize_earth_rate``, ...).
     ``option_table()`` lists every option; options of one backend are refused by the other
-    when set away from their defaults.
+    when set away from their defaults. An IMU model with a ``[filter]`` table (a file of
+    ``polins tune``, ``ImuModel.filter_options``) sets those options, under the ones given
+    explicitly; ``replace(imu_model=...)`` with such a model applies them too.
     """
 
     imu_model: ImuModel
@@ -112,15 +114,18 @@ class FuseConfig:
         site = site_from_shorthand(site, options)
         given = {"aiding": aiding, "initial": initial, "noise": noise, "gating": gating,
                  "sky": sky, "graph": graph, "output": output}  # fmt: skip
+        model = _imu_model(imu_model)
         flat = split_options(options)
+        tuned = model_options(model)
         for name, cls in PARTS.items():
             part = given[name] if given[name] is not None else cls()
             if not isinstance(part, cls):
                 raise UserInputError(f"{name} must be a {cls.__name__}, got {part!r}")
-            if flat[name]:
-                part = dataclasses.replace(part, **flat[name])  # type: ignore[type-var]
+            values = flat[name] if given[name] is not None else {**tuned[name], **flat[name]}
+            if values:
+                part = dataclasses.replace(part, **values)  # type: ignore[type-var]
             object.__setattr__(self, name, part)
-        object.__setattr__(self, "imu_model", _imu_model(imu_model))
+        object.__setattr__(self, "imu_model", model)
         object.__setattr__(self, "site", None if site is None else _site(site))
         object.__setattr__(self, "site_is_assumed", bool(site_is_assumed))
 
@@ -136,7 +141,10 @@ class FuseConfig:
         ``imu_model``, ``site``, the ``lat_deg``/``lon_deg``/``alt_m`` shorthand)."""
         site = site_from_shorthand(options.pop("site", None), options)
         keep: dict[str, Any] = {name: getattr(self, name) for name in PARTS}
-        keep["imu_model"] = options.pop("imu_model", self.imu_model)
+        keep["imu_model"] = _imu_model(options.pop("imu_model", self.imu_model))
+        if keep["imu_model"].filter_options != self.imu_model.filter_options:
+            # another tuned model: its [filter] options, under the ones of this call
+            options = {**dict(keep["imu_model"].filter_options), **options}
         keep["site"] = site if site is not None else self.site
         keep["site_is_assumed"] = self.site_is_assumed and site is None
         for name in PARTS:
@@ -447,9 +455,26 @@ def config_from_manifest(
     for key in table:
         _check_filter_key(key, path)
     try:
-        return base.replace(**table)
+        config = base.replace(**table)
     except UserInputError as exc:
         raise UserInputError(f"{path}: table [filter]: {exc}") from None
+    # a tuned IMU model's [filter] table was fitted on top of the manifest's: it wins
+    tuned = dict(base.imu.filter_options)
+    return config.replace(**tuned) if tuned else config
+
+
+def model_options(model: ImuModel) -> dict[str, dict[str, Any]]:
+    """A tuned IMU model's ``[filter]`` options by part (:func:`split_options`, values
+    parsed by :func:`coerce_option`); a bad key or value is a one-line ``UserInputError``
+    naming the model file."""
+    if not model.filter_options:
+        return split_options({})
+    for key, _ in model.filter_options:
+        _check_filter_key(key, model.path)
+    try:
+        return split_options({k: coerce_option(k, v) for k, v in model.filter_options})
+    except UserInputError as exc:
+        raise UserInputError(f"{model.path}: table [filter]: {exc}") from None
 
 
 def config_with_site(config: FuseConfig | None, *, stacklevel: int = 3) -> FuseConfig:
@@ -510,6 +535,7 @@ __all__ = [
     "config_from_manifest",
     "config_from_mapping",
     "config_with_site",
+    "model_options",
     "option_names",
     "option_table",
     "parse_option_value",

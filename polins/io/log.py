@@ -220,7 +220,8 @@ def read_log(
     if "bag" in files:
         from polins.io.rosbag import read_bag
 
-        imu, images = read_bag(file("bag"), epoch_utc=log["epoch_utc"], **m["ros"])
+        imu, images = read_bag(file("bag"), epoch_utc=log.get("epoch_utc"), **m["ros"])
+        log = {**log, "epoch_utc": images.epoch_utc}  # the manifest's, else the first stamp
     else:
         imu = read_imu(
             file("imu"),

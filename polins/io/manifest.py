@@ -4,6 +4,7 @@
 
     [log]
     epoch_utc = "2023-09-05T07:00:00+00:00"  # timezone-aware; t = 0 of every stream
+                                             # (optional with a bag: its first stamp)
     camera = "paper-table1"                  # shipped model name, or a .toml path
     imu = "mems-typical"                     # (paths are relative to the manifest)
     lat_deg = 45.6234
@@ -128,7 +129,7 @@ def _sigma_or_zero(v: Any) -> float:
 # section -> key -> (required, validator)
 _MANIFEST_SCHEMA: dict[str, dict[str, tuple[bool, Callable[[Any], Any]]]] = {
     "log": {
-        "epoch_utc": (True, _epoch),
+        "epoch_utc": (False, _epoch),  # required unless a ROS bag's stamps give it
         "camera": (True, _str),
         "imu": (True, _str),
         "lat_deg": (True, number_in(-90.0, 90.0)),
@@ -215,6 +216,11 @@ def _section_values(
 def _check_sources(path: Path, out: dict[str, dict[str, Any]]) -> None:
     """The data sources: either a ROS bag (with optional [ros]) or IMU log + images."""
     files = out["files"]
+    if "bag" not in files and "epoch_utc" not in out["log"]:
+        raise ManifestError(
+            f"{path}: missing key 'log.epoch_utc' (t = 0 of the IMU and image files; only a "
+            "ROS bag's absolute stamps give it)"
+        )
     if "bag" in files:
         clash = [k for k in ("imu", "images") if k in files]
         if clash:

@@ -215,7 +215,8 @@ def imu_model_toml(model: ImuModel, comments: Sequence[str] = ()) -> str:
     """An IMU model as TOML text that :func:`polins.load_imu` reads back to ``model``.
 
     ``comments`` become the file's header comment lines (for example the Allan fit that
-    produced the model, ``polins.tuning.AllanFit.comment_lines()``).
+    produced the model, ``polins.tuning.AllanFit.comment_lines()``); the model's
+    ``filter_options`` become its ``[filter]`` table.
     """
     data: dict[str, Any] = {
         "name": model.name,
@@ -224,6 +225,8 @@ def imu_model_toml(model: ImuModel, comments: Sequence[str] = ()) -> str:
         "sample_rate_hz": model.sample_rate_hz,
         **model.toml_values(),
     }
+    if model.filter_options:
+        data["filter"] = dict(model.filter_options)
     header = "\n".join(comments) if comments else f"IMU model written by polins from {model.path}"
     return toml_dumps(data, header=header)
 

@@ -6,7 +6,10 @@ library; no ROS installation). ``rosbags`` is imported only when a bag is read o
 Conventions
 -----------
 * Times: each message's ``header.stamp`` (the bag's record time only when the stamp is 0),
-  as ``t = stamp - epoch_utc`` [s] on the log clock.
+  as ``t = stamp - epoch_utc`` [s] on the log clock. Absolute stamps (UTC, after 2000) need
+  no ``epoch_utc``: t = 0 is then the first stamp, floored to a whole second. Stamps before
+  2000 (simulation or boot time) are ``t`` itself, and need ``epoch_utc``, the UTC time of
+  stamp 0.
 * ``sensor_msgs/Imu``: ``angular_velocity`` [rad/s] and ``linear_acceleration`` [m/s^2]
   are taken as the body-frame (FLU, REP-103) angular rate and specific force (REP-145);
   ``orientation`` is ignored.
@@ -38,6 +41,8 @@ _ENCODING = re.compile(
     r"|^(?P<cv>8|16)uc1$"
 )
 IMU_TYPE = "sensor_msgs/msg/Imu"
+# stamps before this are not absolute UTC times (simulation or boot time)
+ABSOLUTE_AFTER = pd.Timestamp("2000-01-01", tz="UTC")
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 
 
@@ -166,6 +171,30 @@ def _pick_topic(reader: Any, msgtype: str, topic: str | None, what: str, path: P
     return found[0]
 
 
+def _pick_topics(
+    reader: Any, imu_topic: str | None, image_topic: str | None, path: Path
+) -> tuple[str, str]:
+    return (_pick_topic(reader, IMU_TYPE, imu_topic, "imu", path),
+            _pick_topic(reader, IMAGE_TYPE, image_topic, "image", path))  # fmt: skip
+
+
+def bag_topics(
+    path: str | Path, imu_topic: str | None = None, image_topic: str | None = None
+) -> tuple[str, str]:
+    """The IMU and image topics of a bag: the ones named (checked), else the only topic of
+    type ``sensor_msgs/Imu`` / ``sensor_msgs/Image`` (one-line ``UserInputError`` listing the
+    topics when there is none or several)."""
+    rb = _rosbags()
+    path = _bag_path(Path(path))
+    if not path.exists():
+        raise FileNotFoundError(f"bag not found: {path}")
+    try:
+        with rb.highlevel.AnyReader([path], default_typestore=_typestore(1)) as reader:
+            return _pick_topics(reader, imu_topic, image_topic, path)
+    except rb.highlevel.AnyReaderError as exc:
+        raise UserInputError(f"{path}: not a readable ROS bag: {exc}") from None
+
+
 def read_bag(
     path: str | Path,
     *,
@@ -181,7 +210,8 @@ def read_bag(
         ROS 1 ``.bag`` file, or ROS 2 bag folder (or its ``.mcap`` / ``.db3`` file).
     epoch_utc : timezone-aware time, optional
         ``t = 0``; default: the first message stamp, floored to a whole second
-        (available as ``images.epoch_utc``).
+        (available as ``images.epoch_utc``), when the stamps are absolute UTC times
+        (after 2000). Stamps before 2000 count from ``epoch_utc`` (required for them).
     imu_topic, image_topic : str, optional
         Default: the only topic of type ``sensor_msgs/Imu`` / ``sensor_msgs/Image``.
 
@@ -203,8 +233,7 @@ def read_bag(
     try:
         reader_cm = rb.highlevel.AnyReader([path], default_typestore=_typestore(1))
         with reader_cm as reader:
-            imu_topic = _pick_topic(reader, IMU_TYPE, imu_topic, "imu", path)
-            image_topic = _pick_topic(reader, IMAGE_TYPE, image_topic, "image", path)
+            imu_topic, image_topic = _pick_topics(reader, imu_topic, image_topic, path)
             for conn, record_ns, rawdata in reader.messages(
                 connections=[c for c in reader.connections if c.topic in (imu_topic, image_topic)]
             ):
@@ -219,12 +248,19 @@ def read_bag(
         raise UserInputError(f"{path}: not a readable ROS bag: {exc}") from None
     if not rows:
         raise UserInputError(f"{path}: topic {imu_topic!r} has no messages")
-    if epoch_utc is None:
-        first = min([rows[0][0], *image_ns[:1]])
+    first = min([rows[0][0], *image_ns[:1]])
+    absolute = first >= ABSOLUTE_AFTER.value
+    if epoch_utc is not None:
+        epoch = utc_timestamp(epoch_utc)
+    elif absolute:
         epoch = pd.Timestamp(first // 1_000_000_000 * 1_000_000_000, unit="ns", tz="UTC")
     else:
-        epoch = utc_timestamp(epoch_utc)
-    epoch_ns = int(epoch.value)
+        raise UserInputError(
+            f"{path}: the stamps start at {first / 1e9:.3f} s, not an absolute UTC time "
+            "(simulation or boot time): give the UTC time of stamp 0 (manifest log.epoch_utc, "
+            "polins manifest --epoch)"
+        )
+    epoch_ns = int(epoch.value) if absolute else 0  # relative stamps count from the epoch
     arr = np.array([r[1:] for r in rows], dtype=float)
     imu = pd.DataFrame(arr, columns=["gx", "gy", "gz", "ax", "ay", "az"])
     imu.insert(0, "t", np.array([(r[0] - epoch_ns) / 1e9 for r in rows]))
@@ -338,4 +374,5 @@ def write_bag(
     return path
 
 
-__all__ = ["BagImages", "ImageMessage", "encoding_dtype", "read_bag", "write_bag"]
+__all__ = ["ABSOLUTE_AFTER", "BagImages", "ImageMessage", "bag_topics", "encoding_dtype",
+           "read_bag", "write_bag"]  # fmt: skip

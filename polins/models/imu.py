@@ -67,7 +67,19 @@ _IMU_SCHEMA: Schema = {
     "earth_rate": Optional(boolean),  # not a sensor property: load_imu names the filter option
     "sample_rate_hz": positive,
     **_SENSOR_SCHEMA,
+    "filter": Optional(lambda v: _filter_table(v)),
 }
+
+
+def _filter_table(table: Any) -> tuple[tuple[str, Any], ...]:
+    """A tuned model's ``[filter]`` table as ``(name, value)`` pairs (the values are checked
+    as filter options when a configuration is built with the model)."""
+    if not isinstance(table, dict):
+        raise TypeError("expected a table [filter] of filter options")
+    for key, value in table.items():
+        if isinstance(value, dict):
+            raise TypeError(f"[filter] key {key!r} is a table; expected a value")
+    return tuple((str(k), v) for k, v in table.items())
 
 
 # Plausible ranges per grade, in the TOML's units, [low, high] inclusive; 0 is always
@@ -152,6 +164,9 @@ class ImuModel:
     # axis misalignment and cross-axis sensitivity of the accelerometer, 1-sigma [rad]: its
     # error on gravity is a bias (``accel_bias_turn_on``; docs/imu-model.md)
     accel_misalignment: float = 0.0
+    # filter options fitted with this IMU on a log (a tuned file's [filter] table, ``polins
+    # tune``): every configuration built with this model applies them (docs/tuning.md)
+    filter_options: tuple[tuple[str, Any], ...] = ()
 
     @property
     def accel_bias_turn_on(self) -> float:
@@ -252,4 +267,5 @@ def load_imu(name_or_path: str | Path) -> ImuModel:
         gyro_misalignment=g.get("misalignment_mrad", 0.0) * 1e-3,
         gyro_misalignment_corr_time=g.get("misalignment_corr_s", 0.1),
         accel_misalignment=a.get("misalignment_mrad", 0.0) * 1e-3,
+        filter_options=d.get("filter", ()),
     )

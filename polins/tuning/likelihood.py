@@ -8,17 +8,26 @@ noise model is right, so the negative log-likelihood of a log under noise parame
 
 summed over the accepted updates of :func:`polins.fusion.run_fusion` run without a gate
 (a gate would make ``L`` jump where an update crosses it). :func:`tune` minimizes ``L`` over
-the logarithms of the parameters (bounded L-BFGS-B), and judges each parameter by its
-Cramér-Rao sigma in log space from the observed Fisher information, the numerical Hessian
-of ``L`` at the optimum (``scipy.differentiate.hessian``): a parameter whose log-sigma
-exceeds ``max_log_sigma`` (default log 2: the log cannot tell it from half or double) is
-unidentifiable. Unidentifiable parameters keep their starting values; the identifiable ones
+the logarithms of the parameters (bounded L-BFGS-B), and judges each parameter by its sigma
+in log space. The Cramér-Rao sigma, from the observed Fisher information (the numerical
+Hessian ``H`` of ``L`` at the optimum, :func:`central_hessian`), is the precision under the
+filter's model; when that model is wrong (a pseudo-measurement sigma far from the vehicle's
+truth) or the innovations are not white, the estimate's spread is the sandwich
+``H^-1 J H^-1`` with ``J`` the variance of the score summed over time blocks
+(:func:`score_information`, :func:`sandwich_sigma`). A parameter whose larger sigma exceeds
+``max_log_sigma`` (default log 2: the log cannot tell it from half or double) is
+unidentifiable. Unidentifiable parameters keep their starting values; one whose estimate
+lies on the search bound (start ``/ search_factor`` or ``* search_factor``) is not
+identified either, but takes the bound: the likelihood keeps rising beyond it (a
+simulator's exact standstill asks for a zero-velocity sigma of 0). The identifiable ones
 are refitted with the others held there.
 
 Parameters (:data:`PARAMETERS`): the white-noise and random-walk densities of the IMU model
-(SI, :class:`polins.models.ImuModel` fields), ``yaw_floor_deg`` / ``sun_floor_deg``, a
-floor [deg] added in quadrature to every ``yaw_std`` / ``sun_std`` of the measurements, and
-``yaw_std_scale`` / ``sun_std_scale``, a factor on them (applied before the floor).
+(SI, :class:`polins.models.ImuModel` fields) and the measurement-noise filter options:
+``yaw_floor_deg`` / ``sun_floor_deg``, a floor [deg] added in quadrature to every
+``yaw_std`` / ``sun_std`` of the measurements, ``yaw_std_scale`` / ``sun_std_scale``, a
+factor on them (applied before the floor), and the sigmas of the vehicle's
+pseudo-measurements and odometer, ``nhc_std``, ``standstill_std``, ``odometer_std``.
 """
 
 from __future__ import annotations
@@ -32,11 +41,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
-from scipy.differentiate import hessian
 from scipy.optimize import minimize
 
 from polins.errors import UserInputError
 from polins.fusion import FuseConfig, FusionResult, ImplausibleRunError, run_fusion
+from polins.models import ImuModel
 from polins.tuning.innovations import InnovationStats, innovation_arrays, innovation_stats
 
 FloatArray = NDArray[np.float64]
@@ -50,11 +59,17 @@ PARAMETERS: dict[str, str] = {
     "sun_floor_deg": "floor added in quadrature to every sun_std [deg]",
     "yaw_std_scale": "factor on every yaw_std [-]",
     "sun_std_scale": "factor on every sun_std [-]",
+    "nhc_std": "non-holonomic constraint 1-sigma [m/s] (the vehicle's slip and mounting)",
+    "standstill_std": "zero-velocity 1-sigma at standstill [m/s] (vibration, rocking)",
+    "odometer_std": "wheel-odometer speed 1-sigma [m/s]",
 }
-_FLOOR_COLUMNS = {"yaw_floor_deg": "yaw_std", "sun_floor_deg": "sun_std"}
-_SCALE_COLUMNS = {"yaw_std_scale": "yaw_std", "sun_std_scale": "sun_std"}
-_TABLE_PARAMS = {**_FLOOR_COLUMNS, **_SCALE_COLUMNS}
+_IMU_PARAMS = ("gyro_arw", "gyro_bias_rw", "accel_vrw", "accel_bias_rw")
+# the measurement-noise options and the kind of update each acts on
+_OPTION_KIND = {"yaw_floor_deg": "yaw", "yaw_std_scale": "yaw", "sun_floor_deg": "sun",
+                "sun_std_scale": "sun", "nhc_std": "nhc", "standstill_std": "zupt",
+                "odometer_std": "odo"}  # fmt: skip
 _FLOOR_START_DEG = 0.05  # a floor's start when none is given and the log asks for none
+N_SCORE_BLOCKS = 20  # time blocks of the robust (sandwich) information's score sums
 
 
 def check_params(params: Sequence[str]) -> tuple[str, ...]:
@@ -70,6 +85,17 @@ def check_params(params: Sequence[str]) -> tuple[str, ...]:
     return tuple(params)
 
 
+def default_params(config: FuseConfig, *, odometry: bool = False) -> tuple[str, ...]:
+    """The parameters ``polins tune`` fits by default: the gyro's white noise and the
+    sigma of every kind of update the run fuses (the yaw scale; the NHC, zero-velocity and
+    odometer sigmas when on). Tuning the IMU without the pseudo-measurement sigmas lets
+    it absorb their mismatch (docs/tuning.md, "What a log can identify")."""
+    run = config.resolve(odometry=odometry)
+    sigmas = {"nhc_std": run.nhc_sigma, "standstill_std": run.standstill_sigma,
+              "odometer_std": run.odometer_sigma}  # fmt: skip
+    return ("gyro_arw", "yaw_std_scale", *(p for p, v in sigmas.items() if v is not None))
+
+
 def with_values(
     config: FuseConfig, measurements: pd.DataFrame, values: Mapping[str, float]
 ) -> tuple[FuseConfig, pd.DataFrame]:
@@ -81,28 +107,82 @@ def with_values(
     tuned values act in ``polins fuse`` (``--set``, a manifest's ``[filter]``) as in the
     tuning. The measurements are returned as given.
     """
-    imu_values: dict[str, Any] = {k: float(v) for k, v in values.items() if k not in _TABLE_PARAMS}
+    imu_values: dict[str, Any] = {k: float(v) for k, v in values.items() if k in _IMU_PARAMS}
     if imu_values:
         model = dataclasses.replace(config.imu, **imu_values)
         config = config.replace(imu_model=model)
-    noise = {k: float(v) for k, v in values.items() if k in _TABLE_PARAMS}
+    noise = {k: float(v) for k, v in values.items() if k not in _IMU_PARAMS}
     if noise:
         config = config.replace(**noise)
     return config, measurements
 
 
-def negative_log_likelihood(updates: pd.DataFrame) -> float:
-    """``1/2 sum [log det(2 pi S) + nu' S^-1 nu]`` over the accepted updates with an
-    innovation (the ``updates`` table of :class:`polins.fusion.FusionResult`)."""
-    total = 0.0
+def update_terms(updates: pd.DataFrame) -> pd.DataFrame:
+    """Each accepted update's term ``1/2 [log det(2 pi S) + nu' S^-1 nu]`` of the negative
+    log-likelihood: columns ``name``, ``t`` [s], ``k`` (the update's number among its kind's
+    at that time) and ``nll``, in time order within each kind."""
+    parts = []
     for kind in pd.unique(updates["name"]):
-        _, nu, S = innovation_arrays(updates, str(kind))
+        t, nu, S = innovation_arrays(updates, str(kind))
         if nu.shape[0] == 0:
             continue
         _, logdet = np.linalg.slogdet(2.0 * np.pi * S)
         nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S, nu[..., None])[..., 0])
-        total += 0.5 * float(np.sum(logdet + nis))
-    return total
+        part = pd.DataFrame({"name": str(kind), "t": t, "nll": 0.5 * (logdet + nis)})
+        part.insert(2, "k", part.groupby("t").cumcount())
+        parts.append(part)
+    if not parts:
+        return pd.DataFrame({"name": [], "t": [], "k": [], "nll": []})
+    return pd.concat(parts, ignore_index=True)
+
+
+def negative_log_likelihood(updates: pd.DataFrame) -> float:
+    """``1/2 sum [log det(2 pi S) + nu' S^-1 nu]`` over the accepted updates with an
+    innovation (the ``updates`` table of :class:`polins.fusion.FusionResult`)."""
+    return float(update_terms(updates)["nll"].sum())
+
+
+def score_information(
+    plus: Sequence[pd.DataFrame],
+    minus: Sequence[pd.DataFrame],
+    step: float,
+    n_blocks: int = N_SCORE_BLOCKS,
+) -> FloatArray:
+    """The variance ``J`` of the log-likelihood's score from its time-block sums.
+
+    ``plus[i]`` / ``minus[i]`` are the :func:`update_terms` of runs at ``theta +- step e_i``
+    (log space); each update's score is their central difference. Scores of updates close
+    in time are correlated (the NHC and zero-velocity innovations follow the slowly varying
+    velocity error), so ``J`` is the covariance of the scores summed over ``n_blocks``
+    equal time blocks, times the number of blocks (batch means). Under the filter's model
+    ``J`` equals the Fisher information; the sandwich ``H^-1 J H^-1`` stays honest when the
+    model is wrong (docs/tuning.md, "Identifiable").
+    """
+    keys = ["name", "t", "k"]
+    base = plus[0][keys]
+    cols = []
+    for p, m in zip(plus, minus, strict=True):
+        both = base.merge(p, on=keys, how="left").merge(m, on=keys, how="left",
+                                                        suffixes=("_p", "_m"))  # fmt: skip
+        cols.append(((both["nll_p"] - both["nll_m"]) / (2.0 * step)).to_numpy(dtype=float))
+    scores = np.nan_to_num(np.stack(cols, axis=-1))  # an update missing in one run: no score
+    t = base["t"].to_numpy(dtype=float)
+    edges = np.linspace(t.min(), t.max(), n_blocks + 1)[1:-1]
+    block = np.searchsorted(edges, t)
+    sums = np.zeros((n_blocks, scores.shape[1]))
+    np.add.at(sums, block, scores)
+    return n_blocks * np.atleast_2d(np.cov(sums, rowvar=False))
+
+
+def sandwich_sigma(H: FloatArray, J: FloatArray) -> FloatArray:
+    """``sqrt(diag(H^-1 J H^-1))``: the robust sigma of a maximum-likelihood estimate
+    under a possibly wrong model (Huber); inf along a direction without information."""
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    tiny = 1e-9 * max(float(np.max(np.abs(w))), 1e-300)
+    if np.any(w <= tiny):
+        return _fisher_sigma(H)
+    Hinv = (V / w) @ V.T
+    return np.sqrt(np.clip(np.diag(Hinv @ J @ Hinv), 0.0, None))
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,11 +195,19 @@ class TuneResult:
         The tuned parameters (:data:`PARAMETERS`).
     initial, estimate, values : dict of str to float
         Start values; the maximum-likelihood estimates (of every parameter, identifiable or
-        not); the values of the tuned run (the estimate if identifiable, else the start).
+        not); the values of the tuned run (the estimate if identifiable or on its bound,
+        else the start).
     cr_sigma_log : dict of str to float
-        Cramér-Rao sigma of each parameter's natural logarithm (inf: no information).
+        Cramér-Rao sigma of each parameter's natural logarithm (inf: no information): the
+        precision under the filter's model.
+    robust_sigma_log : dict of str to float
+        The sandwich sigma of the same (:func:`sandwich_sigma`), honest when the model is
+        wrong or the innovations are not white; at least the Cramér-Rao sigma.
     identifiable : dict of str to bool
-        ``cr_sigma_log <= max_log_sigma``.
+        ``robust_sigma_log <= max_log_sigma`` and not on the search bound.
+    at_bound : dict of str to int
+        -1 / +1: the estimate is on the search's lower / upper bound (the log asks for a
+        smaller / larger value); 0: inside.
     nll_before, nll_after : float
         Negative log-likelihood (ungated) at the start and at ``values``.
     stats_before, stats_after : dict of str to InnovationStats
@@ -128,7 +216,7 @@ class TuneResult:
     config : FuseConfig
         The tuned configuration (its IMU model carries the tuned densities).
     measurements : DataFrame
-        The measurements table with the tuned floors.
+        The measurements table (the tuned noise options act through ``config``).
     before, after : FusionResult
         The two runs the statistics come from.
     n_evaluations : int
@@ -140,7 +228,9 @@ class TuneResult:
     estimate: dict[str, float]
     values: dict[str, float]
     cr_sigma_log: dict[str, float]
+    robust_sigma_log: dict[str, float]
     identifiable: dict[str, bool]
+    at_bound: dict[str, int]
     nll_before: float
     nll_after: float
     stats_before: dict[str, InnovationStats]
@@ -152,31 +242,62 @@ class TuneResult:
     n_evaluations: int
 
     def moved(self, p: str, n_sigma: float = 3.0) -> bool:
-        """Whether an identified IMU term left its start by more than ``n_sigma`` Cramér-Rao
+        """Whether an identified IMU term left its start by more than ``n_sigma`` robust
         sigmas: the innovations ask for another value than the model file's."""
-        if p in _TABLE_PARAMS or not self.identifiable[p]:
+        if p not in _IMU_PARAMS or not self.identifiable[p]:
             return False
-        return abs(math.log(self.values[p] / self.initial[p])) > n_sigma * self.cr_sigma_log[p]
+        step = abs(math.log(self.values[p] / self.initial[p]))
+        return step > n_sigma * self.robust_sigma_log[p]
 
     def notes(self) -> list[str]:
         """What an identified value means when it moved far from the model file's."""
+        tuned_kinds = {_OPTION_KIND[p] for p in self.params if p in _OPTION_KIND}
+        untuned = [kind for kind, st in self.stats_before.items()
+                   if not st.consistent and kind not in tuned_kinds]  # fmt: skip
         out = []
         for p in self.params:
-            if self.moved(p):
-                ratio = self.values[p] / self.initial[p]
-                out.append(
-                    f"{p} moved x{ratio:.3g} from the start, beyond its Cramér-Rao interval: "
-                    "the interval is the log's precision under the filter's model, not the "
-                    "sensor's truth. Either the start (the model file) is wrong (compare with "
-                    "polins imu-model on a static record), or the filter lacks an error source "
-                    "(vibration, an unfused aiding, mounting, scale factors) that this term now "
-                    "absorbs: the tuned value is then an effective one for this vehicle"
-                )
+            if not self.moved(p):
+                continue
+            ratio = self.values[p] / self.initial[p]
+            note = (
+                f"{p} moved x{ratio:.3g} from the start, beyond its interval: the interval is "
+                "the log's precision, not the sensor's truth. Either the start (the model "
+                "file) is wrong (compare with polins imu-model on a static record), or the "
+                "filter lacks an error source (vibration, an unfused aiding, mounting, scale "
+                "factors) or holds a sigma far from the log's, that this term now absorbs: the "
+                "tuned value is then an effective one for this vehicle"
+            )
+            if untuned:
+                note += (f"; the {', '.join(untuned)} updates are inconsistent and their sigmas "
+                         "were not tuned: tune them with it (polins tune --params auto)")  # fmt: skip
+            out.append(note)
         return out
 
     def fuse_options(self) -> dict[str, float]:
         """The tuned measurement-noise values, as ``polins fuse --set`` / ``[filter]`` options."""
-        return {p: self.values[p] for p in self.params if p in _TABLE_PARAMS}
+        return {p: self.values[p] for p in self.params if p not in _IMU_PARAMS}
+
+    def tuned_model(self, options: Mapping[str, Any] | None = None, **fields: Any) -> ImuModel:
+        """The tuned file's model: the tuned IMU terms, and a ``filter_options`` table of
+        ``options`` (the other options the tuned filter ran with) and the tuned noise
+        options; ``fields`` replace others (``name``, ``description``). Every
+        configuration built with it runs the tuned filter (``polins fuse --imu``)."""
+        table = {**dict(self.config.imu.filter_options), **(options or {}),
+                 **self.fuse_options()}  # fmt: skip
+        return dataclasses.replace(self.config.imu, filter_options=tuple(table.items()), **fields)
+
+    def _identified_word(self, p: str) -> str:
+        """The report's identifiability column of ``p``."""
+        if not self.identifiable[p]:
+            return "no: " + self._not_identified(p)
+        return "yes, an effective value (note)" if self.moved(p) else "yes"
+
+    def _not_identified(self, p: str) -> str:
+        """Why a parameter is not identified, and the value it takes."""
+        if self.at_bound[p]:
+            side = "smaller" if self.at_bound[p] < 0 else "larger"
+            return f"on the search bound, the log asks for a {side} value"
+        return "kept at start"
 
     @property
     def unidentifiable(self) -> list[str]:
@@ -187,12 +308,13 @@ class TuneResult:
         """The tuning as comment lines of a tuned IMU model file (``polins tune --out``)."""
         lines = ["tuned by maximum likelihood of the filter's innovations (polins.tuning.tune):"]
         for p in self.params:
-            state = (f"identified, Cramér-Rao x/÷ {math.exp(self.cr_sigma_log[p]):.3g}"
-                     if self.identifiable[p] else "NOT identifiable from this log: kept")  # fmt: skip
-            lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state})")
-            if p in _TABLE_PARAMS:
-                lines.append(f"    a filter option on every {_TABLE_PARAMS[p]}, not an IMU term: "
-                             f"polins fuse --set {p}={self.values[p]:.6g}")  # fmt: skip
+            state = (f"identified, x/÷ {math.exp(self.robust_sigma_log[p]):.3g}"
+                     if self.identifiable[p] else self._not_identified(p))  # fmt: skip
+            where = (
+                "" if p in _IMU_PARAMS else f"; [filter] option of the {_OPTION_KIND[p]} updates"
+            )
+            lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state}"
+                         f"{where})")  # fmt: skip
         lines += [f"  note: {n}" for n in self.notes()]
         for kind, st in self.stats_after.items():
             lines.append(f"  {kind}: mean NIS {st.nis_mean:.3g} in {st.nis_band[0]:.3g} .. "
@@ -201,13 +323,12 @@ class TuneResult:
 
     def report(self) -> str:
         """A few lines: per parameter start -> tuned (CR sigma), then NIS before/after."""
-        lines = ["parameter        start        tuned        CR sigma (x/÷)  identifiable"]
+        lines = ["parameter        start        tuned        x/÷ CR   robust  identifiable"]
         for p in self.params:
-            sigma = self.cr_sigma_log[p]
-            factor = f"{math.exp(sigma):.3g}" if sigma < math.log(1e3) else "> 1000"
+            cr, robust = (_factor(s[p]) for s in (self.cr_sigma_log, self.robust_sigma_log))
             lines.append(
-                f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} "
-                f"{factor:<15} {'yes' if self.identifiable[p] else 'no: kept at start'}"
+                f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} {cr:<8} "
+                f"{robust:<7} {self._identified_word(p)}"
             )
         lines += [f"note: {n}" for n in self.notes()]
         lines.append(f"negative log-likelihood {self.nll_before:.1f} -> {self.nll_after:.1f}")
@@ -226,6 +347,26 @@ class TuneResult:
         return "\n".join(lines)
 
 
+def _factor(sigma_log: float) -> str:
+    """A log-space sigma as its factor ``x/÷ exp(sigma)``."""
+    return f"{math.exp(sigma_log):.3g}" if sigma_log < math.log(1e3) else "> 1000"
+
+
+def _option_start(config: FuseConfig, p: str) -> float:
+    """The start of a measurement-noise option: its value in use (a floor of 0 starts at
+    0.05 deg); an update kind that is off has nothing to tune."""
+    if p in ("nhc_std", "standstill_std", "odometer_std"):
+        sigma = {"nhc_std": config.nhc_sigma, "standstill_std": config.standstill_sigma,
+                 "odometer_std": config.odometer_sigma}[p]  # fmt: skip
+        if sigma is None:
+            raise UserInputError(
+                f"{p} is off in this configuration (the vehicle kind, the option or no "
+                f"odometry): the {_OPTION_KIND[p]} updates it would tune are not fused"
+            )
+        return float(sigma)
+    return float(getattr(config.noise, p)) or _FLOOR_START_DEG
+
+
 def _start_values(
     config: FuseConfig, params: tuple[str, ...], initial: Mapping[str, float]
 ) -> dict[str, float]:
@@ -234,10 +375,10 @@ def _start_values(
     start: dict[str, float] = {}
     for p in params:
         value = initial.get(p)
-        if value is None and p in _TABLE_PARAMS:
-            value = float(getattr(config.noise, p)) or _FLOOR_START_DEG
-        elif value is None:
+        if value is None and p in _IMU_PARAMS:
             value = float(getattr(config.imu, p))
+        elif value is None:
+            value = _option_start(config, p)
         if not (math.isfinite(value) and value > 0):
             raise UserInputError(
                 f"the start value of {p} must be > 0 (the search runs over its logarithm), "
@@ -259,17 +400,44 @@ def _fisher_sigma(H: FloatArray) -> FloatArray:
     return np.sqrt(out)
 
 
-def _hessian(f: Callable[[FloatArray], float], x: FloatArray, step: float) -> FloatArray:
-    """Central-difference Hessian of ``f`` at ``x`` (``scipy.differentiate.hessian``)."""
+def central_hessian(f: Callable[[FloatArray], float], x: FloatArray, step: float) -> FloatArray:
+    """Hessian of ``f`` at ``x`` by second-order central differences with ``step``.
 
-    def vectorized(xi: FloatArray) -> FloatArray:
-        out = np.empty(xi.shape[1:])
-        for idx in np.ndindex(*xi.shape[1:]):
-            out[idx] = f(xi[(slice(None), *idx)])
-        return out
+    ``1 + 2n + n(n-1)`` evaluations of ``f`` for ``n`` parameters, among them ``f(x +- step
+    e_i)`` that :func:`score_information` reuses; each evaluation is a filter run, and
+    ``scipy.differentiate.hessian`` nests two derivatives (``9 n^2`` evaluations: 81
+    instead of 13 runs for 3 parameters).
+    """
+    eye = np.eye(x.size) * step
+    f0 = f(x)
+    fp = [f(x + e) for e in eye]
+    fm = [f(x - e) for e in eye]
+    H = np.empty((x.size, x.size))
+    for i in range(x.size):
+        H[i, i] = (fp[i] - 2.0 * f0 + fm[i]) / step**2
+        for j in range(i):
+            fpp, fmm = f(x + eye[i] + eye[j]), f(x - eye[i] - eye[j])
+            mixed = fpp - fp[i] - fp[j] + 2.0 * f0 - fm[i] - fm[j] + fmm
+            H[i, j] = H[j, i] = mixed / (2.0 * step**2)
+    return H
 
-    res = hessian(vectorized, x, order=2, maxiter=1, initial_step=step)
-    return np.asarray(res.ddf, dtype=float)
+
+def _robust_sigma(
+    terms: Callable[[FloatArray], pd.DataFrame],
+    theta: FloatArray,
+    H: FloatArray,
+    cr_sigma: FloatArray,
+    step: float = 0.05,
+) -> FloatArray:
+    """The larger of the Cramér-Rao and the sandwich sigma at ``theta`` (log space), the
+    scores from central differences of each update's term (:func:`score_information`)."""
+    if not np.all(np.isfinite(cr_sigma)):
+        return cr_sigma
+    eye = np.eye(theta.size) * step
+    plus = [terms(theta + e) for e in eye]
+    minus = [terms(theta - e) for e in eye]
+    J = score_information(plus, minus, step)
+    return np.maximum(cr_sigma, sandwich_sigma(H, J))
 
 
 def tune(
@@ -306,7 +474,8 @@ def tune(
         the one that fuses, with every aiding the log has; without it the IMU noise absorbs
         the velocity errors the odometer would have removed.
     max_log_sigma : float
-        Largest Cramér-Rao sigma of ``log(parameter)`` of an identifiable parameter.
+        Largest robust sigma of ``log(parameter)`` of an identifiable parameter (the larger
+        of the Cramér-Rao and the sandwich sigma, :func:`sandwich_sigma`).
     search_factor : float
         The search stays within start ``/ search_factor .. * search_factor``.
     hessian_step : float
@@ -320,70 +489,119 @@ def tune(
     """
     params = check_params(params)
     cfg = config or FuseConfig()
-    start = _start_values(cfg, params, initial or {})
-    ungated = cfg.replace(gate_prob="off", smooth=False)
-    count = [0]
-
-    def run(values: Mapping[str, float], base: FuseConfig) -> FusionResult:
-        c, m = with_values(base, measurements, values)
-        count[0] += 1
-        try:
-            return run_fusion(imu, m, rot_nb0=rot_nb0, config=c, odometry=odometry)
-        except ImplausibleRunError as exc:  # a candidate far off: its likelihood says so
-            return exc.result
+    start = _start_values(cfg.resolve(odometry=odometry is not None), params, initial or {})
+    lik = _Likelihood(imu, measurements, cfg, rot_nb0, odometry)
 
     def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
-        values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}
-        return negative_log_likelihood(run(values, ungated).updates)
+        return lik.nll({**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))})
 
     def fit(names: tuple[str, ...], fixed: Mapping[str, float], x0: FloatArray) -> FloatArray:
-        theta0 = np.log([start[p] for p in names])
         half = math.log(search_factor)
-        res = minimize(
-            nll, x0, args=(names, fixed), method="L-BFGS-B",
-            bounds=[(t - half, t + half) for t in theta0], options={"eps": 1e-3, "ftol": 1e-7},
-        )  # fmt: skip
+        bounds = [(t - half, t + half) for t in np.log([start[p] for p in names])]
+        # converged when a step gains less than about 0.01 nats: far below the 0.5 nats of
+        # a Cramér-Rao sigma, so the estimate is as good as the log allows
+        ftol = 0.01 / max(abs(nll(x0, names, fixed)), 1.0)
+        res = minimize(nll, x0, args=(names, fixed), method="L-BFGS-B", bounds=bounds,
+                       options={"eps": 1e-3, "ftol": ftol, "gtol": 0.05})  # fmt: skip
         return np.asarray(res.x, dtype=float)
 
     theta_start = np.log([start[p] for p in params])
     theta = fit(params, {}, theta_start)
-    H = _hessian(lambda th: nll(th, params, {}), theta, hessian_step)
-    sigma = _fisher_sigma(H)
-    ident = {p: bool(s <= max_log_sigma) for p, s in zip(params, sigma, strict=True)}
+    half = math.log(search_factor)
+    side = np.where(theta <= theta_start - half + 1e-6, -1, 0)
+    side = np.where(theta >= theta_start + half - 1e-6, 1, side)
+    bound = dict(zip(params, side.tolist(), strict=True))
     estimate = dict(zip(params, np.exp(theta).tolist(), strict=True))
-    values = {p: estimate[p] if ident[p] else start[p] for p in params}
+    # the information of the parameters inside the search, those on a bound held there
+    inner = tuple(p for p in params if not bound[p])
+    held = {p: estimate[p] for p in params if bound[p]}
+    if held and inner:  # the search that ran into a bound refitted without it
+        theta_in = fit(inner, held, np.log([estimate[p] for p in inner]))
+        estimate.update(zip(inner, np.exp(theta_in).tolist(), strict=True))
+    cr = dict.fromkeys(params, math.inf)
+    robust = dict.fromkeys(params, math.inf)
+    if inner:
+        th_in = np.log([estimate[p] for p in inner])
+        H = central_hessian(lambda th: nll(th, inner, held), th_in, hessian_step)
+        sig = _fisher_sigma(H)
+        at = lambda th: lik.terms({**held, **dict(zip(inner, np.exp(th).tolist(), strict=True))})  # noqa: E731
+        cr.update(zip(inner, sig.tolist(), strict=True))
+        robust.update(zip(inner, _robust_sigma(at, th_in, H, sig, hessian_step).tolist(),
+                          strict=True))  # fmt: skip
+    ident = {p: bool(robust[p] <= max_log_sigma) and not bound[p] for p in params}
+    values = {p: estimate[p] if ident[p] or bound[p] else start[p] for p in params}
     free = tuple(p for p in params if ident[p])
-    if free and len(free) < len(params):  # refit with the unidentifiable at their start
-        fixed = {p: start[p] for p in params if not ident[p]}
+    if free and any(not ident[p] and not bound[p] for p in params):  # refit, the others held
+        fixed = {p: values[p] for p in params if not ident[p]}
         theta_free = fit(free, fixed, np.log([estimate[p] for p in free]))
         values.update(zip(free, np.exp(theta_free).tolist(), strict=True))
-    before = run(start, cfg)
-    after = run(values, cfg)
-    tuned_config, tuned_meas = with_values(cfg, measurements, values)
+    before, after = lik.run(start, gated=True), lik.run(values, gated=True)
     return TuneResult(
         params=params,
         initial=start,
         estimate=estimate,
         values=values,
-        cr_sigma_log=dict(zip(params, sigma.tolist(), strict=True)),
+        cr_sigma_log=cr,
+        robust_sigma_log=robust,
         identifiable=ident,
-        nll_before=nll(theta_start, params, {}),
-        nll_after=nll(np.log([values[p] for p in params]), params, {}),
+        at_bound=bound,
+        nll_before=lik.nll(start),
+        nll_after=lik.nll(values),
         stats_before=innovation_stats(before.updates, prob=prob, gate_prob=cfg.gate_probability),
         stats_after=innovation_stats(after.updates, prob=prob, gate_prob=cfg.gate_probability),
-        config=tuned_config,
-        measurements=tuned_meas,
+        config=with_values(cfg, measurements, values)[0],
+        measurements=measurements,
         before=before,
         after=after,
-        n_evaluations=count[0],
+        n_evaluations=lik.count,
     )
+
+
+class _Likelihood:
+    """The filter runs of one tuning: the log, the configuration, and a memory of the
+    ungated runs' likelihood terms by parameter values (the search revisits points)."""
+
+    def __init__(self, imu: pd.DataFrame, measurements: pd.DataFrame, config: FuseConfig,
+                 rot_nb0: Any, odometry: pd.DataFrame | None) -> None:  # fmt: skip
+        self.imu, self.measurements, self.config = imu, measurements, config
+        self.ungated = config.replace(gate_prob="off", smooth=False)
+        self.rot_nb0, self.odometry = rot_nb0, odometry
+        self.count = 0
+        self._terms: dict[tuple[tuple[str, float], ...], pd.DataFrame] = {}
+
+    def run(self, values: Mapping[str, float], *, gated: bool = False) -> FusionResult:
+        """The filter with ``values`` (gated as the configuration, or without a gate)."""
+        config, meas = with_values(self.config if gated else self.ungated, self.measurements,
+                                   values)  # fmt: skip
+        self.count += 1
+        try:
+            return run_fusion(self.imu, meas, rot_nb0=self.rot_nb0, config=config,
+                              odometry=self.odometry)  # fmt: skip
+        except ImplausibleRunError as exc:  # a candidate far off: its likelihood says so
+            return exc.result
+
+    def terms(self, values: Mapping[str, float]) -> pd.DataFrame:
+        """The ungated run's :func:`update_terms` at ``values``."""
+        key = tuple(sorted((k, float(v)) for k, v in values.items()))
+        if key not in self._terms:
+            self._terms[key] = update_terms(self.run(values).updates)
+        return self._terms[key]
+
+    def nll(self, values: Mapping[str, float]) -> float:
+        """The negative log-likelihood at ``values``."""
+        return float(self.terms(values)["nll"].sum())
 
 
 __all__ = [
     "PARAMETERS",
     "TuneResult",
+    "central_hessian",
     "check_params",
+    "default_params",
     "negative_log_likelihood",
+    "sandwich_sigma",
+    "score_information",
     "tune",
+    "update_terms",
     "with_values",
 ]
