@@ -77,12 +77,11 @@ def test_a_bad_filter_table_is_one_line_naming_the_file(tuned_path, table, match
     assert "\n" not in str(info.value)
 
 
-def test_default_parameters_are_the_gyro_and_every_fused_sigma():
+def test_default_parameters_are_the_gyro_and_the_fused_sigmas():
     ground = FuseConfig("mems-typical", PAPER_SITE, vehicle="ground")
     assert default_params(ground, odometry=True) == (
-        "gyro_arw", "yaw_std_scale", "nhc_std", "standstill_std", "odometer_std")  # fmt: skip
-    assert default_params(ground.replace(nhc_std="off")) == (
-        "gyro_arw", "yaw_std_scale", "standstill_std")  # fmt: skip
+        "gyro_arw", "yaw_std_scale", "nhc_std", "odometer_std")  # fmt: skip
+    assert default_params(ground.replace(nhc_std="off")) == ("gyro_arw", "yaw_std_scale")
     assert default_params(FuseConfig("mems-typical", PAPER_SITE)) == ("gyro_arw", "yaw_std_scale")
 
 

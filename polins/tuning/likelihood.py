@@ -86,13 +86,14 @@ def check_params(params: Sequence[str]) -> tuple[str, ...]:
 
 
 def default_params(config: FuseConfig, *, odometry: bool = False) -> tuple[str, ...]:
-    """The parameters ``polins tune`` fits by default: the gyro's white noise and the
-    sigma of every kind of update the run fuses (the yaw scale; the NHC, zero-velocity and
-    odometer sigmas when on). Tuning the IMU without the pseudo-measurement sigmas lets
-    it absorb their mismatch (docs/tuning.md, "What a log can identify")."""
+    """The parameters ``polins tune`` fits by default: the gyro's white noise, the yaw
+    scale and the NHC and odometer sigmas when on. Tuning the IMU without the
+    pseudo-measurement sigmas lets it absorb their mismatch (docs/tuning.md, "What a log
+    can identify"). The zero-velocity sigma is tuned only when asked (``standstill_std``):
+    it runs to its search bound on simulated logs, whose rests are exact, and there the
+    search leaves the other parameters at their starts."""
     run = config.resolve(odometry=odometry)
-    sigmas = {"nhc_std": run.nhc_sigma, "standstill_std": run.standstill_sigma,
-              "odometer_std": run.odometer_sigma}  # fmt: skip
+    sigmas = {"nhc_std": run.nhc_sigma, "odometer_std": run.odometer_sigma}
     return ("gyro_arw", "yaw_std_scale", *(p for p, v in sigmas.items() if v is not None))
 
 
