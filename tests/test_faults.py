@@ -126,15 +126,18 @@ def test_imu_gap_in_every_path(logs, tmp_path, capsys, backend):
     assert np.isfinite(after[["yaw", "yaw_std", "roll", "pitch"]].to_numpy()).all()
     # polins.fuse: the same IMU table with heading rows at the image times
     rows = headings(read_log(logs["clean"]), np.random.default_rng(1))
-    res = run_fusion(log.imu, rows, backend, config=FuseConfig.from_log(log), odometry=log.odometry)
+    config = FuseConfig.from_log(log).replace(output_rate_hz="imu")  # the gap's last sample
+    res = run_fusion(log.imu, rows, backend, config=config, odometry=log.odometry)
     assert check_gap_events(res.events, rows["t"]) == n_odo
     assert res.updates.loc[inside_gap(res.updates["t"]), "reason"].str.startswith(
         "inside an IMU gap").all()  # fmt: skip
     sol = res.solution[res.solution["t"] > 4.0]
     assert np.isfinite(sol[["yaw", "yaw_std", "roll", "pitch"]].to_numpy()).all()
-    # the covariance grew across the gap: the yaw sigma at its end above the run's median
+    # the filter's covariance grew across the gap: the yaw sigma at its end above the run's
+    # median (the graph is a smoother: the headings after the gap inform its end)
     after_gap = res.solution.loc[res.solution["t"] >= GAP[1], "yaw_std"].iloc[0]
-    assert after_gap > 1.2 * sol["yaw_std"].median()
+    if backend == "eskf":
+        assert after_gap > 1.2 * sol["yaw_std"].median()
 
 
 def test_imu_gap_in_the_stream(logs):

@@ -3,6 +3,7 @@
 import dataclasses
 import functools
 import importlib
+import re
 import sys
 
 # The README's test command installs the graph extra: a missing gtsam is an error here, not a skip.
@@ -441,8 +442,9 @@ def test_graph_shows_its_progress_only_when_asked(solver, capsys):
     assert f"graph {solver}" in err
     if solver == "batch":  # its stages
         assert "gate round 1, marginals" in err
-    else:  # its keyframes
-        assert "10/10" in err
+    else:  # its keyframes, to the last
+        done = re.findall(r"(\d+)/(\d+)", err)[-1]
+        assert done[0] == done[1] and int(done[0]) > 0, err
     pd.testing.assert_frame_equal(quiet.solution, shown.solution)
 
 

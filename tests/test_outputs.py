@@ -146,11 +146,22 @@ def test_sigterm_unwinds_like_ctrl_c(log_dir, tmp_path, monkeypatch, capsys):
 
 def test_forked_workers_ignore_ctrl_c():
     """Found: Ctrl-C printed a 38-line traceback (the image workers' among them)."""
+    import signal
+
+    from polins.io.outputs import signals_unwind
+
+    # an interactive run's SIGINT (a test worker or a background job may have it ignored)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _fork_and_interrupt(signals_unwind)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _fork_and_interrupt(signals_unwind):
     import os
     import signal
     import time
-
-    from polins.io.outputs import signals_unwind
 
     with signals_unwind():
         pid = os.fork()
