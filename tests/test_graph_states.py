@@ -94,6 +94,7 @@ def test_between_factors_have_the_eskf_statistics():
 
 
 # ----------------------------------------------------------------------------- 2x2 sun covariance
+@pytest.mark.slow
 def test_graph_sun_factor_carries_the_fits_2x2_covariance_fast():
     # one narrow-field drive (seed 2): consistent with the 2x2 covariance, overconfident
     # with R = sun_std^2 I (measured: RMS(err/sigma) 0.74, 100 % within 3 sigma; isotropic
@@ -148,6 +149,7 @@ def test_graph_recovers_the_odometer_scale():
 
 
 # ----------------------------------------------------------------------------- approximate site
+@pytest.mark.slow
 def test_graph_approximate_site_is_consistent_fast():
     # the ESKF's scenario (tests/test_site_uncertainty.py), 1 deg off, 4 seeds; measured on
     # the graph: RMS(err/sigma) 1.02, 100 % within 3 sigma; without site_std 6.1, 47 %;
@@ -218,6 +220,7 @@ def test_graph_no_clock_relative_heading_ten_minutes():
 
 
 # ----------------------------------------------------------------------------- heading bias
+@pytest.mark.slow
 def test_graph_heading_bias_pairs_with_the_correlated_sigma_fast():
     # measured (batch) with the bias variable (0.5 deg, 60 s): RMS(err/sigma) 0.51 / 0.46 /
     # 1.11 / 1.37 on seeds 0-3 (0.95 pooled), 100 % within 3 sigma; without it (inf) 6.1,

@@ -231,6 +231,7 @@ def test_graph_estimates_the_mounting_fast():
     assert float(np.ptp(sol["mount_yaw"])) < 0.05 * std[1]
 
 
+@pytest.mark.slow
 def test_graph_estimates_the_lever_arm_fast():
     # 60 s drive with the odometer, batch solver (the ESKF: -0.599 +- 0.029, 0.104 +- 0.034,
     # 0.048 +- 0.442 m)
