@@ -35,6 +35,15 @@ def _zenith_estimate(raw, cam, sun_n, rot):
     return err, total_std(zm.var_azimuth, zm.var_jack, std_instr, MODEL_SCALE)
 
 
+def _realistic_case(cam, rng):
+    """A random sun (zenith 25-75 deg), a camera tilted up to 3 deg and its realistic sky."""
+    sun_n = polins.sun_vector_n(rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(25, 75)))
+    tilt, direction = rng.uniform(0, np.radians(3.0)), rng.uniform(0, 2 * np.pi)
+    rot = Rotation.from_euler("ZYX", [rng.uniform(-np.pi, np.pi), tilt * np.cos(direction),
+                                      tilt * np.sin(direction)])  # fmt: skip
+    return sun_n, rot, render_real_raw(cam, sun_n, rot, random_real_sky(rng, sun_n), rng)
+
+
 def test_zenith_cone_is_unbiased_for_any_sun_elevation(tmp_path):
     # A noise-free Rayleigh sky, level camera: the cone about the zenith is symmetric about
     # the sun's vertical plane, so the mean doubled E-vector gives the azimuth exactly,
@@ -56,11 +65,7 @@ def test_zenith_cone_sigma_is_honest_on_realistic_skies(tmp_path):
     rng = np.random.default_rng(1)
     out = []
     for _ in range(10):
-        sun_n = polins.sun_vector_n(rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(25, 75)))
-        tilt, direction = rng.uniform(0, np.radians(3.0)), rng.uniform(0, 2 * np.pi)
-        rot = Rotation.from_euler("ZYX", [rng.uniform(-np.pi, np.pi), tilt * np.cos(direction),
-                                          tilt * np.sin(direction)])  # fmt: skip
-        raw = render_real_raw(cam, sun_n, rot, random_real_sky(rng, sun_n), rng)
+        sun_n, rot, raw = _realistic_case(cam, rng)
         out.append(_zenith_estimate(raw, cam, sun_n, rot))
     err, sigma = np.array(out).T
     rms_z = float(np.sqrt(np.mean((err / sigma) ** 2)))
@@ -75,11 +80,7 @@ def test_narrow_field_takes_the_smaller_sigma_and_stays_honest(tmp_path):
     rng = np.random.default_rng(1)
     out, zenith_used = [], 0
     for _ in range(10):
-        sun_n = polins.sun_vector_n(rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(25, 75)))
-        tilt, direction = rng.uniform(0, np.radians(3.0)), rng.uniform(0, 2 * np.pi)
-        rot = Rotation.from_euler("ZYX", [rng.uniform(-np.pi, np.pi), tilt * np.cos(direction),
-                                          tilt * np.sin(direction)])  # fmt: skip
-        raw = render_real_raw(cam, sun_n, rot, random_real_sky(rng, sun_n), rng)
+        sun_n, rot, raw = _realistic_case(cam, rng)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", polins.compass.measure.NoiseModelWarning)
             m = measure(raw, cam, rot_nb_prior=rot)

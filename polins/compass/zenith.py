@@ -89,17 +89,15 @@ CONE_MAX = np.radians(45.0)
 
 def zenith_cone(img: ImageStokes, mat_lc: NDArray) -> float | None:
     """Cosine of the half-angle of the largest cone about the level zenith that lies inside
-    the field (its edge and occlusions), or None when the zenith is outside the field or
-    the cone is wider than :data:`CONE_MAX`."""
+    the field (its edge and occlusions), or None when the cone is wider than
+    :data:`CONE_MAX`. When the zenith is outside the field no pixel lies inside that
+    cone (:func:`zenith_mean` then uses none)."""
     rays = img.cache.rays
     edge = _edge_pixels(img.cache.pixels)
     if edge.size == 0:
         return None
-    up_c = mat_lc[2].astype(rays.dtype)
-    up_edge = float(np.max(dot_rows(up_c, rays.take(edge, axis=1))))
+    up_edge = float(np.max(dot_rows(mat_lc[2].astype(rays.dtype), rays.take(edge, axis=1))))
     if up_edge < np.cos(CONE_MAX):  # a wide field: the eigen solution fixes the elevation
-        return None
-    if not float(np.max(dot_rows(up_c, rays))) > up_edge:  # the zenith is on the edge or outside
         return None
     return up_edge
 
@@ -160,6 +158,8 @@ def zenith_mean(
     k = compiled("zenith_pass")(img.estimate, inv_rows, img.cache.basis, img.cache.rays, valid,
                                 np.ascontiguousarray(mat_lc, dtype=np.float64), float(cos_edge),
                                 mask, sums, contrib, ray_l)  # fmt: skip
+    if k == 0:  # the zenith is outside the field, or no valid pixel is inside the cone
+        return ZenithMean(float("nan"), float("nan"), float("nan"), 0.0, 0.0), mask
     m = sums[0:2]
     norm = float(np.hypot(m[0], m[1]))
     perp = np.array([-m[1], m[0]]) / norm  # d(2 phi) per unit change of M along it: 1/|M|
