@@ -99,6 +99,7 @@ import time
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from tqdm import tqdm
 
 try:
@@ -131,18 +132,23 @@ from polins.fusion.graph.solvers import (
     solve_batch,
     solve_incremental,
 )
+from polins.fusion.graph.start import filter_values
 from polins.fusion.inputs import Prepared, output_mask
 from polins.fusion.items import UpdateRecord, records_table
 from polins.fusion.result import FusionResult, events_table
 from polins.ins.state import solution_table
 
 
-def causal_gate(prep: Prepared, prob: Problem) -> dict[int, tuple[float, str]]:
+def causal_gate(
+    prep: Prepared, prob: Problem, upd: pd.DataFrame | None = None
+) -> dict[int, tuple[float, str]]:
     """The ESKF's verdicts on the standstill detector's zero-velocity and zero-rate factors
     (``prob.detected``): index into ``prob.meas`` -> (NIS, reason) of those the ESKF's
     gate rejected, found by kind and time (both place the detector's updates at the same
-    epochs, :func:`polins.fusion.vehicle.vehicle_items`)."""
-    upd = fuse_eskf(prep).updates
+    epochs, :func:`polins.fusion.vehicle.vehicle_items`). ``upd``: the ESKF's update table
+    of ``prep`` if already run."""
+    if upd is None:
+        upd = fuse_eskf(prep).updates
     rejected = upd[~upd["accepted"].to_numpy(dtype=bool)]
     out = {}
     for i in sorted(prob.detected):
@@ -195,9 +201,11 @@ def fuse_graph(prep: Prepared, progress: bool = False) -> FusionResult:
     t_built = time.perf_counter()
     with tqdm(desc=f"graph {config.graph.solver}", disable=not progress, bar_format=BAR) as bar:
         if config.graph.solver == "batch":
-            bar.set_postfix_str("causal gate (ESKF)")
-            causal = causal_gate(prep, prob) if prob.detected else {}
-            est = solve_batch(prob, records, info, causal, bar.set_postfix_str)
+            bar.set_postfix_str("ESKF (causal gate, initial values)")
+            eskf = fuse_eskf(prep)
+            causal = causal_gate(prep, prob, eskf.updates) if prob.detected else {}
+            start = filter_values(prob, eskf.solution)
+            est = solve_batch(prob, records, info, causal, bar.set_postfix_str, start)
         else:
             est = solve_incremental(prob, records, info, progress=bar)
     t_solved = time.perf_counter()

@@ -9,7 +9,7 @@ diagnostics to ``info``, and returns the keyframe
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import partial
+from functools import cache, partial
 from typing import Any
 
 import gtsam
@@ -168,6 +168,7 @@ def solve_batch(
     info: dict[str, Any],
     causal: dict[int, tuple[float, str]] | None = None,
     progress: Callable[[str], None] | None = None,
+    start: gtsam.Values | None = None,
 ) -> Estimates:
     """Gauss-Newton (QR) over the whole log, post-fit gating, QR marginals.
 
@@ -177,6 +178,10 @@ def solve_batch(
     undo. ``causal`` gives that pass's verdicts (index into ``prob.meas`` -> NIS, reason;
     :func:`polins.fusion.graph.fuse_graph` takes them from the ESKF's run); without it an
     ISAM2 pass (:func:`solve_incremental`) gates them. ``progress`` is told each stage.
+    ``start``: initial values of every key, also the first linearization point of the
+    preintegration (:func:`polins.fusion.graph.start.filter_values`); without them, dead
+    reckoning, and with the Earth rate the first solve is repeated once, re-preintegrated
+    with the transport rate and bias of the first.
     """
     rejected: dict[int, tuple[float, str]] = {}
     if prob.detected and causal is None:
@@ -189,12 +194,13 @@ def solve_batch(
     result: gtsam.Values | None = None
     iterations: list[int] = []
     for gate_round in range(1 + MAX_GATE_ROUNDS):
-        # With the Earth rate, the first solve is repeated once: re-preintegrated with the
-        # transport rate and bias of the first; a re-solve after gating starts from there.
-        for p in range(2 if prob.earth_rate and result is None else 1):
+        # A re-solve (after gating, or the repeat from dead reckoning with the Earth rate)
+        # starts from the last result and is preintegrated there.
+        repeat = prob.earth_rate and result is None and start is None
+        for _ in range(2 if repeat else 1):
             if progress is not None:
                 progress(f"gate round {gate_round + 1}, solve {len(iterations) + 1}")
-            lin = result if (p > 0 or result is not None) else None
+            lin = result if result is not None else start
             graph, values = batch_graph(prob, set(rejected), lin)
             result, it, linear = optimize(graph, values, prob)
             iterations.append(it)
@@ -205,9 +211,11 @@ def solve_batch(
         zero = bayes_tree.optimize()  # (a zero step: the cost at the result is linear's)
         zero.setZero()
         est = Estimates.empty(len(prob.t_key), prob.states.n)
-        # the scale factors are constants: one marginal (the last keyframe's) for all
+        # the scale factors are constants: one marginal (the last keyframe's) for all;
+        # a constant variable of prob.states is one key, asked for at every keyframe
         last = prob.scale_values(len(prob.t_key) - 1).keys()
         scale_cov = [marginal_covariance_qr(bayes_tree, key) for key in last]
+        marginal = cache(partial(marginal_covariance_qr, bayes_tree))
         for k in range(len(prob.t_key)):
             est.store(
                 k,
@@ -218,7 +226,7 @@ def solve_batch(
                 marginal_covariance_qr(bayes_tree, V(k)),
                 marginal_covariance_qr(bayes_tree, B(k)),
                 prob.yaw_given or prob.n_headings > 0,
-                prob.states.read(k, result.atVector, partial(marginal_covariance_qr, bayes_tree)),
+                prob.states.read(k, result.atVector, marginal),
             )
             if prob.scale_jac is not None:
                 cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
