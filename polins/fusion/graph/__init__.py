@@ -7,7 +7,7 @@ the ESKF (``att, vel, pos, bg, ba``) from the same inputs and
 keyframe states, and returns the same solution table
 (:func:`polins.ins.state.solution_table`). Modules: :mod:`~polins.fusion.graph.factors`,
 :mod:`~polins.fusion.graph.problem`, :mod:`~polins.fusion.graph.solvers`,
-:mod:`~polins.fusion.graph.output`.
+:mod:`~polins.fusion.graph.start`, :mod:`~polins.fusion.graph.output`.
 
 Graph
 -----
@@ -79,9 +79,12 @@ Solvers
 -------
 ``"batch"``: Gauss-Newton over the whole log (a smoother, like ESKF + RTS), see
 :func:`~polins.fusion.graph.solvers.gauss_newton_qr` for why neither Levenberg-Marquardt
-(``optimizer="levenberg-marquardt"``, slower) nor Cholesky; sigmas from the QR-eliminated
-Bayes tree. Outliers are gated on the post-fit residuals (``r^T (R - H P H^T)^-1 r``
-against the chi-square quantile ``gate_prob``) and the graph is re-solved without them.
+(``optimizer="levenberg-marquardt"``, slower) nor Cholesky; it starts from the ESKF's
+solution on the same inputs (:mod:`~polins.fusion.graph.start`); sigmas from the
+QR-eliminated Bayes tree, every variable's in one pass
+(:func:`~polins.fusion.graph.solvers.marginal_covariances`). Outliers are gated on the
+post-fit residuals (``r^T (R - H P H^T)^-1 r`` against the chi-square quantile
+``gate_prob``) and the graph is re-solved without them.
 ``"isam2"``: incremental ``gtsam.ISAM2`` as used online: each keyframe is reported as
 estimated when it was added (causal, like the filter); gating on the predicted residual
 with the previous keyframe's covariance. ``"fixed_lag"``:
@@ -129,6 +132,7 @@ from polins.fusion.graph.problem import Problem, keyframe_times
 from polins.fusion.graph.solvers import (
     gauss_newton_qr,
     marginal_covariance_qr,
+    marginal_covariances,
     solve_batch,
     solve_incremental,
 )
@@ -244,6 +248,7 @@ __all__ = [
     "keyframe_times",
     "levelling_factor",
     "marginal_covariance_qr",
+    "marginal_covariances",
     "non_holonomic_factor",
     "pose_cov_body_from_nav",
     "pose_cov_nav_from_body",

@@ -8,8 +8,7 @@ diagnostics to ``info``, and returns the keyframe
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from functools import cache, partial
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import gtsam
@@ -107,6 +106,52 @@ def marginal_covariance_qr(bayes_tree: gtsam.GaussianBayesTree, key: int) -> Flo
     r = np.array(conditional.R(), dtype=float, order="C", copy=True)
     r_inv = np.linalg.inv(r)
     return r_inv @ r_inv.T
+
+
+def marginal_covariances(
+    bayes_tree: gtsam.GaussianBayesTree, dims: Mapping[int, int]
+) -> dict[int, FloatArray]:
+    """Marginal covariance of every variable of a QR-eliminated Bayes tree, in one pass from
+    the roots (the result of :func:`marginal_covariance_qr` for each key).
+
+    Each clique's conditional ``R x_F + S x_S = d`` (unit noise, ``F`` its frontal, ``S`` its
+    separator variables, ``dims`` their sizes) gives the joint covariance of ``(F, S)`` from
+    that of ``S``, which lies in the parent's joint (the running intersection property):
+    ``P_FS = -A P_SS``, ``P_FF = R^-1 R^-T + A P_SS A^T`` with ``A = R^-1 S``. A parent's
+    joint is kept until its children are done: the work is linear in the cliques.
+    """
+    out: dict[int, FloatArray] = {}
+    # (clique, the parent's joint covariance and the offsets of its keys)
+    stack: list[tuple[Any, FloatArray | None, dict[int, int] | None]]
+    stack = [(root, None, None) for root in bayes_tree.roots()]
+    while stack:
+        clique, parent_cov, parent_at = stack.pop()
+        cond = clique.conditional()
+        r = np.array(cond.R(), dtype=float, copy=True)
+        keys = list(cond.keys())
+        at, offset, n_front = {}, 0, 0
+        for key in keys:
+            at[key] = offset
+            offset += dims[key]
+            n_front += offset <= r.shape[0]
+        r_inv = np.linalg.inv(r)  # (upper triangular, small)
+        cov = np.empty((offset, offset))
+        cov[: r.shape[0], : r.shape[0]] = r_inv @ r_inv.T
+        if offset > r.shape[0]:
+            assert parent_cov is not None and parent_at is not None
+            sep = np.concatenate([parent_at[k] + np.arange(dims[k]) for k in keys[n_front:]])
+            p_ss = parent_cov[np.ix_(sep, sep)]
+            a = r_inv @ np.array(cond.S(), dtype=float, copy=True)
+            p_fs = -a @ p_ss
+            cov[: r.shape[0], : r.shape[0]] += a @ p_ss @ a.T
+            cov[: r.shape[0], r.shape[0] :] = p_fs
+            cov[r.shape[0] :, : r.shape[0]] = p_fs.T
+            cov[r.shape[0] :, r.shape[0] :] = p_ss
+        for key in keys[:n_front]:
+            sl = slice(at[key], at[key] + dims[key])
+            out[key] = cov[sl, sl].copy()
+        stack.extend((clique[j], cov, at) for j in range(clique.nrChildren()))
+    return out
 
 
 def optimize(
@@ -211,20 +256,20 @@ def solve_batch(
         zero = bayes_tree.optimize()  # (a zero step: the cost at the result is linear's)
         zero.setZero()
         est = Estimates.empty(len(prob.t_key), prob.states.n)
-        # the scale factors are constants: one marginal (the last keyframe's) for all;
-        # a constant variable of prob.states is one key, asked for at every keyframe
+        dims = {key: zero.dim(key) for key in result.keys()}
+        marginal = marginal_covariances(bayes_tree, dims).__getitem__
+        # the scale factors are constants: one marginal (the last keyframe's) for all
         last = prob.scale_values(len(prob.t_key) - 1).keys()
-        scale_cov = [marginal_covariance_qr(bayes_tree, key) for key in last]
-        marginal = cache(partial(marginal_covariance_qr, bayes_tree))
+        scale_cov = [marginal(key) for key in last]
         for k in range(len(prob.t_key)):
             est.store(
                 k,
                 result.atPose3(X(k)),
                 result.atVector(V(k)),
                 result.atConstantBias(B(k)),
-                marginal_covariance_qr(bayes_tree, X(k)),
-                marginal_covariance_qr(bayes_tree, V(k)),
-                marginal_covariance_qr(bayes_tree, B(k)),
+                marginal(X(k)),
+                marginal(V(k)),
+                marginal(B(k)),
                 prob.yaw_given or prob.n_headings > 0,
                 prob.states.read(k, result.atVector, marginal),
             )
