@@ -11,7 +11,8 @@ fresh child process reads the inputs, runs ``polins.fusion.run_fusion`` with the
 updates, odometer, the mounting) and writes the solution as ``polins fuse`` does
 (``polins.io.report.write_run_files``, CSV and Parquet). Each child reports its wall
 and CPU time, its peak resident memory (``ru_maxrss``) and that before fusing (the inputs),
-the solution's rows and file sizes, and the heading error against the truth.
+the solution's rows and file sizes, the heading error against the truth and, for the
+graph, the Gauss-Newton iterations of each solve (one solve per post-fit gate round).
 
 Printed: the machine (CPU model, cores, load average before and after) and, per backend,
 a row per prefix and the slopes between prefixes (seconds and MB per minute of log): time
@@ -130,6 +131,7 @@ def child(backend: str, minutes: float, folder: Path) -> dict[str, float]:
         "parquet_mb": sizes["parquet"],
         "heading_rms_deg": float(np.sqrt(np.nanmean(e**2))),
         "heading_rms_norm": float(np.sqrt(np.nanmean((e / s) ** 2))),
+        "iterations": result.info.get("iterations", []),  # the graph's, one per solve
     }
 
 
@@ -189,7 +191,9 @@ def main() -> None:
                       f"{r['inputs_mb']:4.0f} MB), {r['rows']:.0f} rows: CSV "
                       f"{r['csv_mb']:.1f} MB, Parquet {r['parquet_mb']:.1f} MB; heading RMS "
                       f"{r['heading_rms_deg']:.4f} deg, RMS(err/sigma) "
-                      f"{r['heading_rms_norm']:.2f}", flush=True)  # fmt: skip
+                      f"{r['heading_rms_norm']:.2f}"
+                      + (f"; Gauss-Newton iterations per solve {r['iterations']}"
+                         if r["iterations"] else ""), flush=True)  # fmt: skip
             if len(rows) > 1:
                 print(f"{backend:5} slopes per minute of log between the prefixes: CPU "
                       f"{slopes(rows, 'cpu_s')} s, wall {slopes(rows, 'wall_s')} s, peak "
