@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from polins.compass.eigen import eigen_level_rows
+from polins.compass.eigen import eigen_level_rows, weighted_residuals
+from polins.compass.image import fill_invalid
 from polins.compass.kernels import compiled, dot_rows, moment
 from polins.compass.lens import evector_rows, lens_basis_rows
 from polins.compass.prediction import doubled_prediction, image_plane_evector, pixel_data
+from polins.compass.sectors import SectorRuns, eigen_sandwich_sums
 from polins.compass.selection import Selection, select_pixels, selection_mask
 from polins.compass.zenith import MIRROR_SECTORS
 
@@ -217,3 +219,42 @@ def test_compiled_mirror_groups_match_angles():
                             np.array([np.cos(b), np.sin(b)]), got)  # fmt: skip
     np.testing.assert_allclose(got[:2], want, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(got[2], np.bincount(group, minlength=MIRROR_SECTORS))
+
+
+def test_compiled_sandwich_sums_match_numpy():
+    """The sandwich middle and the jackknife run sums of one compiled pass are those of the
+    weighted residuals, the moment and the run sums computed apart, to float64 rounding."""
+    rng = np.random.default_rng(13)
+    n = 30_000
+    e = rng.normal(size=(3, n)).astype(np.float32)
+    omega = rng.uniform(0.0, 2.0, n).astype(np.float32)
+    sun_c = np.array([0.3, -0.4, 0.866])
+    starts = np.r_[0, np.cumsum(rng.integers(1, 200, 300))]
+    starts = starts[starts < n]
+    runs = SectorRuns(starts, np.zeros(starts.size, dtype=np.intp), 1, np.zeros(1),
+                      np.zeros(1, dtype=np.intp))  # fmt: skip
+    middle, run_sums = eigen_sandwich_sums(e, omega, sun_c, runs)
+    e64, omega64 = e.astype(np.float64), omega.astype(np.float64)
+    wr = weighted_residuals(e, omega, sun_c)
+    np.testing.assert_allclose(middle, np.einsum("in,jn->ij", e64 * wr * wr, e64), rtol=1e-11)
+    want = np.add.reduceat(np.vstack([e64 * wr, omega64]), starts, axis=1).T
+    np.testing.assert_allclose(run_sums, want, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_fill_matches_numpy(dtype):
+    """The invalid pixels' harmless data (one compiled pass) are numpy's masked copies."""
+    rng = np.random.default_rng(14)
+    n = 10_000
+    rows = rng.normal(size=(4, n)).astype(dtype)
+    inv = rng.uniform(0.5, 2.0, n).astype(dtype)
+    valid = rng.random(n) < 0.7
+    want_rows, want_inv, three = rows.copy(), inv.copy(), rows[:3].copy()
+    np.copyto(want_rows[:3], np.array([[1.0], [0.0], [0.0]], dtype=dtype), where=~valid)
+    np.copyto(want_rows[3], dtype(0.0), where=~valid)
+    np.copyto(want_inv, dtype(1.0), where=~valid)
+    fill_invalid(rows, inv, valid)
+    np.testing.assert_array_equal(rows, want_rows)
+    np.testing.assert_array_equal(inv, want_inv)
+    fill_invalid(three, 1.0, valid)  # three rows, a common weight
+    np.testing.assert_array_equal(three, want_rows[:3])

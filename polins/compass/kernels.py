@@ -166,6 +166,24 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
             ok_run[q] &= gx * gx + gy * gy < g2 * (s[q] * s[q])
 
 
+def fill_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    rows: NDArray, inv: NDArray, valid: NDArray
+) -> None:
+    """Harmless data for the invalid pixels in one pass, in place
+    (:func:`polins.compass.image.fill_invalid`): ``rows (3 or 4, n)`` get (1, 0, 0[, 0]),
+    ``inv (n,)`` (or ``(0,)`` for none) gets 1, where ``valid (n,)`` is False."""
+    four, per_pixel = rows.shape[0] > 3, inv.size > 0
+    for i in range(valid.size):
+        if not valid[i]:
+            rows[0, i] = 1.0
+            rows[1, i] = 0.0
+            rows[2, i] = 0.0
+            if four:
+                rows[3, i] = 0.0
+            if per_pixel:
+                inv[i] = 1.0
+
+
 def kept(  # pragma: no cover - compiled by numba, which coverage cannot trace
     n1, n2, e2, s0, s1, s2, p, use_p, valid, px, py, pz, sx, sy, sz, dop_min, cos_exclusion
 ):
@@ -504,6 +522,45 @@ def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cann
             s2 += e[2, i] * w
             s3 += omega[i]
         out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
+
+
+def sandwich_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    e: NDArray, omega: NDArray, sun_c: NDArray, starts: NDArray, middle: NDArray, out: NDArray
+) -> None:
+    """The eigen solution's sandwich middle and jackknife run sums in one pass, in float64
+    (:func:`polins.compass.sectors.eigen_sandwich_sums`): per pixel the weighted residual
+    ``wr = (s . e) omega`` in the order of :func:`polins.compass.eigen.weighted_residuals`
+    (bit-identical), ``middle (3, 3) = sum wr^2 e e^T`` and, per run of pixels beginning at
+    ``starts (m,)`` (``starts[0] = 0``, the last run ends at ``n``), ``out (m, 4)`` =
+    (``sum wr e`` (3), ``sum omega``) as :func:`eigen_run_sums`. Float32 ``e`` and
+    ``omega`` are cast to float64 first; sums in numpy's pixel order (no reassociation)."""
+    n, m = omega.size, starts.size
+    sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for r in range(m):
+        end = starts[r + 1] if r + 1 < m else n
+        s0 = s1 = s2 = s3 = 0.0
+        for i in range(starts[r], end):
+            x, y, z = np.float64(e[0, i]), np.float64(e[1, i]), np.float64(e[2, i])
+            om = np.float64(omega[i])
+            w = (sx * x + sy * y + sz * z) * om
+            s0 += x * w
+            s1 += y * w
+            s2 += z * w
+            s3 += om
+            w2 = w * w
+            wx, wy = w2 * x, w2 * y
+            a00 += wx * x
+            a01 += wx * y
+            a02 += wx * z
+            a11 += wy * y
+            a12 += wy * z
+            a22 += (w2 * z) * z
+        out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
+    middle[0, 0], middle[1, 1], middle[2, 2] = a00, a11, a22
+    middle[0, 1] = middle[1, 0] = a01
+    middle[0, 2] = middle[2, 0] = a02
+    middle[1, 2] = middle[2, 1] = a12
 
 
 ZENITH_SUMS = 13

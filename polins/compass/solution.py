@@ -21,15 +21,19 @@ from polins.compass.eigen import (
     eigen_gap,
     eigen_level_rows,
     sandwich_covariance,
-    weighted_residuals,
 )
 from polins.compass.heading import Geometry, resolve_sun_sign, yaw_variance_from_sun_covariance
 from polins.compass.image import ImageStokes
 from polins.compass.jointml import ml_evaluate, sun_covariance
-from polins.compass.kernels import dot, moment
+from polins.compass.kernels import dot
 from polins.compass.lens import subsample
 from polins.compass.measurement import MeasureOptions
-from polins.compass.sectors import eigen_jackknife, jackknife_variance, sector_runs
+from polins.compass.sectors import (
+    eigen_jackknife_sums,
+    eigen_sandwich_sums,
+    jackknife_variance,
+    sector_runs,
+)
 from polins.compass.selection import selection_mask
 from polins.compass.skypixels import SkyPixels
 from polins.compass.solve import NEUTRAL_SEP, SolveSetup, compensated_solution
@@ -187,12 +191,11 @@ def solve_traditional(
     sun_l = eig.sun
     if geo.sun_n is not None:
         sun_l = resolve_sun_sign(eig.sun, geo.sun_n, geo.yaw_prior, opt.horizon_fallback)
-    wr = weighted_residuals(e, omega, mat_cl @ sun_l)
     # The sandwich's middle sum_i (w_i r_i)^2 u_i u_i^T (docs/model.md §10.2,
-    # docs/measurement.md §6); wr also feeds the jackknife.
-    middle = moment(e, wr * wr)
+    # docs/measurement.md §6) and the jackknife's sums, in one pass.
+    middle, run_sums = eigen_sandwich_sums(e, omega, mat_cl @ sun_l, sector_runs(cam))
     cov_sun_l = sandwich_covariance(eig, mat_lc @ middle @ mat_lc.T)
-    deltas, share = eigen_jackknife(e, wr, omega, sector_runs(cam), mat_lc, eig, sun_l)
+    deltas, share = eigen_jackknife_sums(run_sums, sector_runs(cam), mat_lc, eig, sun_l)
     theta = np.array([np.arctan2(sun_l[1], sun_l[0]), np.arccos(np.clip(sun_l[2], -1, 1)), 0.0])
     epsilon = float("nan")
     if img.epsilon_px is not None:
