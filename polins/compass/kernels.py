@@ -604,11 +604,11 @@ def zenith_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
         h1y = l10 * b00 + l11 * b10 + l12 * b20
         h2x = l00 * b01 + l01 * b11 + l02 * b21
         h2y = l10 * b01 + l11 * b11 + l12 * b21
-        norm = 0.5 * (h1x * h1x + h1y * h1y + h2x * h2x + h2y * h2y)
-        q1x = 0.5 * (h1x * h1x - h1y * h1y - h2x * h2x + h2y * h2y) / norm
-        q1y = (h1x * h1y - h2x * h2y) / norm
-        q2x = (h1x * h2x - h1y * h2y) / norm
-        q2y = (h1x * h2y + h2x * h1y) / norm
+        inv_norm = 2.0 / (h1x * h1x + h1y * h1y + h2x * h2x + h2y * h2y)  # one division
+        q1x = 0.5 * (h1x * h1x - h1y * h1y - h2x * h2x + h2y * h2y) * inv_norm
+        q1y = (h1x * h1y - h2x * h2y) * inv_norm
+        q2x = (h1x * h2x - h1y * h2y) * inv_norm
+        q2y = (h1x * h2y + h2x * h1y) * inv_norm
         w = float(inv[i] if per_pixel else inv[0])
         s0, s1, s2 = float(est[0, i]), float(est[1, i]), float(est[2, i])
         cx = w * (q1x * s1 + q2x * s2)

@@ -11,6 +11,7 @@ the eigenvector over sky sectors (docs/model.md §10.2, docs/measurement.md §6,
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,8 +137,8 @@ def solve_compensated(
     extra += [0.0] * opt.fit_delta
     theta = np.array([a0, *([] if fixed else [z0]), *extra, opt.epsilon0])
     dop_test = None
-    if opt.clouds == "auto":  # thin clouds by the fitted sky's DoP (§4)
-        dop_test = _dop_test(img, cam, px, geo, CLOUD_FIT_RATIO)
+    if opt.clouds == "auto":  # thin clouds by the fitted sky's DoP (§4), built when needed
+        dop_test = functools.cache(lambda: _dop_test(img, cam, px, geo, CLOUD_FIT_RATIO))
     sub, cache = img.sub, img.cache
     data = (px.data_sub if img.stride > 1 else px.data_full, px.data_full)
     solved = compensated_solution(

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -248,7 +249,7 @@ def _drop_clouds(
     mask: NDArray | None,
     select: Selection,
     cells: NDArray,
-    dop_test: DopTest | None,
+    dop_test: Callable[[], DopTest] | None,
 ) -> tuple[MLSolution, NDArray | None, NDArray]:
     """Cloud passes on one pixel set (rotated and, with ``dop_test``, depolarized cells):
     the solution, its mask and the dropped cells ``(CLOUD_CELLS**2,)`` bool."""
@@ -266,7 +267,7 @@ def _drop_clouds(
                 np.sqrt(max(float(ml.theta[setup.k_sep]), 0.0)) if sky.fit_sep else sky.neutral_sep
             )
             zenith_sun = float(ml.theta[1]) if zenith is None else zenith
-            flagged = flagged | fitted_sky_depolarized(dop_test, float(ml.theta[0]), zenith_sun,
+            flagged = flagged | fitted_sky_depolarized(dop_test(), float(ml.theta[0]), zenith_sun,
                                                        float(sep))  # fmt: skip
         flagged &= ~dropped
         if not flagged.any():
@@ -336,7 +337,7 @@ def compensated_solution(
     cells: tuple[NDArray, NDArray],
     sectors: tuple[SectorRuns, SectorRuns],
     rays: tuple[NDArray, NDArray],
-    dop_test: DopTest | None = None,
+    dop_test: Callable[[], DopTest] | None = None,
 ) -> CompensatedSolution:
     """The joint ML of one image (module notes).
 
@@ -356,8 +357,10 @@ def compensated_solution(
         Jackknife runs of the subsample and of the full set.
     rays : ((3, n_sub), (3, n))
         Camera-frame unit rays of the subsample and of the full set.
-    dop_test : DopTest, optional
-        The fitted sky's DoP test of the cloud passes; None: none.
+    dop_test : callable, optional
+        Returns the fitted sky's DoP test of the cloud passes (called when a pass needs
+        it: a solution that falls back never builds it; it should return one cached
+        object); None: no DoP test.
     """
     k_sep = setup.k_sep
     if data[0] is data[1]:  # no subsample: the full set solved directly
