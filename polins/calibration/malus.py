@@ -103,6 +103,7 @@ def fit_turning_polarization(
     turn: ArrayLike | None = None,
     sources: ArrayLike | None = None,
     constant_scale: bool = False,
+    scale_basis: ArrayLike | None = None,
     tilt_terms: bool = False,
     turn_start: ArrayLike | None = None,
     turn_prior_std: float | None = None,
@@ -128,6 +129,13 @@ def fit_turning_polarization(
         One exposure scale for all images (a stable source). Needed with known, fully
         polarized sources and fitted turns: there, the per-image scales and turns trade
         against the channel parameters (a Lorentz boost of (S0, S1, S2) keeps the light cone).
+    scale_basis : array_like, (m, p), optional
+        Exposure scales that change smoothly: ``log s_j = sum_i B_ji c_i`` with fitted
+        ``c`` (with fitted sources, relative to the first image: ``B - B[0]``). A free
+        scale per image (the default) lets turn errors trade against the channel gains'
+        differential wherever every source has the same normalised polarization (a narrow
+        field about the zenith; docs/calibrate.md#sky-rotation); a camera whose exposure is
+        fixed brightens smoothly, and the basis keeps that information.
     tilt_terms : bool
         Let each fitted source also change with the turn at the first harmonic in S0
         (``Re(b_r exp(i theta_j))``) and at the first and third in L
@@ -162,6 +170,7 @@ def fit_turning_polarization(
     start = _start_values(y_arr, cam, turn, sources, turn_start)
     if constant_scale and sources is None:
         raise ValueError("constant_scale needs known sources")
+    basis = _scale_basis(scale_basis, constant_scale, m, sources is None)
     if tilt_terms and sources is not None:
         raise ValueError("tilt_terms needs fitted sources")
     params = _TurnParameters.of(
@@ -169,7 +178,7 @@ def fit_turning_polarization(
         start,
         (m, n_src),
         fit_turn=turn is None,
-        constant_scale=constant_scale,
+        scale_basis=basis,
         tilt_terms=tilt_terms,
         source_factors=source_factors,
     )
@@ -188,6 +197,22 @@ def fit_turning_polarization(
         args=(y_arr, sig, turn_prior_std),
     )
     return _turn_fit(params, sol, y_arr)
+
+
+def _scale_basis(
+    scale_basis: ArrayLike | None, constant_scale: bool, m: int, fit_src: bool
+) -> FloatArray | None:
+    """The basis ``(m, p)`` of the log exposure scales, or None for one free scale per
+    image (the first fixed at 1 when the sources are fitted)."""
+    if constant_scale:
+        return np.ones((m, 1))
+    if scale_basis is None:
+        return None
+    basis = np.asarray(scale_basis, dtype=float).reshape(m, -1)
+    if fit_src:  # the sources take the first image's scale
+        basis = basis - basis[:1]
+        basis = basis[:, np.abs(basis).max(axis=0) > 0]
+    return basis
 
 
 @dataclass(frozen=True)
@@ -257,7 +282,7 @@ class _TurnParameters:
     m: int
     n_src: int
     fit_turn: bool
-    constant_scale: bool
+    scale_basis: FloatArray | None
     tilt_terms: bool
     n_alpha: int
     cuts: NDArray[np.int_]
@@ -273,7 +298,7 @@ class _TurnParameters:
         shape: tuple[int, int],
         *,
         fit_turn: bool,
-        constant_scale: bool,
+        scale_basis: FloatArray | None,
         tilt_terms: bool,
         source_factors: ArrayLike | None,
     ) -> _TurnParameters:
@@ -282,7 +307,7 @@ class _TurnParameters:
         fit_src = start.fit_src
         n_eta = 3 if fit_src else 4
         n_alpha = 3 if (fit_turn or fit_src) else 4  # fitted sources take a common angle too
-        n_scale = 1 if constant_scale else (m - 1 if fit_src else m)
+        n_scale = (m - 1 if fit_src else m) if scale_basis is None else scale_basis.shape[1]
         n_turn = (m - 1 if fit_src else m) if fit_turn else 0
         n_tilt = 6 * n_src if tilt_terms else 0
         sizes = [3, n_eta, n_alpha, n_scale, n_turn, 3 * n_src if fit_src else 0, n_tilt]
@@ -297,7 +322,7 @@ class _TurnParameters:
             m,
             n_src,
             fit_turn,
-            constant_scale,
+            scale_basis,
             tilt_terms,
             n_alpha,
             np.cumsum(sizes)[:-1],
@@ -319,14 +344,19 @@ class _TurnParameters:
                 np.zeros(3),
                 np.zeros(3) if fit_src else self.log_eta_base,
                 np.zeros(self.n_alpha),
-                np.log(np.maximum(s0_scale[1:] if fit_src else s0_scale, 1e-9))
-                if not self.constant_scale
-                else np.log([max(float(np.mean(s0_scale)), 1e-9)]),
+                self._start_log_scale(s0_scale, fit_src),
                 (theta0[1:] if fit_src else theta0) if self.fit_turn else np.zeros(0),
                 start.src_x0,
                 np.zeros(self.n_tilt),
             ]
         )
+
+    def _start_log_scale(self, s0_scale: FloatArray, fit_src: bool) -> FloatArray:
+        log_s = np.log(np.maximum(s0_scale, 1e-9))
+        if self.scale_basis is None:
+            return log_s[1:] if fit_src else log_s
+        coef, *_ = np.linalg.lstsq(self.scale_basis, log_s - log_s[0] * fit_src, rcond=None)
+        return np.asarray(coef, dtype=float)
 
     def unpack(self, x: FloatArray) -> tuple[FloatArray, ...]:
         """Gains, efficiencies, angles [rad], exposure scales, turns [rad], source S0 and
@@ -336,8 +366,8 @@ class _TurnParameters:
         gain = np.exp(q @ a)
         eta = np.exp(log_eta_base - log_eta_base.mean() + q @ b) if fit_src else np.exp(b)
         alpha = self.cam.transmission_angle + (q @ d if self.n_alpha == 3 else d)
-        if self.constant_scale:
-            scale = np.full(self.m, np.exp(ls[0]))
+        if self.scale_basis is not None:
+            scale = np.exp(self.scale_basis @ ls)
         else:
             scale = np.exp(np.concatenate([[0.0], ls]) if fit_src else ls)
         theta = (
@@ -372,9 +402,10 @@ class _TurnParameters:
         extra = []
         if turn_prior_std is not None and self.fit_turn:
             extra.append((theta - self.start.theta0) / turn_prior_std)
-        if self.tilt_terms:
-            # Exposure scales that wobble as 1 + Re(c exp(i theta_j)) trade exactly against
-            # the tilt terms too: fix that flat direction (the channels do not depend on it).
+        if self.tilt_terms and self.scale_basis is None:
+            # Free exposure scales that wobble as 1 + Re(c exp(i theta_j)) trade exactly
+            # against the tilt terms too: fix that flat direction (the channels do not depend
+            # on it).
             wobble = np.sum(np.log(scale) * np.exp(1j * theta)) / self.m * GAUGE_WEIGHT
             extra.append(np.array([wobble.real, wobble.imag]))
         return np.concatenate([r, *extra]) if extra else r

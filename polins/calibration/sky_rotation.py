@@ -82,9 +82,10 @@ TURN_MISMATCH_MAX_DEG = 5.0  # given turns may differ from the ring-mean AoP by 
 GAIN_RANGE = (0.8, 1.25)  # physical channel gains relative to their mean [-]
 ANGLE_OFFSET_MAX_DEG = 10.0  # physical channel angles: offset from the labels' pattern [deg]
 EFFICIENCY_MIN = 0.5  # physical channel efficiencies [-]
-ALTERNATION_STEPS = 8  # unknown turns: channel fits and turn re-reads, at most
-TURN_SETTLED = 1e-5  # [rad] turns that move less have settled
-JOINT_ITERATIONS = 30  # the joint fit from the alternation's turns: settles in a few or wanders
+JOINT_ITERATIONS = 50  # unknown turns: the joint fit from the ring-mean AoP settles in a few
+EXPOSURE_JUMP_MAX = 0.005  # unknown turns: image brightness off a smooth drift, RMS log [-]
+TILT_TURN_MOVE_MAX_DEG = 2.0  # unknown turns: tilt terms that move the turns more fit else
+GAIN_STD_MAX = 0.005  # unknown turns: relative gain standard error above which it is refused
 RESIDUAL_RATIO_WARN = 3.0  # residual RMS over the noise model above which the fit warns [-]
 HARMONICS = 4  # harmonics of the turn in the residual's description
 
@@ -100,6 +101,8 @@ __all__ = [
     "calibrate_sky_rotation",
     "check_turns",
     "degeneracy",
+    "exposure_basis",
+    "exposure_jumps",
     "fit_sky_rotation",
     "polarization_turns",
     "residual_pattern",
@@ -363,6 +366,23 @@ def residual_pattern(residuals: FloatArray, sigma: FloatArray, theta: FloatArray
     )
 
 
+def exposure_basis(m: int, times_s: FloatArray | None = None) -> FloatArray:
+    """Basis ``(m, 2)`` [-] of smoothly changing log exposure scales: a quadratic in the
+    images' time (seconds, or their order when None), normalised to [-1/2, 1/2]."""
+    t = np.arange(m, dtype=float) if times_s is None else np.asarray(times_s, dtype=float)
+    t = (t - t.mean()) / max(float(np.ptp(t)), 1e-300)
+    return np.column_stack([t, t**2])
+
+
+def exposure_jumps(fit: TurnFit, y: FloatArray) -> float:
+    """RMS [-] of the per-image brightness the smooth exposure of ``fit`` leaves: each
+    image's least-squares scale of the fitted model onto the ring means ``y`` ``(m, R, 4)``,
+    in log."""
+    model = y - fit.residuals
+    ratio = np.sum(y * model, axis=(1, 2)) / np.sum(model**2, axis=(1, 2))
+    return float(np.sqrt(np.mean(np.log(ratio) ** 2)))
+
+
 @dataclass(frozen=True)
 class _RingData:
     """Ring means of a sequence and what the fits need of them."""
@@ -462,56 +482,76 @@ def _tilt_or_not(
     return plain, False
 
 
+def _joint_fit(
+    data: _RingData, cam: CameraModel, hint: FloatArray, basis: FloatArray | None,
+    factors: NDArray[np.complex128] | None,
+) -> tuple[TurnFit, str]:  # fmt: skip
+    """The fit with the turns free from ``hint``, and why it is no calibration ("" if it is)."""
+    fit = fit_turning_polarization(data.y, data.sigma, cam, turn_start=hint, scale_basis=basis,
+                                   source_factors=factors,
+                                   max_iterations=JOINT_ITERATIONS)  # fmt: skip
+    why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
+    if not fit.converged:
+        why = why or "it does not settle"
+    return fit, why
+
+
 def _fit_unknown_turns(
     data: _RingData, cam: CameraModel, hint: FloatArray, tilt_terms: bool,
-    factors: NDArray[np.complex128] | None,
+    factors: NDArray[np.complex128] | None, times_s: FloatArray | None,
 ) -> tuple[TurnFit, bool, list[str]]:  # fmt: skip
-    """Fit with the turns unknown, alternating from the ring-mean AoP ``hint``: the channels
-    fitted with the turns held, then the turns re-read from the ring-mean AoP under the
-    fitted channels, until the turns settle; then the joint fit with the turns free from
-    there. Where turn errors trade against channel errors (seen on a narrow field about the
-    zenith), the joint fit wanders, into a degenerate polarizer array (channels pairing up)
-    or without settling, and the fit is refused with the reason (give the turns). A
-    degenerate result is never returned."""
-    theta = hint
-    for _ in range(ALTERNATION_STEPS):
-        fit = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
-        why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
-        if why:
-            raise UserInputError(
-                f"sky-rotation: no physical channel calibration fits these images ({why}); "
-                f"{residual_pattern(fit.residuals, data.sigma, theta, data.radius)}"
-            )
-        fitted = cam.with_changes(gain=fit.gain, transmission_angle=fit.angle,
-                                  efficiency=fit.efficiency)  # fmt: skip
-        new = polarization_turns(data.y, fitted)
-        step = np.mod(new - theta + 0.5 * np.pi, np.pi) - 0.5 * np.pi
-        theta = theta + step
-        if np.abs(step).max() < TURN_SETTLED:
-            break
-    notes: list[str] = []
-    joint = fit_turning_polarization(data.y, data.sigma, cam, turn_start=theta,
-                                     source_factors=factors,
-                                     max_iterations=JOINT_ITERATIONS)  # fmt: skip
-    why = degeneracy(joint.gain, joint.angle, joint.efficiency, cam)
-    if not (joint.converged and not why):
+    """Fit with the turns unknown, from the ring-mean AoP ``hint`` (pattern turns [rad]).
+
+    First with the exposure smooth in time (:func:`exposure_basis`); when the images'
+    brightness jumps about that (an automatic exposure), with a free scale per image. A free
+    scale lets a turn error that is uneven over the turn trade against the gains'
+    differential where the sky's normalised polarization is the same across the field (a
+    narrow field about the zenith; docs/calibrate.md#sky-rotation): such a fit is refused
+    when its gains stay uncertain. A fit that does not settle or is no physical polarizer
+    array is refused with the reason. A degenerate result is never returned."""
+    basis: FloatArray | None = exposure_basis(data.y.shape[0], times_s)
+    fit, why = _joint_fit(data, cam, hint, basis, factors)
+    jumps = exposure_jumps(fit, data.y) if not why else np.inf
+    notes = []
+    if jumps <= EXPOSURE_JUMP_MAX:
+        notes.append(f"turns fitted with the exposure smooth in time (jumps about it "
+                     f"{100 * jumps:.2g} % RMS)")  # fmt: skip
+    else:
+        fit, why = _joint_fit(data, cam, hint, None, factors)
+        basis = None
+        notes.append("turns fitted with a free exposure per image (it jumps"
+                     + (f" by {100 * jumps:.2g} % RMS about a smooth drift)" if np.isfinite(jumps)
+                        else ")"))  # fmt: skip
+    if why:
         raise UserInputError(
-            "sky-rotation: the turns cannot be fitted from these images: with them free the fit "
-            + (f"goes to a degenerate array ({why})" if why else "does not settle")
-            + ", so turn errors trade against channel errors. Give the turns (turns=..., "
-            "polins calibrate sky-rotation --turns-deg)"
+            f"sky-rotation: the turns cannot be fitted from these images: with them free the fit "
+            f"is no physical polarizer array ({why}); give the turns (turns=..., polins "
+            "calibrate sky-rotation --turns-deg)"
         )
-    fit, theta = joint, joint.turn
+    gain_std = float(np.max(fit.gain_std / fit.gain))
+    if gain_std > GAIN_STD_MAX:
+        raise UserInputError(
+            f"sky-rotation: with the turns unknown the gains stay uncertain by {100 * gain_std:.2g}"
+            " %: turn errors trade against the gains' differential where the sky's polarization "
+            "is the same across the field"
+            + ("; a fixed exposure tells them apart" if basis is None else "")
+            + "; give the turns (turns=..., polins calibrate sky-rotation --turns-deg)"
+        )
     if not tilt_terms:
         return fit, False, notes
     # The tilt terms start from the fit without them, its turns on the right branch.
     branch = turns_modulo_2pi(data.signal, data.weight, cam)
-    turn_start = theta + np.pi * np.round((branch - theta) / np.pi)
+    turn_start = fit.turn + np.pi * np.round((branch - fit.turn) / np.pi)
     tilted = fit_turning_polarization(
         data.y, data.sigma, cam, tilt_terms=True, turn_start=turn_start,
-        turn_prior_std=np.radians(1.0), source_factors=factors,
+        turn_prior_std=np.radians(1.0), scale_basis=basis, source_factors=factors,
     )  # fmt: skip
-    fit, tilt_used = _tilt_or_not(fit, tilted, float(np.degrees(turn_span(-theta))), notes)
+    moved = np.degrees(np.abs(np.angle(np.exp(2j * (tilted.turn - fit.turn)))).max() / 2)
+    if moved > TILT_TURN_MOVE_MAX_DEG:
+        notes.append(f"the tilt terms moved the fitted turns by up to {moved:.2g} deg: they fit "
+                     "something other than a tilted turn axis, and are left out")  # fmt: skip
+        return fit, False, notes
+    fit, tilt_used = _tilt_or_not(fit, tilted, float(np.degrees(turn_span(-fit.turn))), notes)
     return fit, tilt_used, notes
 
 
@@ -598,7 +638,11 @@ def fit_sky_rotation(
         fit, tilt_used, notes = _fit_known_turns(data, cam, turns_arr, tilt_terms, factors)
     else:
         _check_span(np.degrees(turn_span(-hint)), 0.5 * min_span_deg)  # hopeless before a fit
-        fit, tilt_used, notes = _fit_unknown_turns(data, cam, hint, tilt_terms, factors)
+        times_s = None
+        if times_utc is not None:
+            idx = to_utc_index(times_utc)
+            times_s = np.asarray((idx - idx[0]).total_seconds(), dtype=float)
+        fit, tilt_used, notes = _fit_unknown_turns(data, cam, hint, tilt_terms, factors, times_s)
     span = np.degrees(turn_span(-fit.turn))
     _check_span(span, min_span_deg)
     why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
