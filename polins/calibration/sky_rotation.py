@@ -84,9 +84,11 @@ ANGLE_OFFSET_MAX_DEG = 10.0  # physical channel angles: offset from the labels' 
 EFFICIENCY_MIN = 0.5  # physical channel efficiencies [-]
 JOINT_ITERATIONS = 50  # unknown turns: the joint fit from the ring-mean AoP settles in a few
 EXPOSURE_JUMP_MAX = 0.005  # unknown turns: image brightness off a smooth drift, RMS log [-]
+TILT_STD_GROWTH_MAX = 3.0  # tilt terms that make the channel angles this much less certain: out
 TILT_TURN_MOVE_MAX_DEG = 2.0  # unknown turns: tilt terms that move the turns more fit else
 GAIN_STD_MAX = 0.005  # unknown turns: relative gain standard error above which it is refused
 RESIDUAL_RATIO_WARN = 3.0  # residual RMS over the noise model above which the fit warns [-]
+RADIAL_SIGNIFICANT = 3.0  # radial shading coefficients above this many std make a gain map
 HARMONICS = 4  # harmonics of the turn in the residual's description
 
 
@@ -147,6 +149,13 @@ class SkyRotationResult:
     residual_pattern : str
         With a residual above 3 x the noise model: what it looks like (its share at each
         harmonic of the turn, and by ring radius); "" otherwise.
+    radial_gain, radial_gain_std : (4,)
+        Channel-dependent radial shading: channel k's gain changes as
+        ``g_k (1 + c_k (rho^2 - rho2_ref))`` with the squared normalised radius (the
+        coefficients ``c_k`` [-], zero sum, and their standard errors).
+    gain_map : (Hs, Ws, 4) or None
+        The per-pixel gains of that shading, over the whole image, when it is significant
+        (some ``|c_k|`` above 3 standard errors); None otherwise.
     """
 
     gain: FloatArray
@@ -164,11 +173,18 @@ class SkyRotationResult:
     provenance: dict[str, Any] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
     residual_pattern: str = ""
+    radial_gain: FloatArray = field(default_factory=lambda: np.zeros(4))
+    radial_gain_std: FloatArray = field(default_factory=lambda: np.zeros(4))
+    gain_map: FloatArray | None = None
 
     def camera_changes(self) -> dict[str, Any]:
-        """The camera-model fields this calibration sets."""
-        return channel_changes(self.gain, self.gain_std, self.transmission_angle, self.efficiency,
-                               self.transmission_angle_std, self.efficiency_std)  # fmt: skip
+        """The camera-model fields this calibration sets (with the gain map when the
+        radial shading is significant; otherwise no gain map, dropping the base camera's)."""
+        changes = channel_changes(self.gain, self.gain_std, self.transmission_angle,
+                                  self.efficiency, self.transmission_angle_std,
+                                  self.efficiency_std)  # fmt: skip
+        changes["gain_map"] = self.gain_map
+        return changes
 
 
 def ring_windows(cam: CameraModel, n_rings: int) -> tuple[FloatArray, FloatArray]:
@@ -199,6 +215,15 @@ def ring_windows(cam: CameraModel, n_rings: int) -> tuple[FloatArray, FloatArray
     x = (rho[None] - centres[:, None, None]) / step
     windows = np.where(np.abs(x) < 1.0, np.cos(0.5 * np.pi * x) ** 2, 0.0)
     return windows, centres
+
+
+def normalised_radius2(cam: CameraModel) -> FloatArray:
+    """Squared normalised radius ``((u - cx)/fx)^2 + ((v - cy)/fy)^2`` [-] of every superpixel
+    ``(Hs, Ws)``."""
+    hs, ws = cam.superpixel_shape
+    v, u = np.mgrid[0:hs, 0:ws].astype(float)
+    k = cam.camera_matrix
+    return np.asarray(((u - k[0, 2]) / k[0, 0]) ** 2 + ((v - k[1, 2]) / k[1, 1]) ** 2)
 
 
 def turn_span(turn: ArrayLike) -> float:
@@ -392,6 +417,8 @@ class _RingData:
     weight: FloatArray  # (R, n)
     radius: FloatArray  # (R,)
     signal: FloatArray  # (m, n, 4) [DN]
+    radius2: FloatArray  # (R,) the windows' mean squared normalised radius [-]
+    pixel_radius2: FloatArray  # (Hs, Ws) squared normalised radius of each superpixel [-]
 
 
 def _ring_data(
@@ -419,7 +446,9 @@ def _ring_data(
         else 0.0
     )
     sigma = np.broadcast_to(np.sqrt(var_pix / n_eff[None, :, None]), y.shape)
-    return _RingData(y, np.array(sigma), weight, centres[keep], signal)
+    rho2 = normalised_radius2(cam)
+    radius2 = weight @ rho2.ravel() / norm
+    return _RingData(y, np.array(sigma), weight, centres[keep], signal, radius2, rho2)
 
 
 def _sun_factors(
@@ -451,7 +480,8 @@ def _fit_known_turns(
     """Fit with the camera turns known [rad]: the fit, whether it has the tilt terms, notes
     on what the turns identify."""
     theta = -np.asarray(turns, dtype=float)
-    plain = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
+    plain = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors,
+                                     source_radius2=data.radius2)  # fmt: skip
     span = np.degrees(np.ptp(np.unwrap(turns)))
     notes = [f"with the turns known ({span:.0f} deg): gains to {np.max(plain.gain_std):.2g}, "
              f"channel angles to {_angle_std_deg(plain):.2g} deg, efficiencies to "
@@ -460,7 +490,7 @@ def _fit_known_turns(
     if not tilt_terms:
         return plain, False, notes
     tilted = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, tilt_terms=True,
-                                      source_factors=factors)  # fmt: skip
+                                      source_factors=factors, source_radius2=data.radius2)  # fmt: skip
     fit, tilt_used = _tilt_or_not(plain, tilted, span, notes)
     return fit, tilt_used, notes
 
@@ -470,11 +500,13 @@ def _tilt_or_not(
 ) -> tuple[TurnFit, bool]:
     """The fit with the tilt terms when they leave the channel angles determined, else the
     one without them, with a note saying so."""
-    if _angle_std_deg(tilted) <= ANGLE_STD_MAX_DEG:
+    limit = min(ANGLE_STD_MAX_DEG, TILT_STD_GROWTH_MAX * _angle_std_deg(plain))
+    if _angle_std_deg(tilted) <= limit:
         return tilted, True
     notes.append(
         f"turns over {span:.0f} deg cannot tell a tilt of the turn axis from the channel angles "
-        f"(their std with the tilt terms: {_angle_std_deg(tilted):.2g} deg; efficiencies "
+        f"(their std with the tilt terms: {_angle_std_deg(tilted):.2g} deg, without "
+        f"{_angle_std_deg(plain):.2g} deg; efficiencies "
         f"{np.max(tilted.efficiency_std):.2g}): fitted without them, which holds for a turn "
         "axis along the optical axis (a 0.5 deg tilt costs about 1 deg of channel angle); "
         "turn through a full circle to fit the tilt"
@@ -488,7 +520,7 @@ def _joint_fit(
 ) -> tuple[TurnFit, str]:  # fmt: skip
     """The fit with the turns free from ``hint``, and why it is no calibration ("" if it is)."""
     fit = fit_turning_polarization(data.y, data.sigma, cam, turn_start=hint, scale_basis=basis,
-                                   source_factors=factors,
+                                   source_factors=factors, source_radius2=data.radius2,
                                    max_iterations=JOINT_ITERATIONS)  # fmt: skip
     why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
     if not fit.converged:
@@ -544,7 +576,7 @@ def _fit_unknown_turns(
     turn_start = fit.turn + np.pi * np.round((branch - fit.turn) / np.pi)
     tilted = fit_turning_polarization(
         data.y, data.sigma, cam, tilt_terms=True, turn_start=turn_start,
-        turn_prior_std=np.radians(1.0), scale_basis=basis, source_factors=factors,
+        turn_prior_std=np.radians(1.0), scale_basis=basis, source_factors=factors, source_radius2=data.radius2,
     )  # fmt: skip
     moved = np.degrees(np.abs(np.angle(np.exp(2j * (tilted.turn - fit.turn)))).max() / 2)
     if moved > TILT_TURN_MOVE_MAX_DEG:
@@ -684,6 +716,10 @@ def _result(
             stacklevel=3,
         )
     turn = -fit.turn  # the pattern turns by -phi when the camera turns by +phi
+    gain_map = None
+    if np.any(np.abs(fit.radial_gain) > RADIAL_SIGNIFICANT * fit.radial_gain_std):
+        shading = 1.0 + (data.pixel_radius2 - data.radius2.mean())[..., None] * fit.radial_gain
+        gain_map = fit.gain * np.maximum(shading, 0.1)
     return SkyRotationResult(
         gain=fit.gain,
         gain_std=fit.gain_std,
@@ -699,6 +735,9 @@ def _result(
         noise_ratio=noise_ratio,
         notes=tuple(notes),
         residual_pattern=pattern,
+        radial_gain=fit.radial_gain,
+        radial_gain_std=fit.radial_gain_std,
+        gain_map=gain_map,
         provenance=provenance(
             "sky-rotation",
             "ring means of clear-sky images turning about the optical axis, Malus-law fit"
@@ -712,6 +751,7 @@ def _result(
             turn_span_deg=round(float(span), 1),
             residual_rms_dn=float(f"{rms:.3g}"),
             noise_ratio=float(f"{noise_ratio:.3g}"),
+            radial_gain_max=float(f"{np.abs(fit.radial_gain).max():.3g}"),
         ),
     )
 
