@@ -141,3 +141,18 @@ def test_a_uniform_field_needs_a_fixed_exposure_or_the_turns():
     assert np.abs(rel - true.gain / true.gain.mean()).max() < 2e-3
     with pytest.raises(UserInputError, match="give the turns"):
         fit_sky_rotation(frames(rng.uniform(0.93, 1.07, turns.size)), base, ifov_correction=False)
+
+
+def test_the_residual_report_names_a_camera_fixed_polarization():
+    """A residual that does not turn with the camera and differs between the 0 and 90 deg
+    channels, growing with the ring radius (a shading beyond the fitted one): the report
+    puts it at harmonic 0, as a camera-fixed polarization, growing ring by ring."""
+    theta = -np.radians(TURNS_DEG)
+    radius = np.linspace(0.0, 0.25, 6)
+    residuals = np.zeros((theta.size, radius.size, 4))
+    residuals[..., 0] = 10.0 * radius
+    residuals[..., 2] = -10.0 * radius
+    text = sky_rotation_module.residual_pattern(residuals, np.full(4, 0.1), theta, radius)
+    assert "100 % at harmonic 0" in text and "100 % a camera-fixed polarization" in text
+    by_ring = [float(v) for v in text.rsplit("[", 1)[1].split("]")[0].split(", ")]
+    assert by_ring == sorted(by_ring) and by_ring[0] == 0.0

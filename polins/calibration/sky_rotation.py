@@ -385,9 +385,17 @@ def residual_pattern(residuals: FloatArray, sigma: FloatArray, theta: FloatArray
     ]
     by_ring = np.sqrt(np.mean(z**2, axis=(0, 2)))
     parts = ", ".join(f"{100 * s:.0f} % at harmonic {k}" for k, s in enumerate(shares))
+    # The turn-independent part by channel pattern: 0 - 90 and 45 - 135 differences are a
+    # camera-fixed polarization (channel gains or shading that differ), the rest is common
+    # or redundant (0 + 90 - 45 - 135).
+    fixed = z.mean(axis=0)  # (R, 4)
+    pol = 0.5 * ((fixed[:, 0] - fixed[:, 2]) ** 2 + (fixed[:, 1] - fixed[:, 3]) ** 2)
+    pol_share = float(theta.size * pol.sum()) / total
     return (
-        f"residual {np.sqrt(np.mean(z**2)):.1f} x the noise model; {parts} of the turn; "
-        f"by ring radius {np.round(radius, 3).tolist()}: {np.round(by_ring, 1).tolist()} x"
+        f"residual {np.sqrt(np.mean(z**2)):.1f} x the noise model; {parts} of the turn "
+        f"(of which {100 * pol_share:.0f} % a camera-fixed polarization, 0/90 or 45/135 "
+        f"channels differing); by ring radius {np.round(radius, 3).tolist()}: "
+        f"{np.round(by_ring, 1).tolist()} x"
     )
 
 
