@@ -127,10 +127,11 @@ def main() -> int:
               "they are not redistributable and not in this repository: skipped")  # fmt: skip
         return 0
     import time
+    import warnings
 
     import numpy as np
 
-    from polins.calibration import fit_sky_rotation
+    from polins.calibration import SkyRotationResidualWarning, fit_sky_rotation
     from polins.calibration.turntable import relative_heading_errors, score_turntable
     from polins.errors import UserInputError
     from polins.io.images import read_image
@@ -167,15 +168,21 @@ def main() -> int:
         ("calibrated from even with angles", {"raws": raws[even], "turns": turns[even]}),
     ):
         try:
-            res = fit_sky_rotation(cam=cam, **kwargs)
+            with warnings.catch_warnings():  # the residual is printed below
+                warnings.simplefilter("ignore", SkyRotationResidualWarning)
+                res = fit_sky_rotation(cam=cam, **kwargs)
         except UserInputError as exc:
             print(f"{label}: refused: {exc}")
             continue
         print(f"{label}: gains {np.round(res.gain, 4).tolist()}, angles "
               f"{np.round(np.degrees(res.transmission_angle), 2).tolist()} deg, efficiencies "
               f"{np.round(res.efficiency, 3).tolist()}, noise ratio {res.noise_ratio:.1f}")  # fmt: skip
-        for note in getattr(res, "notes", ()):
-            print(f"  {note}")
+        print(f"  radial shading {np.round(res.radial_gain, 3).tolist()} per rho^2 (std "
+              f"{np.round(res.radial_gain_std, 3).tolist()}), gain map "
+              f"{'written' if res.gain_map is not None else 'none'}")  # fmt: skip
+        for note in (*res.notes, res.residual_pattern):
+            if note:
+                print(f"  {note}")
         row("  scored on odd frames", cam.with_changes(**res.camera_changes()), odd)
     return 0
 
