@@ -23,7 +23,7 @@ construction, as docs/calibrate.md states:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -66,6 +66,9 @@ class TurnFit:
         and the declared noise hold).
     converged : bool
         The least-squares fit met its tolerance within ``max_iterations``.
+    radial_gain, radial_gain_std : (4,)
+        Coefficients ``c_k`` [-] of the channel gains' change with the sources' squared
+        radius (``source_radius2``) and their standard errors; zeros without it.
     """
 
     gain: FloatArray
@@ -81,6 +84,8 @@ class TurnFit:
     residuals: FloatArray
     chi2_dof: float
     converged: bool = True
+    radial_gain: FloatArray = field(default_factory=lambda: np.zeros(4))
+    radial_gain_std: FloatArray = field(default_factory=lambda: np.zeros(4))
 
 
 def base_stokes(y: ArrayLike, cam: CameraModel) -> FloatArray:
@@ -103,7 +108,9 @@ def fit_turning_polarization(
     turn: ArrayLike | None = None,
     sources: ArrayLike | None = None,
     constant_scale: bool = False,
+    scale_basis: ArrayLike | None = None,
     tilt_terms: bool = False,
+    source_radius2: ArrayLike | None = None,
     turn_start: ArrayLike | None = None,
     turn_prior_std: float | None = None,
     source_factors: ArrayLike | None = None,
@@ -128,12 +135,25 @@ def fit_turning_polarization(
         One exposure scale for all images (a stable source). Needed with known, fully
         polarized sources and fitted turns: there, the per-image scales and turns trade
         against the channel parameters (a Lorentz boost of (S0, S1, S2) keeps the light cone).
+    scale_basis : array_like, (m, p), optional
+        Exposure scales that change smoothly: ``log s_j = sum_i B_ji c_i`` with fitted
+        ``c`` (with fitted sources, relative to the first image: ``B - B[0]``). A free
+        scale per image (the default) lets turn errors trade against the channel gains'
+        differential wherever every source has the same normalised polarization (a narrow
+        field about the zenith; docs/calibrate.md#sky-rotation); a camera whose exposure is
+        fixed brightens smoothly, and the basis keeps that information.
     tilt_terms : bool
         Let each fitted source also change with the turn at the first harmonic in S0
         (``Re(b_r exp(i theta_j))``) and at the first and third in L
         (``d_r exp(i theta_j) + e_r exp(3i theta_j)``): the first-order effect of a turn axis
         tilted from the optical axis. The channel errors show at other harmonics (S0 at the
         second, L at 0 and -2), so they stay identifiable.
+    source_radius2 : array_like, (R,), optional
+        A coordinate of each source (the rings' mean squared normalised radius): the channel
+        gains then change across the sources as ``g_k (1 + c_k (rho2_r - mean rho2))``, with
+        ``c`` fitted (zero sum over the channels; the common part is the sources' S0). A
+        channel-dependent radial shading makes a camera-fixed polarization growing with the
+        field angle, which a turning source does not hide (docs/calibrate.md#sky-rotation).
     turn_start : array_like, (m,), optional
         Start values of the fitted turns [rad] (default: from the polarization, modulo pi;
         the tilt terms need them modulo 2 pi).
@@ -162,16 +182,18 @@ def fit_turning_polarization(
     start = _start_values(y_arr, cam, turn, sources, turn_start)
     if constant_scale and sources is None:
         raise ValueError("constant_scale needs known sources")
-    if tilt_terms and sources is not None:
-        raise ValueError("tilt_terms needs fitted sources")
+    basis = _scale_basis(scale_basis, constant_scale, m, sources is None)
+    if (tilt_terms or source_radius2 is not None) and sources is not None:
+        raise ValueError("tilt_terms and source_radius2 need fitted sources")
     params = _TurnParameters.of(
         cam,
         start,
         (m, n_src),
         fit_turn=turn is None,
-        constant_scale=constant_scale,
+        scale_basis=basis,
         tilt_terms=tilt_terms,
         source_factors=source_factors,
+        source_radius2=source_radius2,
     )
     x0 = params.start_vector(start)
     if y_arr.size <= x0.size:
@@ -188,6 +210,22 @@ def fit_turning_polarization(
         args=(y_arr, sig, turn_prior_std),
     )
     return _turn_fit(params, sol, y_arr)
+
+
+def _scale_basis(
+    scale_basis: ArrayLike | None, constant_scale: bool, m: int, fit_src: bool
+) -> FloatArray | None:
+    """The basis ``(m, p)`` of the log exposure scales, or None for one free scale per
+    image (the first fixed at 1 when the sources are fitted)."""
+    if constant_scale:
+        return np.ones((m, 1))
+    if scale_basis is None:
+        return None
+    basis = np.asarray(scale_basis, dtype=float).reshape(m, -1)
+    if fit_src:  # the sources take the first image's scale
+        basis = basis - basis[:1]
+        basis = basis[:, np.abs(basis).max(axis=0) > 0]
+    return basis
 
 
 @dataclass(frozen=True)
@@ -257,13 +295,14 @@ class _TurnParameters:
     m: int
     n_src: int
     fit_turn: bool
-    constant_scale: bool
+    scale_basis: FloatArray | None
     tilt_terms: bool
     n_alpha: int
     cuts: NDArray[np.int_]
     q: FloatArray
     log_eta_base: FloatArray
     factors: ComplexArray
+    radius2: FloatArray | None
 
     @classmethod
     def of(
@@ -273,19 +312,26 @@ class _TurnParameters:
         shape: tuple[int, int],
         *,
         fit_turn: bool,
-        constant_scale: bool,
+        scale_basis: FloatArray | None,
         tilt_terms: bool,
         source_factors: ArrayLike | None,
+        source_radius2: ArrayLike | None = None,
     ) -> _TurnParameters:
         """The parameters for ``shape`` = (m images, R sources)."""
         m, n_src = shape
         fit_src = start.fit_src
         n_eta = 3 if fit_src else 4
         n_alpha = 3 if (fit_turn or fit_src) else 4  # fitted sources take a common angle too
-        n_scale = 1 if constant_scale else (m - 1 if fit_src else m)
+        n_scale = (m - 1 if fit_src else m) if scale_basis is None else scale_basis.shape[1]
         n_turn = (m - 1 if fit_src else m) if fit_turn else 0
         n_tilt = 6 * n_src if tilt_terms else 0
-        sizes = [3, n_eta, n_alpha, n_scale, n_turn, 3 * n_src if fit_src else 0, n_tilt]
+        n_radial = 0 if source_radius2 is None else 3
+        sizes = [3, n_eta, n_alpha, n_scale, n_turn, 3 * n_src if fit_src else 0, n_tilt,
+                 n_radial]  # fmt: skip
+        radius2 = None
+        if source_radius2 is not None:
+            radius2 = np.asarray(source_radius2, dtype=float).reshape(n_src)
+            radius2 = radius2 - radius2.mean()
         factors = (
             np.ones((m, n_src), dtype=complex)
             if source_factors is None
@@ -297,13 +343,14 @@ class _TurnParameters:
             m,
             n_src,
             fit_turn,
-            constant_scale,
+            scale_basis,
             tilt_terms,
             n_alpha,
             np.cumsum(sizes)[:-1],
             zero_sum_basis(4),
             np.log(cam.efficiency),
             factors,
+            radius2,
         )
 
     @property
@@ -319,25 +366,31 @@ class _TurnParameters:
                 np.zeros(3),
                 np.zeros(3) if fit_src else self.log_eta_base,
                 np.zeros(self.n_alpha),
-                np.log(np.maximum(s0_scale[1:] if fit_src else s0_scale, 1e-9))
-                if not self.constant_scale
-                else np.log([max(float(np.mean(s0_scale)), 1e-9)]),
+                self._start_log_scale(s0_scale, fit_src),
                 (theta0[1:] if fit_src else theta0) if self.fit_turn else np.zeros(0),
                 start.src_x0,
                 np.zeros(self.n_tilt),
+                np.zeros(0 if self.radius2 is None else 3),
             ]
         )
+
+    def _start_log_scale(self, s0_scale: FloatArray, fit_src: bool) -> FloatArray:
+        log_s = np.log(np.maximum(s0_scale, 1e-9))
+        if self.scale_basis is None:
+            return log_s[1:] if fit_src else log_s
+        coef, *_ = np.linalg.lstsq(self.scale_basis, log_s - log_s[0] * fit_src, rcond=None)
+        return np.asarray(coef, dtype=float)
 
     def unpack(self, x: FloatArray) -> tuple[FloatArray, ...]:
         """Gains, efficiencies, angles [rad], exposure scales, turns [rad], source S0 and
         source L of the parameter vector ``x``."""
         fit_src, q, log_eta_base = self.start.fit_src, self.q, self.log_eta_base
-        a, b, d, ls, th, sv, _ = np.split(x, self.cuts)
+        a, b, d, ls, th, sv, _, _ = np.split(x, self.cuts)
         gain = np.exp(q @ a)
         eta = np.exp(log_eta_base - log_eta_base.mean() + q @ b) if fit_src else np.exp(b)
         alpha = self.cam.transmission_angle + (q @ d if self.n_alpha == 3 else d)
-        if self.constant_scale:
-            scale = np.full(self.m, np.exp(ls[0]))
+        if self.scale_basis is not None:
+            scale = np.exp(self.scale_basis @ ls)
         else:
             scale = np.exp(np.concatenate([[0.0], ls]) if fit_src else ls)
         theta = (
@@ -357,11 +410,19 @@ class _TurnParameters:
         lin = lr[None, :] * self.factors * turn_1**2  # (m, R)
         s0 = np.broadcast_to(s0r[None, :], lin.shape)
         if self.tilt_terms:
-            tb = x[self.cuts[-1] :].reshape(6, self.n_src)
+            tb = x[self.cuts[-2] : self.cuts[-1]].reshape(6, self.n_src)
             s0 = s0 + ((tb[0] + 1j * tb[1]) * turn_1).real
             lin = lin + (tb[2] + 1j * tb[3]) * turn_1 + (tb[4] + 1j * tb[5]) * turn_1**3
         pol = (lin[..., None] * np.exp(-2j * alpha)).real  # (m, R, 4)
+        if self.radius2 is not None:
+            gain = gain * (1.0 + np.outer(self.radius2, self.radial_gain(x)))  # (R, 4)
         return 0.5 * scale[:, None, None] * gain * (s0[..., None] + eta * pol)
+
+    def radial_gain(self, x: FloatArray) -> FloatArray:
+        """The radial gain coefficients ``c_k`` (4,) [-] of ``x`` (zeros without them)."""
+        if self.radius2 is None:
+            return np.zeros(4)
+        return np.asarray(self.q @ x[self.cuts[-1] :], dtype=float)
 
     def residual(
         self, x: FloatArray, y_arr: FloatArray, sig: FloatArray, turn_prior_std: float | None
@@ -372,9 +433,10 @@ class _TurnParameters:
         extra = []
         if turn_prior_std is not None and self.fit_turn:
             extra.append((theta - self.start.theta0) / turn_prior_std)
-        if self.tilt_terms:
-            # Exposure scales that wobble as 1 + Re(c exp(i theta_j)) trade exactly against
-            # the tilt terms too: fix that flat direction (the channels do not depend on it).
+        if self.tilt_terms and self.scale_basis is None:
+            # Free exposure scales that wobble as 1 + Re(c exp(i theta_j)) trade exactly
+            # against the tilt terms too: fix that flat direction (the channels do not depend
+            # on it).
             wobble = np.sum(np.log(scale) * np.exp(1j * theta)) / self.m * GAUGE_WEIGHT
             extra.append(np.array([wobble.real, wobble.imag]))
         return np.concatenate([r, *extra]) if extra else r
@@ -425,4 +487,6 @@ def _turn_fit(params: _TurnParameters, sol: OptimizeResult, y_arr: FloatArray) -
         residuals=residuals,
         chi2_dof=chi2_dof,
         converged=bool(sol.status > 0),
+        radial_gain=params.radial_gain(sol.x),
+        radial_gain_std=std_of(q, blocks[-1]) if params.radius2 is not None else np.zeros(4),
     )

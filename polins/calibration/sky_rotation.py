@@ -82,10 +82,13 @@ TURN_MISMATCH_MAX_DEG = 5.0  # given turns may differ from the ring-mean AoP by 
 GAIN_RANGE = (0.8, 1.25)  # physical channel gains relative to their mean [-]
 ANGLE_OFFSET_MAX_DEG = 10.0  # physical channel angles: offset from the labels' pattern [deg]
 EFFICIENCY_MIN = 0.5  # physical channel efficiencies [-]
-ALTERNATION_STEPS = 8  # unknown turns: channel fits and turn re-reads, at most
-TURN_SETTLED = 1e-5  # [rad] turns that move less have settled
-JOINT_ITERATIONS = 30  # the joint fit from the alternation's turns: settles in a few or wanders
+JOINT_ITERATIONS = 50  # unknown turns: the joint fit from the ring-mean AoP settles in a few
+EXPOSURE_JUMP_MAX = 0.005  # unknown turns: image brightness off a smooth drift, RMS log [-]
+TILT_STD_GROWTH_MAX = 3.0  # tilt terms that make the channel angles this much less certain: out
+TILT_TURN_MOVE_MAX_DEG = 2.0  # unknown turns: tilt terms that move the turns more fit else
+GAIN_STD_MAX = 0.005  # unknown turns: relative gain standard error above which it is refused
 RESIDUAL_RATIO_WARN = 3.0  # residual RMS over the noise model above which the fit warns [-]
+RADIAL_SIGNIFICANT = 3.0  # radial shading coefficients above this many std make a gain map
 HARMONICS = 4  # harmonics of the turn in the residual's description
 
 
@@ -100,6 +103,8 @@ __all__ = [
     "calibrate_sky_rotation",
     "check_turns",
     "degeneracy",
+    "exposure_basis",
+    "exposure_jumps",
     "fit_sky_rotation",
     "polarization_turns",
     "residual_pattern",
@@ -144,6 +149,13 @@ class SkyRotationResult:
     residual_pattern : str
         With a residual above 3 x the noise model: what it looks like (its share at each
         harmonic of the turn, and by ring radius); "" otherwise.
+    radial_gain, radial_gain_std : (4,)
+        Channel-dependent radial shading: channel k's gain changes as
+        ``g_k (1 + c_k (rho^2 - rho2_ref))`` with the squared normalised radius (the
+        coefficients ``c_k`` [-], zero sum, and their standard errors).
+    gain_map : (Hs, Ws, 4) or None
+        The per-pixel gains of that shading, over the whole image, when it is significant
+        (some ``|c_k|`` above 3 standard errors); None otherwise.
     """
 
     gain: FloatArray
@@ -161,11 +173,18 @@ class SkyRotationResult:
     provenance: dict[str, Any] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
     residual_pattern: str = ""
+    radial_gain: FloatArray = field(default_factory=lambda: np.zeros(4))
+    radial_gain_std: FloatArray = field(default_factory=lambda: np.zeros(4))
+    gain_map: FloatArray | None = None
 
     def camera_changes(self) -> dict[str, Any]:
-        """The camera-model fields this calibration sets."""
-        return channel_changes(self.gain, self.gain_std, self.transmission_angle, self.efficiency,
-                               self.transmission_angle_std, self.efficiency_std)  # fmt: skip
+        """The camera-model fields this calibration sets (with the gain map when the
+        radial shading is significant; otherwise no gain map, dropping the base camera's)."""
+        changes = channel_changes(self.gain, self.gain_std, self.transmission_angle,
+                                  self.efficiency, self.transmission_angle_std,
+                                  self.efficiency_std)  # fmt: skip
+        changes["gain_map"] = self.gain_map
+        return changes
 
 
 def ring_windows(cam: CameraModel, n_rings: int) -> tuple[FloatArray, FloatArray]:
@@ -196,6 +215,15 @@ def ring_windows(cam: CameraModel, n_rings: int) -> tuple[FloatArray, FloatArray
     x = (rho[None] - centres[:, None, None]) / step
     windows = np.where(np.abs(x) < 1.0, np.cos(0.5 * np.pi * x) ** 2, 0.0)
     return windows, centres
+
+
+def normalised_radius2(cam: CameraModel) -> FloatArray:
+    """Squared normalised radius ``((u - cx)/fx)^2 + ((v - cy)/fy)^2`` [-] of every superpixel
+    ``(Hs, Ws)``."""
+    hs, ws = cam.superpixel_shape
+    v, u = np.mgrid[0:hs, 0:ws].astype(float)
+    k = cam.camera_matrix
+    return np.asarray(((u - k[0, 2]) / k[0, 0]) ** 2 + ((v - k[1, 2]) / k[1, 1]) ** 2)
 
 
 def turn_span(turn: ArrayLike) -> float:
@@ -357,10 +385,35 @@ def residual_pattern(residuals: FloatArray, sigma: FloatArray, theta: FloatArray
     ]
     by_ring = np.sqrt(np.mean(z**2, axis=(0, 2)))
     parts = ", ".join(f"{100 * s:.0f} % at harmonic {k}" for k, s in enumerate(shares))
+    # The turn-independent part by channel pattern: 0 - 90 and 45 - 135 differences are a
+    # camera-fixed polarization (channel gains or shading that differ), the rest is common
+    # or redundant (0 + 90 - 45 - 135).
+    fixed = z.mean(axis=0)  # (R, 4)
+    pol = 0.5 * ((fixed[:, 0] - fixed[:, 2]) ** 2 + (fixed[:, 1] - fixed[:, 3]) ** 2)
+    pol_share = float(theta.size * pol.sum()) / total
     return (
-        f"residual {np.sqrt(np.mean(z**2)):.1f} x the noise model; {parts} of the turn; "
-        f"by ring radius {np.round(radius, 3).tolist()}: {np.round(by_ring, 1).tolist()} x"
+        f"residual {np.sqrt(np.mean(z**2)):.1f} x the noise model; {parts} of the turn "
+        f"(of which {100 * pol_share:.0f} % a camera-fixed polarization, 0/90 or 45/135 "
+        f"channels differing); by ring radius {np.round(radius, 3).tolist()}: "
+        f"{np.round(by_ring, 1).tolist()} x"
     )
+
+
+def exposure_basis(m: int, times_s: FloatArray | None = None) -> FloatArray:
+    """Basis ``(m, 2)`` [-] of smoothly changing log exposure scales: a quadratic in the
+    images' time (seconds, or their order when None), normalised to [-1/2, 1/2]."""
+    t = np.arange(m, dtype=float) if times_s is None else np.asarray(times_s, dtype=float)
+    t = (t - t.mean()) / max(float(np.ptp(t)), 1e-300)
+    return np.column_stack([t, t**2])
+
+
+def exposure_jumps(fit: TurnFit, y: FloatArray) -> float:
+    """RMS [-] of the per-image brightness the smooth exposure of ``fit`` leaves: each
+    image's least-squares scale of the fitted model onto the ring means ``y`` ``(m, R, 4)``,
+    in log."""
+    model = y - fit.residuals
+    ratio = np.sum(y * model, axis=(1, 2)) / np.sum(model**2, axis=(1, 2))
+    return float(np.sqrt(np.mean(np.log(ratio) ** 2)))
 
 
 @dataclass(frozen=True)
@@ -372,6 +425,8 @@ class _RingData:
     weight: FloatArray  # (R, n)
     radius: FloatArray  # (R,)
     signal: FloatArray  # (m, n, 4) [DN]
+    radius2: FloatArray  # (R,) the windows' mean squared normalised radius [-]
+    pixel_radius2: FloatArray  # (Hs, Ws) squared normalised radius of each superpixel [-]
 
 
 def _ring_data(
@@ -399,7 +454,9 @@ def _ring_data(
         else 0.0
     )
     sigma = np.broadcast_to(np.sqrt(var_pix / n_eff[None, :, None]), y.shape)
-    return _RingData(y, np.array(sigma), weight, centres[keep], signal)
+    rho2 = normalised_radius2(cam)
+    radius2 = weight @ rho2.ravel() / norm
+    return _RingData(y, np.array(sigma), weight, centres[keep], signal, radius2, rho2)
 
 
 def _sun_factors(
@@ -431,7 +488,8 @@ def _fit_known_turns(
     """Fit with the camera turns known [rad]: the fit, whether it has the tilt terms, notes
     on what the turns identify."""
     theta = -np.asarray(turns, dtype=float)
-    plain = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
+    plain = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors,
+                                     source_radius2=data.radius2)  # fmt: skip
     span = np.degrees(np.ptp(np.unwrap(turns)))
     notes = [f"with the turns known ({span:.0f} deg): gains to {np.max(plain.gain_std):.2g}, "
              f"channel angles to {_angle_std_deg(plain):.2g} deg, efficiencies to "
@@ -440,7 +498,7 @@ def _fit_known_turns(
     if not tilt_terms:
         return plain, False, notes
     tilted = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, tilt_terms=True,
-                                      source_factors=factors)  # fmt: skip
+                                      source_factors=factors, source_radius2=data.radius2)  # fmt: skip
     fit, tilt_used = _tilt_or_not(plain, tilted, span, notes)
     return fit, tilt_used, notes
 
@@ -450,11 +508,13 @@ def _tilt_or_not(
 ) -> tuple[TurnFit, bool]:
     """The fit with the tilt terms when they leave the channel angles determined, else the
     one without them, with a note saying so."""
-    if _angle_std_deg(tilted) <= ANGLE_STD_MAX_DEG:
+    limit = min(ANGLE_STD_MAX_DEG, TILT_STD_GROWTH_MAX * _angle_std_deg(plain))
+    if _angle_std_deg(tilted) <= limit:
         return tilted, True
     notes.append(
         f"turns over {span:.0f} deg cannot tell a tilt of the turn axis from the channel angles "
-        f"(their std with the tilt terms: {_angle_std_deg(tilted):.2g} deg; efficiencies "
+        f"(their std with the tilt terms: {_angle_std_deg(tilted):.2g} deg, without "
+        f"{_angle_std_deg(plain):.2g} deg; efficiencies "
         f"{np.max(tilted.efficiency_std):.2g}): fitted without them, which holds for a turn "
         "axis along the optical axis (a 0.5 deg tilt costs about 1 deg of channel angle); "
         "turn through a full circle to fit the tilt"
@@ -462,56 +522,76 @@ def _tilt_or_not(
     return plain, False
 
 
+def _joint_fit(
+    data: _RingData, cam: CameraModel, hint: FloatArray, basis: FloatArray | None,
+    factors: NDArray[np.complex128] | None,
+) -> tuple[TurnFit, str]:  # fmt: skip
+    """The fit with the turns free from ``hint``, and why it is no calibration ("" if it is)."""
+    fit = fit_turning_polarization(data.y, data.sigma, cam, turn_start=hint, scale_basis=basis,
+                                   source_factors=factors, source_radius2=data.radius2,
+                                   max_iterations=JOINT_ITERATIONS)  # fmt: skip
+    why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
+    if not fit.converged:
+        why = why or "it does not settle"
+    return fit, why
+
+
 def _fit_unknown_turns(
     data: _RingData, cam: CameraModel, hint: FloatArray, tilt_terms: bool,
-    factors: NDArray[np.complex128] | None,
+    factors: NDArray[np.complex128] | None, times_s: FloatArray | None,
 ) -> tuple[TurnFit, bool, list[str]]:  # fmt: skip
-    """Fit with the turns unknown, alternating from the ring-mean AoP ``hint``: the channels
-    fitted with the turns held, then the turns re-read from the ring-mean AoP under the
-    fitted channels, until the turns settle; then the joint fit with the turns free from
-    there. Where turn errors trade against channel errors (seen on a narrow field about the
-    zenith), the joint fit wanders, into a degenerate polarizer array (channels pairing up)
-    or without settling, and the fit is refused with the reason (give the turns). A
-    degenerate result is never returned."""
-    theta = hint
-    for _ in range(ALTERNATION_STEPS):
-        fit = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors)
-        why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
-        if why:
-            raise UserInputError(
-                f"sky-rotation: no physical channel calibration fits these images ({why}); "
-                f"{residual_pattern(fit.residuals, data.sigma, theta, data.radius)}"
-            )
-        fitted = cam.with_changes(gain=fit.gain, transmission_angle=fit.angle,
-                                  efficiency=fit.efficiency)  # fmt: skip
-        new = polarization_turns(data.y, fitted)
-        step = np.mod(new - theta + 0.5 * np.pi, np.pi) - 0.5 * np.pi
-        theta = theta + step
-        if np.abs(step).max() < TURN_SETTLED:
-            break
-    notes: list[str] = []
-    joint = fit_turning_polarization(data.y, data.sigma, cam, turn_start=theta,
-                                     source_factors=factors,
-                                     max_iterations=JOINT_ITERATIONS)  # fmt: skip
-    why = degeneracy(joint.gain, joint.angle, joint.efficiency, cam)
-    if not (joint.converged and not why):
+    """Fit with the turns unknown, from the ring-mean AoP ``hint`` (pattern turns [rad]).
+
+    First with the exposure smooth in time (:func:`exposure_basis`); when the images'
+    brightness jumps about that (an automatic exposure), with a free scale per image. A free
+    scale lets a turn error that is uneven over the turn trade against the gains'
+    differential where the sky's normalised polarization is the same across the field (a
+    narrow field about the zenith; docs/calibrate.md#sky-rotation): such a fit is refused
+    when its gains stay uncertain. A fit that does not settle or is no physical polarizer
+    array is refused with the reason. A degenerate result is never returned."""
+    basis: FloatArray | None = exposure_basis(data.y.shape[0], times_s)
+    fit, why = _joint_fit(data, cam, hint, basis, factors)
+    jumps = exposure_jumps(fit, data.y) if not why else np.inf
+    notes = []
+    if jumps <= EXPOSURE_JUMP_MAX:
+        notes.append(f"turns fitted with the exposure smooth in time (jumps about it "
+                     f"{100 * jumps:.2g} % RMS)")  # fmt: skip
+    else:
+        fit, why = _joint_fit(data, cam, hint, None, factors)
+        basis = None
+        notes.append("turns fitted with a free exposure per image (it jumps"
+                     + (f" by {100 * jumps:.2g} % RMS about a smooth drift)" if np.isfinite(jumps)
+                        else ")"))  # fmt: skip
+    if why:
         raise UserInputError(
-            "sky-rotation: the turns cannot be fitted from these images: with them free the fit "
-            + (f"goes to a degenerate array ({why})" if why else "does not settle")
-            + ", so turn errors trade against channel errors. Give the turns (turns=..., "
-            "polins calibrate sky-rotation --turns-deg)"
+            f"sky-rotation: the turns cannot be fitted from these images: with them free the fit "
+            f"is no physical polarizer array ({why}); give the turns (turns=..., polins "
+            "calibrate sky-rotation --turns-deg)"
         )
-    fit, theta = joint, joint.turn
+    gain_std = float(np.max(fit.gain_std / fit.gain))
+    if gain_std > GAIN_STD_MAX:
+        raise UserInputError(
+            f"sky-rotation: with the turns unknown the gains stay uncertain by {100 * gain_std:.2g}"
+            " %: turn errors trade against the gains' differential where the sky's polarization "
+            "is the same across the field"
+            + ("; a fixed exposure tells them apart" if basis is None else "")
+            + "; give the turns (turns=..., polins calibrate sky-rotation --turns-deg)"
+        )
     if not tilt_terms:
         return fit, False, notes
     # The tilt terms start from the fit without them, its turns on the right branch.
     branch = turns_modulo_2pi(data.signal, data.weight, cam)
-    turn_start = theta + np.pi * np.round((branch - theta) / np.pi)
+    turn_start = fit.turn + np.pi * np.round((branch - fit.turn) / np.pi)
     tilted = fit_turning_polarization(
         data.y, data.sigma, cam, tilt_terms=True, turn_start=turn_start,
-        turn_prior_std=np.radians(1.0), source_factors=factors,
+        turn_prior_std=np.radians(1.0), scale_basis=basis, source_factors=factors, source_radius2=data.radius2,
     )  # fmt: skip
-    fit, tilt_used = _tilt_or_not(fit, tilted, float(np.degrees(turn_span(-theta))), notes)
+    moved = np.degrees(np.abs(np.angle(np.exp(2j * (tilted.turn - fit.turn)))).max() / 2)
+    if moved > TILT_TURN_MOVE_MAX_DEG:
+        notes.append(f"the tilt terms moved the fitted turns by up to {moved:.2g} deg: they fit "
+                     "something other than a tilted turn axis, and are left out")  # fmt: skip
+        return fit, False, notes
+    fit, tilt_used = _tilt_or_not(fit, tilted, float(np.degrees(turn_span(-fit.turn))), notes)
     return fit, tilt_used, notes
 
 
@@ -598,7 +678,11 @@ def fit_sky_rotation(
         fit, tilt_used, notes = _fit_known_turns(data, cam, turns_arr, tilt_terms, factors)
     else:
         _check_span(np.degrees(turn_span(-hint)), 0.5 * min_span_deg)  # hopeless before a fit
-        fit, tilt_used, notes = _fit_unknown_turns(data, cam, hint, tilt_terms, factors)
+        times_s = None
+        if times_utc is not None:
+            idx = to_utc_index(times_utc)
+            times_s = np.asarray((idx - idx[0]).total_seconds(), dtype=float)
+        fit, tilt_used, notes = _fit_unknown_turns(data, cam, hint, tilt_terms, factors, times_s)
     span = np.degrees(turn_span(-fit.turn))
     _check_span(span, min_span_deg)
     why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
@@ -640,6 +724,10 @@ def _result(
             stacklevel=3,
         )
     turn = -fit.turn  # the pattern turns by -phi when the camera turns by +phi
+    gain_map = None
+    if np.any(np.abs(fit.radial_gain) > RADIAL_SIGNIFICANT * fit.radial_gain_std):
+        shading = 1.0 + (data.pixel_radius2 - data.radius2.mean())[..., None] * fit.radial_gain
+        gain_map = fit.gain * np.maximum(shading, 0.1)
     return SkyRotationResult(
         gain=fit.gain,
         gain_std=fit.gain_std,
@@ -655,6 +743,9 @@ def _result(
         noise_ratio=noise_ratio,
         notes=tuple(notes),
         residual_pattern=pattern,
+        radial_gain=fit.radial_gain,
+        radial_gain_std=fit.radial_gain_std,
+        gain_map=gain_map,
         provenance=provenance(
             "sky-rotation",
             "ring means of clear-sky images turning about the optical axis, Malus-law fit"
@@ -668,6 +759,7 @@ def _result(
             turn_span_deg=round(float(span), 1),
             residual_rms_dn=float(f"{rms:.3g}"),
             noise_ratio=float(f"{noise_ratio:.3g}"),
+            radial_gain_max=float(f"{np.abs(fit.radial_gain).max():.3g}"),
         ),
     )
 

@@ -17,7 +17,9 @@ imports nothing from ``polins.compass``; the rays come from OpenCV and the camer
 * thin clouds (:class:`ThinCloud`): Gaussian patches that brighten, depolarize and rotate
   the AoP by a few degrees;
 * the direct-sunlight term of docs/model.md §6.2 (``epsilon``), vignetting, channel-gain
-  residuals, Poisson shot noise and Gaussian read noise, a saturated sun disc.
+  residuals, a channel-dependent radial shading (each channel's gain changing with the
+  square of the field angle, as measured on a real DoFP camera: docs/calibrate.md#sky-rotation),
+  Poisson shot noise and Gaussian read noise, a saturated sun disc.
 
 :func:`random_real_sky` draws such a sky. Angles in radians; radiances in DN.
 """
@@ -110,6 +112,10 @@ class RealSky:
     gain_residual : (4,)
         Relative channel-gain errors the camera file does not know (channel order of the
         file, e.g. +-0.005).
+    channel_shading : (4,)
+        Channel-dependent radial shading: channel k's gain is ``1 + c_k theta^2`` at the
+        field angle ``theta`` [rad] (channel order of the file; a real DoFP camera:
+        0.19, -0.02, -0.19, 0.03).
     sun_disc : float
         Angular radius of the saturated sun disc [rad].
     ground : float
@@ -126,6 +132,7 @@ class RealSky:
     epsilon: float = 0.0
     vignetting: float = 0.3
     gain_residual: FloatArray = field(default_factory=lambda: np.zeros(4))
+    channel_shading: FloatArray = field(default_factory=lambda: np.zeros(4))
     sun_disc: float = float(np.radians(1.0))
     ground: float = 0.3
 
@@ -339,7 +346,8 @@ def render_real_raw(
         * gain[:, None]
         * np.stack([np.ones(4), eta * np.cos(2 * alpha), eta * np.sin(2 * alpha)], -1)
     )  # (4, 3)
-    channels = stokes @ response.T + cam.dark_offset_dn  # (Hs, Ws, 4)
+    shading = 1.0 + np.nan_to_num(theta)[..., None] ** 2 * np.asarray(sky.channel_shading)
+    channels = (stokes @ response.T) * shading + cam.dark_offset_dn  # (Hs, Ws, 4)
     channels[np.arccos(np.clip(cos_chi, -1, 1)) < sky.sun_disc] = cam.saturation_dn
     raw = np.empty(cam.shape)
     for r in range(2):
