@@ -1,17 +1,25 @@
-"""Speed of ``polins.fuse`` (the default ESKF, 10 Hz polarization yaw) beside GTSAM's C++ EKF.
+"""Speed of ``polins.fuse`` (the ESKF, 10 Hz polarization yaw) beside GTSAM's C++ EKF.
 
-Prints IMU samples per second of, in the same run and over the same IMU samples:
+Prints IMU samples per second of, in the same run and over the same IMU samples, with the
+machine's core count and load average (the machine may be shared: the ratios to the
+reference carry over, the wall times do not):
 
 * GTSAM's ``gtsam.NavStateImuEKF.predict`` (9-state navigation EKF in C++, propagation
   only) driven sample by sample from Python: the reference;
-* ``polins.fuse`` (batch path, vectorised between resets) with its default output, 10 rows
-  per second: the target is at least 0.5x the reference;
-* for a solution row per IMU sample (``output_rate_hz="imu"``): GTSAM's predict with its
-  state and covariance read after every sample, beside ``polins.fuse`` with every row
-  (each row also carries the sigmas of all states, Euler angles and a quaternion);
+* ``polins.fuse`` of the default configuration (a free vehicle, 22 states) with its default
+  output, 10 rows per second, and with a row per IMU sample (``output_rate_hz="imu"``; each
+  row also carries the sigmas of all states, Euler angles and a quaternion);
+* the same for the ground configuration (``vehicle="ground"``: non-holonomic constraint,
+  zero-velocity and zero-rate updates at rest, a 10 Hz wheel odometer);
+* GTSAM's predict with its state and covariance read after every sample (what a row per
+  sample of a solution table needs);
 * the streaming filter: ``ESKF.propagate`` once per sample, and ``ESKF.propagate_many`` on
   runs of 0.1 s (how ``polins.loop.stream`` feeds it between images) and on the whole log;
-* the floor of filterpy's ``predict`` + ``update`` alone at the 10 Hz epochs;
+* the cost of one Kalman update of the 22-state filter through filterpy (a scalar yaw and a
+  2-dof update), and the floor of filterpy's ``predict`` + ``update`` alone at the 10 Hz
+  epochs;
+* in a fresh process: the time to import ``polins.fusion`` and the first ``polins.fuse``
+  after it on a 10 s log;
 
 then the largest differences of ``polins.fuse`` and of the streaming filter to a fine-step
 reference (one covariance step per IMU interval: the ESKF's internal ``cov_step_s`` set to
@@ -22,7 +30,7 @@ With ``--graph``, also the time of the graph backend (batch solver) on the same 
 
 Run: ``python benchmarks/bench_fuse.py [--duration 120] [--imu mems-typical] [--repeat 5]
 [--graph]``.
-The box is noisy: every figure is the best of ``--repeat`` runs, interleaved round by round.
+Every figure is the best of ``--repeat`` runs, interleaved round by round.
 """
 
 from __future__ import annotations
@@ -30,6 +38,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import os
+import subprocess
+import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -167,6 +178,78 @@ def streaming(imu: pd.DataFrame, meas: pd.DataFrame, kw: dict, run_len: int | No
     return filt
 
 
+def odometer(traj, duration: float) -> pd.DataFrame:
+    """A 10 Hz wheel odometer: the true ground speed [m/s]."""
+    t = np.arange(0.05, duration, 0.1)
+    truth = traj.truth_frame()
+    speed = np.hypot(truth["ve"].to_numpy(), truth["vn"].to_numpy())
+    return pd.DataFrame({"t": t, "speed": np.interp(t, truth["t"].to_numpy(), speed)})
+
+
+def update_costs(imu: pd.DataFrame, meas: pd.DataFrame, kw: dict, repeat: int) -> dict[str, float]:
+    """Wall time [s] of one Kalman update of the default filter (its size, its state and
+    covariance after 10 s), through the filter's filterpy call: a scalar yaw and a 2-dof
+    update."""
+    import timeit
+
+    from polins.fusion.eskf.filter import kalman_update
+    from polins.fusion.measurement import Linearized
+
+    t = imu["t"].to_numpy()
+    k = int(np.searchsorted(t, t[0] + 10.0))
+    filt = streaming(imu.iloc[:k], meas[meas["t"] < t[k - 1]], kw, 0)
+    n = filt.n
+    H1 = np.zeros((1, n))
+    H1[0, 2] = 1.0
+    H2 = np.zeros((2, n))
+    H2[0, 3], H2[1, 4] = 1.0, 1.0
+    one = Linearized(np.array([1e-3]), H1, np.array([[1e-5]]), "yaw")
+    two = Linearized(np.array([1e-2, 1e-2]), H2, np.diag([1e-2, 1e-2]), "nhc")
+    from filterpy.kalman import KalmanFilter
+
+    kf = KalmanFilter(dim_x=n, dim_z=1)  # as the filter holds one
+    out = {}
+    for key, lin in (("update_1", one), ("update_2", two)):
+        runs = timeit.repeat(lambda lin=lin: kalman_update(kf, filt.x, filt.P, lin),
+                             number=200, repeat=repeat)  # fmt: skip
+        out[key] = min(runs) / 200
+    return out
+
+
+FIRST_FUSE = """
+import time, pickle, warnings
+warnings.simplefilter("ignore")
+t0 = time.perf_counter()
+import polins.fusion
+t1 = time.perf_counter()
+import polins
+imu, meas, kw = pickle.load(open({path!r}, "rb"))
+t2 = time.perf_counter()
+polins.fuse(imu, meas, **kw)
+t3 = time.perf_counter()
+polins.fuse(imu, meas, **kw)
+t4 = time.perf_counter()
+print(t1 - t0, t3 - t2, t4 - t3)
+"""
+
+
+def first_fuse(imu: pd.DataFrame, meas: pd.DataFrame, kw: dict) -> tuple[float, ...]:
+    """In a fresh process: import ``polins.fusion`` [s], the first ``polins.fuse`` after it
+    and the second [s], on the first 10 s of the log."""
+    import pickle
+    import tempfile
+
+    t = imu["t"].to_numpy()
+    short = imu[t <= t[0] + 10.0]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "log.pkl")
+        with open(path, "wb") as fh:
+            pickle.dump((short, meas[meas["t"] <= t[0] + 10.0], kw), fh)
+        out = subprocess.run([sys.executable, "-c", FIRST_FUSE.format(path=path)],
+                             capture_output=True, text=True, check=True)  # fmt: skip
+    return tuple(float(v) for v in out.stdout.split())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=120.0, help="drive length [s]")
@@ -176,9 +259,12 @@ def main() -> None:
                     help="also time the graph backend (batch) once on the same inputs")  # fmt: skip
     args = ap.parse_args()
     warnings.simplefilter("ignore", UserWarning)
+    load0 = os.getloadavg()[0]
     model = polins.load_imu(args.imu)
-    _, imu, meas = simulate(args.duration, model)
+    traj, imu, meas = simulate(args.duration, model)
+    odo = odometer(traj, args.duration)
     kw = dict(SITE, imu_model=model)
+    gkw = dict(kw, vehicle="ground", odometry=odo)
     n = len(imu)
     run_01 = max(1, round(0.1 * model.sample_rate_hz))
     times = best_times(
@@ -187,6 +273,8 @@ def main() -> None:
             "gtsam_out": gtsam_run(imu, model, readout=True),
             "all": lambda: polins.fuse(imu, meas, output_rate_hz="imu", **kw),
             "10": lambda: polins.fuse(imu, meas, **kw),
+            "g_all": lambda: polins.fuse(imu, meas, output_rate_hz="imu", **gkw),
+            "g_10": lambda: polins.fuse(imu, meas, **gkw),
             "many": lambda: streaming(imu, meas, kw, run_01),
             "whole": lambda: streaming(imu, meas, kw, 0),
         },
@@ -195,6 +283,8 @@ def main() -> None:
     times["one"] = best_time(lambda: streaming(imu, meas, kw, None), max(1, args.repeat // 3))
     rates = {key: n / value for key, value in times.items()}
     rates["floor"] = filterpy_floor(n, len(meas), args.repeat)
+    upd = update_costs(imu, meas, kw, args.repeat)
+    first = first_fuse(imu, meas, kw)
 
     # discretisation error: against a fine-step reference (one covariance step per sample)
     dt = float(imu["t"].iloc[1] - imu["t"].iloc[0])
@@ -213,15 +303,19 @@ def main() -> None:
     r_many = float(np.max(np.abs(b.sigma["att"] / a.sigma["att"] - 1.0)))
 
     n_states = build_filter(0.0, 1.0 / model.sample_rate_hz, **kw).n  # the default blocks
+    print(f"{os.cpu_count()} cores, load average {load0:.1f} at the start, "
+          f"{os.getloadavg()[0]:.1f} at the end")  # fmt: skip
     print(f"IMU {model.name}, {n} samples at {model.sample_rate_hz:g} Hz, "
           f"{len(meas)} yaw updates (10 Hz), best of {args.repeat}")  # fmt: skip
-    name_w = 62
+    name_w = 66
     print(f"{'method':{name_w}s} {'samples/s':>11s} {'vs GTSAM':>9s}")
     table = [
         ("GTSAM NavStateImuEKF.predict (C++, 9 states, no updates)", "gtsam"),
-        (f"polins.fuse, {n_states}-state ESKF + 10 Hz updates, 10 rows/s (the default)", "10"),
+        (f"polins.fuse, {n_states}-state ESKF + 10 Hz yaw, 10 rows/s (the default)", "10"),
+        ("polins.fuse, the same, a row per sample (output_rate_hz='imu')", "all"),
+        ("polins.fuse, ground (NHC, ZUPT, zero rate, 10 Hz odometer), 10 rows/s", "g_10"),
+        ("polins.fuse, ground, a row per sample", "g_all"),
         ("GTSAM predict + state() and covariance() read every sample", "gtsam_out"),
-        ("polins.fuse, same filter, a row per sample (output_rate_hz='imu')", "all"),
         ("ESKF.propagate, one call per sample (streaming)", "one"),
         (f"ESKF.propagate_many, runs of 0.1 s ({run_01} samples)", "many"),
         ("ESKF.propagate_many, the whole log in one call", "whole"),
@@ -232,6 +326,11 @@ def main() -> None:
     print(f"a row per sample vs GTSAM with its state read every sample: "
           f"{rates['all'] / rates['gtsam_out']:.2f}x")  # fmt: skip
     print(f"per-sample propagate: {1e6 / rates['one']:.1f} us/sample")
+    print(f"one Kalman update of the {n_states}-state filter through filterpy: scalar "
+          f"{1e6 * upd['update_1']:.1f} us, 2-dof {1e6 * upd['update_2']:.1f} us "
+          f"(GTSAM predict: {1e6 / rates['gtsam']:.1f} us per sample)")  # fmt: skip
+    print(f"a fresh process: import polins.fusion {first[0]:.2f} s, the first polins.fuse "
+          f"after it (10 s log) {first[1]:.3f} s, the second {first[2]:.3f} s")  # fmt: skip
     print(f"max difference to the fine-step reference: fuse {d_fuse:.1e} rad (Euler sigmas "
           f"{r_fuse:.1e} relative); propagate_many at the end {d_many:.1e} rad (attitude "
           f"sigmas {r_many:.1e})")  # fmt: skip

@@ -765,3 +765,26 @@ def test_stages_compose_to_measure():
     dark = np.zeros_like(raw)
     refused = measure(dark, CAM4, sun_n=SUN_N, rot_nb_prior=rot)
     assert not refused.ok and refused.reason.startswith("too few valid pixels")
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 6.0, 15.0])
+def test_horizon_cut_of_the_used_pixels(tilt_deg):
+    """A used pixel is at least HORIZON_MIN above the prior's level horizon: the 80 deg
+    fisheye level or tilted 6 deg lies wholly above it (the per-pixel test is skipped),
+    tilted 15 deg it does not; either way the mask is the per-pixel rule's."""
+    from polins.compass.heading import image_geometry
+    from polins.compass.image import image_stokes
+    from polins.compass.measurement import measure_options
+    from polins.compass.skypixels import HORIZON_MIN, sky_pixels
+
+    rot = Rotation.from_euler("ZYX", [0.3, np.radians(tilt_deg), 0.0])
+    raw = render(CAM4, SUN_N, rot, noise_std=1.5, rng=np.random.default_rng(4), dtype=np.uint16)
+    opt = measure_options(clouds="off")
+    geo = image_geometry(CAM4, SUN_N, rot, None)
+    img = image_stokes(raw, CAM4, opt)
+    px = sky_pixels(img, CAM4, geo, opt)
+    up = geo.mat_cl[:, 2] @ img.cache.rays.astype(np.float64)
+    want = img.valid & (up >= np.sin(HORIZON_MIN))
+    np.testing.assert_array_equal(px.valid, want)
+    below = np.count_nonzero(img.valid & (up < np.sin(HORIZON_MIN)))
+    assert (below > 1000) == (tilt_deg > 10.0)

@@ -877,3 +877,32 @@ def test_unaided_drift_monte_carlo_50_runs():
     rms, finals = _drift_runs(50, 300.0)
     print("unaided yaw rms(err/sigma)", rms, "final sigma", finals.mean())
     assert 0.7 <= rms <= 1.5
+
+
+def test_kalman_update_is_filterpys_joseph_update():
+    """The filter's update (filterpy's sequential scalar update, its vector update for more
+    rows) equals ``filterpy.kalman.update`` and keeps P symmetric positive definite."""
+    from filterpy.kalman import KalmanFilter, update
+
+    from polins.fusion.eskf.filter import kalman_update
+    from polins.fusion.measurement import Linearized
+
+    rng = np.random.default_rng(3)
+    n = 22
+    A = rng.normal(size=(n, n))
+    P = A @ A.T / n + np.eye(n)
+    x = rng.normal(size=n) * 1e-2
+    x0 = x.copy()
+    kf = KalmanFilter(dim_x=n, dim_z=1)
+    for dim in (1, 2):
+        H = rng.normal(size=(dim, n))
+        B = rng.normal(size=(dim, dim))
+        lin = Linearized(rng.normal(size=dim), H, B @ B.T + np.eye(dim), "yaw")
+        x_new, P_new = kalman_update(kf, x, P, lin)
+        x_ref, P_ref = update(x, P, lin.residual, lin.R, lin.H)
+        np.testing.assert_allclose(x_new, x_ref, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(P_new, P_ref, rtol=1e-13, atol=1e-14)
+        assert x_new.shape == (n,)
+        np.testing.assert_allclose(P_new, P_new.T, atol=1e-13)
+        assert np.all(np.linalg.eigvalsh(P_new) > 0)
+    np.testing.assert_array_equal(x, x0)  # the state is not changed in place

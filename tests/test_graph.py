@@ -856,3 +856,68 @@ def test_graph_consistent_on_mems_ugv_defaults_long():
     res = ugv_defaults([11, 12, 13], 240.0)
     for c, (rms_z, within) in res.items():
         assert 0.6 <= rms_z <= 1.5 and within >= 95.0, (c, res)
+
+
+def test_tree_marginals_equal_the_per_key_marginals():
+    """One pass over the Bayes tree gives every variable's marginal covariance as
+    GTSAM's ``marginalFactor`` does key by key (a pose-velocity chain with loop closures:
+    cliques with wide separators)."""
+    from gtsam.symbol_shorthand import V, X
+
+    from polins.fusion.graph.solvers import marginal_covariances
+
+    rng = np.random.default_rng(0)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.1)))
+    graph.add(gtsam.PriorFactorVector(V(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
+
+    def pose() -> gtsam.Pose3:
+        return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0.0, 0.1, 3)), rng.normal(0.0, 1.0, 3))
+
+    for k in range(120):
+        values.insert(X(k), pose())
+        values.insert(V(k), rng.normal(0.0, 1.0, 3))
+        if k:
+            sigmas = gtsam.noiseModel.Diagonal.Sigmas(rng.uniform(0.01, 0.2, 6))
+            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), pose(), sigmas))
+            link = gtsam.noiseModel.Isotropic.Sigma(3, 0.1)
+            graph.add(gtsam.BetweenFactorVector(V(k - 1), V(k), np.zeros(3), link))
+        if k % 7 == 3:
+            loop = gtsam.noiseModel.Isotropic.Sigma(6, 0.5)
+            graph.add(gtsam.BetweenFactorPose3(X(k), X(max(0, k - 20)), gtsam.Pose3(), loop))
+    tree = graph.linearize(values).eliminateMultifrontal(graph.orderingCOLAMD(), gtsam.EliminateQR)
+    zero = tree.optimize()
+    keys = list(values.keys())
+    every = marginal_covariances(tree, {key: zero.dim(key) for key in keys})
+    assert sorted(every) == sorted(keys)
+    for key in keys:
+        one = G.marginal_covariance_qr(tree, key)
+        np.testing.assert_allclose(every[key], one, rtol=1e-9, atol=1e-12 * np.abs(one).max())
+
+
+@pytest.mark.slow
+def test_readme_flow_graph_is_consistent_over_seeds(tmp_path):
+    """The README flow (``polins simulate --scenario ugv --imu mems-typical``, then ``polins
+    fuse --backend graph`` with the options the ESKF run takes) over 8 seeds: heading, roll
+    and pitch RMS(err/sigma) pooled in [0.8, 1.2], at least 98.5 % within 3 sigma."""
+    from polins.io import read_log
+    from polins.loop import run_log
+    from polins.sim.scenario import simulate_log
+
+    z: dict[str, list[np.ndarray]] = {c: [] for c in ANGLES}
+    for seed in range(8):
+        folder = tmp_path / f"seed{seed}"
+        simulate_log(folder, scenario="ugv", imu="mems-typical", seed=seed, progress=False)
+        log = read_log(folder / "manifest.toml")
+        sol = run_log(log, backend="graph", workers=1, progress=False).solution
+        sol = sol[np.isfinite(sol["yaw"].to_numpy())]
+        t = sol["t"].to_numpy()
+        for c in ANGLES:
+            truth = np.interp(t, log.truth["t"], np.unwrap(log.truth[c].to_numpy()))
+            err = wrap_angle(sol[c].to_numpy() - truth)
+            z[c].append(err / sol[f"{c}_std"].to_numpy())
+    for c in ANGLES:
+        zc = np.concatenate(z[c])
+        rms, within = float(np.sqrt(np.mean(zc**2))), float(np.mean(np.abs(zc) < 3.0))
+        print(f"{c}: RMS(err/sigma) {rms:.2f}, {100 * within:.1f} % within 3 sigma")
+        assert 0.8 <= rms <= 1.2 and within >= 0.985, (c, rms, within)

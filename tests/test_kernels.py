@@ -9,9 +9,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from polins.compass.eigen import eigen_level_rows, weighted_residuals
+from polins.compass.image import fill_invalid
 from polins.compass.kernels import compiled, dot_rows, moment
+from polins.compass.lens import evector_rows, lens_basis_rows
 from polins.compass.prediction import doubled_prediction, image_plane_evector, pixel_data
+from polins.compass.sectors import SectorRuns, eigen_sandwich_sums
 from polins.compass.selection import Selection, select_pixels, selection_mask
+from polins.compass.zenith import MIRROR_SECTORS
 
 
 def _numpy_selection(data, select, sun_c, n1, n2, e2):
@@ -156,3 +161,100 @@ def test_compiled_normal_equations_match_numpy(zenith, sky, weighted, p_min):
     # without sectors: one group, the same sums
     one, _ = ml_pass_sums(data, theta, zenith, mat_cl, select, model, None)
     np.testing.assert_allclose(one[0], group_sums.sum(axis=0), rtol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("model", ["projection", "meridian"])
+@pytest.mark.parametrize("weights", ["per pixel", "common", "equal"])
+def test_compiled_evectors_are_bit_identical(dtype, model, weights):
+    """The eigen solution's E-vectors and weights (one compiled pass) are numpy's, bit for
+    bit, with zero-polarization and negative-S1 pixels; the moment is their float64 sum."""
+    rng = np.random.default_rng(11)
+    n = 20_000
+    s1 = rng.normal(0.0, 30.0, n).astype(dtype)
+    s2 = rng.normal(0.0, 30.0, n).astype(dtype)
+    s1[::97], s2[::97] = 0.0, 0.0
+    rays = rng.normal(size=(3, n))
+    rays[2] = np.abs(rays[2]) + 0.5
+    rays /= np.linalg.norm(rays, axis=0)
+    basis = np.ascontiguousarray(lens_basis_rows(rays, model), dtype=dtype)
+    inv = {"per pixel": rng.uniform(0.5, 2.0, n).astype(dtype), "common": 0.37, "equal": 1.0}
+    mask = rng.random(n) < 0.8
+    weighted = weights != "equal"
+    e = evector_rows(s1, s2, basis, model == "projection")
+    norm2 = e[0] * e[0]
+    norm2 += e[1] * e[1]
+    norm2 += e[2] * e[2]
+    norm2 += e.dtype.type(1e-30)
+    omega = (s1 * s1 + s2 * s2) * inv[weights] / norm2 if weighted else 1.0 / norm2
+    omega *= mask
+    mat_lc = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    sol, e_got, omega_got = eigen_level_rows(s1, s2, inv[weights], basis, model == "projection",
+                                             mat_lc, weighted, mask=mask)  # fmt: skip
+    assert e_got.dtype == dtype and omega_got.dtype == dtype
+    np.testing.assert_array_equal(e_got, e)
+    np.testing.assert_array_equal(omega_got, omega)
+    assert sol.n == np.count_nonzero(omega)
+    e64, omega64 = e.astype(np.float64), omega.astype(np.float64)
+    want = np.einsum("in,jn->ij", e64 * omega64, e64)
+    np.testing.assert_allclose(moment(e_got, omega_got), want, rtol=1e-12)
+    np.testing.assert_allclose(sol.weight_sum, np.trace(want), rtol=1e-12)
+
+
+def test_compiled_mirror_groups_match_angles():
+    """The mirror-pair jackknife's groups (signs of cross products) are those of the
+    angle between each horizontal ray and the sun's azimuth, in sectors of pi/8."""
+    rng = np.random.default_rng(12)
+    k = 5000
+    contrib = rng.normal(size=(2, k))
+    ray_l = rng.normal(size=(2, k))
+    azimuth = 0.7
+    c, s = np.cos(azimuth), np.sin(azimuth)
+    rel = np.abs(np.arctan2(c * ray_l[1] - s * ray_l[0], c * ray_l[0] + s * ray_l[1]))
+    group = np.minimum((rel * (MIRROR_SECTORS / np.pi)).astype(np.intp), MIRROR_SECTORS - 1)
+    want = np.stack([np.bincount(group, w, MIRROR_SECTORS) for w in contrib])
+    b = np.arange(1, MIRROR_SECTORS) * np.pi / MIRROR_SECTORS
+    got = np.zeros((3, MIRROR_SECTORS))
+    compiled("mirror_sums")(contrib, ray_l, k, np.array([c, s]),
+                            np.array([np.cos(b), np.sin(b)]), got)  # fmt: skip
+    np.testing.assert_allclose(got[:2], want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(got[2], np.bincount(group, minlength=MIRROR_SECTORS))
+
+
+def test_compiled_sandwich_sums_match_numpy():
+    """The sandwich middle and the jackknife run sums of one compiled pass are those of the
+    weighted residuals, the moment and the run sums computed apart, to float64 rounding."""
+    rng = np.random.default_rng(13)
+    n = 30_000
+    e = rng.normal(size=(3, n)).astype(np.float32)
+    omega = rng.uniform(0.0, 2.0, n).astype(np.float32)
+    sun_c = np.array([0.3, -0.4, 0.866])
+    starts = np.r_[0, np.cumsum(rng.integers(1, 200, 300))]
+    starts = starts[starts < n]
+    runs = SectorRuns(starts, np.zeros(starts.size, dtype=np.intp), 1, np.zeros(1),
+                      np.zeros(1, dtype=np.intp))  # fmt: skip
+    middle, run_sums = eigen_sandwich_sums(e, omega, sun_c, runs)
+    e64, omega64 = e.astype(np.float64), omega.astype(np.float64)
+    wr = weighted_residuals(e, omega, sun_c)
+    np.testing.assert_allclose(middle, np.einsum("in,jn->ij", e64 * wr * wr, e64), rtol=1e-11)
+    want = np.add.reduceat(np.vstack([e64 * wr, omega64]), starts, axis=1).T
+    np.testing.assert_allclose(run_sums, want, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_fill_matches_numpy(dtype):
+    """The invalid pixels' harmless data (one compiled pass) are numpy's masked copies."""
+    rng = np.random.default_rng(14)
+    n = 10_000
+    rows = rng.normal(size=(4, n)).astype(dtype)
+    inv = rng.uniform(0.5, 2.0, n).astype(dtype)
+    valid = rng.random(n) < 0.7
+    want_rows, want_inv, three = rows.copy(), inv.copy(), rows[:3].copy()
+    np.copyto(want_rows[:3], np.array([[1.0], [0.0], [0.0]], dtype=dtype), where=~valid)
+    np.copyto(want_rows[3], dtype(0.0), where=~valid)
+    np.copyto(want_inv, dtype(1.0), where=~valid)
+    fill_invalid(rows, inv, valid)
+    np.testing.assert_array_equal(rows, want_rows)
+    np.testing.assert_array_equal(inv, want_inv)
+    fill_invalid(three, 1.0, valid)  # three rows, a common weight
+    np.testing.assert_array_equal(three, want_rows[:3])

@@ -153,7 +153,7 @@ def test_data_faults_return_false_and_report_events_never_raise():
 def test_result_does_not_depend_on_the_executor():
     imu = static_imu(3.0)
     headings = []
-    for executor in ("inline", "thread"):
+    for executor in ("inline", "thread", "process"):
         nav = stream(executor=executor)
         feed(nav, imu, 1.1)
         for t_img in (1.2, 1.4, 1.6, 1.8):
@@ -169,6 +169,7 @@ def test_result_does_not_depend_on_the_executor():
     # correlation with the tilt (docs/filter.md §7.1) carries that into the heading:
     # measured 1.7e-8 deg apart (2e-9 without the correlation)
     assert headings[0] == pytest.approx(headings[1], abs=1e-7)
+    assert headings[2] == headings[1]  # the same schedule as the thread's, other workers
 
 
 def test_buffers_are_bounded_and_count_what_they_drop():

@@ -77,12 +77,6 @@ def test_likelihood_peaks_near_the_true_floor(drive):
     assert nll(FLOOR_DEG) < min(nll(FLOOR_DEG / 3), nll(FLOOR_DEG * 3)) - 100
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known defect: the standstill detector's epochs (zero-rate updates) follow the "
-    "tuned gyro_arw, so the likelihood jumps between candidates and the search keeps every "
-    "parameter at its start (docs/tuning.md)",
-)
 def test_tune_recovers_identifiable_and_names_unidentifiable(drive):
     imu, meas, config = drive
     model = config.imu

@@ -3,6 +3,7 @@ graph's factor on the same model (docs/filter.md §12, "Zero angular rate")."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import gtsam
@@ -139,3 +140,33 @@ def test_zero_rate_item_kind_orders_with_zero_velocity():
     a = MeasurementItem(1.0, "zaru", 1e-4, gyro_b=np.zeros(3))
     b = MeasurementItem(1.0, "nhc", 0.05)
     assert a.order < b.order
+
+
+def test_a_held_detector_model_keeps_the_rest_epochs_and_the_sigma_follows_the_arw():
+    """``standstill_model`` (a tuning holds its start model) fixes which epochs are at rest
+    while the filter's ARW changes; the zero-rate sigma is the filter's ARW / sqrt(m dt)."""
+    dt = 1.0 / MEMS.sample_rate_hz
+    rng = np.random.default_rng(3)
+    n = 4000
+    t = np.arange(n) * dt
+    turn = np.where((t > 5.0) & (t < 12.0), math.radians(0.4), 0.0)  # a slow turn in between
+    gyro = rng.normal(0.0, MEMS.gyro_arw / math.sqrt(dt), (n, 3))
+    gyro[:, 2] += turn
+    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, MEMS.accel_vrw / math.sqrt(dt), (n, 3))
+    base = FuseConfig.from_options(imu_model=MEMS, vehicle="ground")
+    wide = dataclasses.replace(MEMS, gyro_arw=4.0 * MEMS.gyro_arw)
+
+    def rest(cfg: FuseConfig) -> tuple[np.ndarray, set[float]]:
+        items = [it for _, it in VehicleAiding(cfg, dt).items(t, gyro, accel, 0)]
+        zaru = np.array([it.t for it in items if it.kind == "zaru"])
+        assert np.array_equal(zaru, [it.t for it in items if it.kind == "zupt"])
+        return zaru, {it.std for it in items if it.kind == "zaru"}
+
+    t_base, std_base = rest(base)
+    t_free, _ = rest(base.replace(imu_model=wide))  # the detector follows the model ...
+    t_held, std_held = rest(base.replace(imu_model=wide, standstill_model=MEMS))  # ... or not
+    assert t_free.size > t_base.size + 10  # a 4x ARW takes the slow turn for rest
+    np.testing.assert_array_equal(t_held, t_base)
+    assert len(std_base) == len(std_held) == 1
+    assert std_held.pop() == pytest.approx(4.0 * std_base.pop())
+    assert base.replace(standstill_model=MEMS).replace(gate_prob=0.99).standstill_imu is MEMS

@@ -15,8 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from polins.compass.kernels import dot, moment
-from polins.compass.lens import evector_rows
+from polins.compass.kernels import compiled, moment
 
 FloatArray = NDArray[np.float64]
 
@@ -117,26 +116,25 @@ def eigen_level_rows(
     solution : EigenSolution
         In the level frame.
     e : (3, n)
-        Unnormalised camera-frame E-vectors, float64.
+        Unnormalised camera-frame E-vectors, in the rows' dtype.
     omega : (n,)
-        Their weights ``w/|e|^2`` (0 for masked pixels), float64.
+        Their weights ``w/|e|^2`` (0 for masked pixels), in the rows' dtype.
 
     The moment matrix is summed in float64: its smallest eigenvalue is ~0, and float32
-    accumulation over 4e5 pixels would move the eigenvector by ~1e-5 rad.
+    accumulation over 4e5 pixels would move the eigenvector by ~1e-5 rad. E-vectors and
+    weights come from one compiled pass (:func:`polins.compass.kernels.evector_pass`);
+    the weight sum is the moment's trace ``sum omega_i |e_i|^2`` (pixels without
+    polarization, ``e = 0``, add nothing to it).
     """
-    e = evector_rows(s1, s2, basis, projection)
-    norm2 = e[0] * e[0]
-    norm2 += e[1] * e[1]
-    norm2 += e[2] * e[2]
-    norm2 += e.dtype.type(1e-30)  # sanitised invalid pixels have e = 0
-    omega = (s1 * s1 + s2 * s2) * inv_sigma2 / norm2 if weighted else 1.0 / norm2
-    if mask is not None:
-        omega *= mask
-    n = int(np.count_nonzero(omega))
-    e = e.astype(np.float64, copy=False)
-    omega = omega.astype(np.float64, copy=False)
+    dtype = s1.dtype
+    inv = np.ascontiguousarray(inv_sigma2, dtype=dtype).reshape(-1)
+    no_mask = np.zeros(0, dtype=bool)
+    flags = np.array([projection, weighted, 1e-30, 1.0, 0.0], dtype=dtype)
+    e, omega = np.empty((3, s1.size), dtype=dtype), np.empty(s1.size, dtype=dtype)
+    n = compiled("evector_pass")(s1, s2, inv, basis, no_mask if mask is None else mask, flags,
+                                 e, omega)  # fmt: skip
     moment_c = moment(e, omega)
-    sol = eigen_from_moment(mat_lc @ moment_c @ mat_lc.T, dot(omega, norm2), n)
+    sol = eigen_from_moment(mat_lc @ moment_c @ mat_lc.T, float(np.trace(moment_c)), n)
     return sol, e, omega
 
 

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtri
 
+from polins.compass.kernels import compiled
 from polins.compass.lens import CameraConstants, camera_constants, subsample
 from polins.compass.measurement import MeasureOptions
 from polins.compass.polarimetry import StokesCalibration, stokes_calibration, stokes_image
@@ -119,12 +120,8 @@ def fill_invalid(rows: NDArray, inv_sigma_l2: NDArray | float, valid: NDArray) -
         Inverse noise variances [1/DN^2] (a scalar is left alone).
     valid : (n,) bool
     """
-    invalid = ~valid
-    np.copyto(rows[:3], np.array([[1.0], [0.0], [0.0]], dtype=rows.dtype), where=invalid)
-    if rows.shape[0] > 3:
-        np.copyto(rows[3], rows.dtype.type(0.0), where=invalid)
-    if isinstance(inv_sigma_l2, np.ndarray):
-        np.copyto(inv_sigma_l2, inv_sigma_l2.dtype.type(1.0), where=invalid)
+    inv = inv_sigma_l2 if isinstance(inv_sigma_l2, np.ndarray) else np.zeros(0, rows.dtype)
+    compiled("fill_pass")(rows, inv, valid)  # one pass
 
 
 def image_stokes(

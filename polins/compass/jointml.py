@@ -335,6 +335,7 @@ def gauss_newton(
     sectors: SectorRuns | None = None,
     sector_h: FloatArray | None = None,
     sky: SkyModel | None = None,
+    stop_correlation: float = 1.0,
 ) -> tuple[MLSolution, NDArray | None]:
     """Gauss-Newton (IRLS for robust losses) on ``data``; with ``max_iterations=1`` it is the
     single full-set step of the subsample-then-full scheme (docs/measurement.md). ``select``
@@ -350,11 +351,14 @@ def gauss_newton(
     leave-one-group-out deviations of the last accepted linearization
     (docs/measurement.md §12). ``sector_h`` (e.g. a subsample solution's) replaces the
     groups' normal matrices, scaled to this solution's ``J^T J``: only ``b_g`` is summed.
+
+    A linearization whose :func:`epsilon_correlation` exceeds ``stop_correlation`` ends the
+    iteration there (not converged, no jackknife): the solution is not separable, and the
+    iterations of an ill-conditioned problem would not change that (docs/measurement.md §11).
     """
     theta = np.asarray(theta0, dtype=float).copy()
     theta[-1] = min(max(theta[-1], -epsilon_bound), epsilon_bound)
-    converged = False
-    it = 0
+    converged, it = False, 0
     k_sun = 1 if zenith is not None else 2
     r = np.zeros(0)
     jtj = np.eye(theta.size)
@@ -400,6 +404,9 @@ def gauss_newton(
             jtj_inv = np.linalg.inv(jtj)
         except np.linalg.LinAlgError:
             break
+        if stop_correlation < 1.0 and epsilon_correlation(jtj_inv) > stop_correlation:
+            sectors = None  # not separable: no jackknife
+            break
         theta_prev, halvings = theta, 0
         theta = theta + step
         if not -epsilon_bound <= theta[-1] <= epsilon_bound:
@@ -408,8 +415,7 @@ def gauss_newton(
         if _step_converged(step, rss, n, jtj_inv, k_sun, tol, tol_sigma):
             converged = True
             break
-    dof = theta.size
-    cov, rms = _covariance(loss, r, scale, n, dof, rss, jtj, jtr)
+    cov, rms = _covariance(loss, r, scale, n, theta.size, rss, jtj, jtr)
     sun_l, _ = _sun_derivatives(theta, zenith)
     theta[0] = float(wrap_angle(theta[0]))
     jackknife = share = sector_h_out = None
@@ -417,9 +423,8 @@ def gauss_newton(
         jackknife, share, sector_h_out = _sector_jackknife(
             accepted, sectors, sector_h, zenith, mat_cl, jtj, jtr, post_scale
         )
-    solution = MLSolution(theta, np.asarray(cov, dtype=np.float64), sun_l, rms, it, converged, n,
-                          jackknife, share, sector_h_out, k_sun)  # fmt: skip
-    return solution, mask
+    return MLSolution(theta, np.asarray(cov, dtype=np.float64), sun_l, rms, it, converged, n,
+                      jackknife, share, sector_h_out, k_sun), mask  # fmt: skip
 
 
 def _halved(theta_prev: NDArray, step: NDArray, epsilon_bound: float) -> tuple[NDArray, NDArray]:

@@ -39,9 +39,10 @@ def dot_rows(v: NDArray, rows: NDArray) -> NDArray:
 
 def moment(e: NDArray, omega: NDArray) -> NDArray:
     """Weighted moment ``sum_i omega_i e_i e_i^T`` ``(3, 3)`` of component-first vectors
-    ``e`` ``(3, n)`` with weights ``omega`` ``(n,)``, in float64 (float64 input: one
-    compiled pass, :func:`moment_pass`)."""
-    if e.dtype == np.float64 and omega.dtype == np.float64:
+    ``e`` ``(3, n)`` with weights ``omega`` ``(n,)``, in float64 (float32 or float64 input:
+    one compiled pass, :func:`moment_pass`, float32 values cast to float64)."""
+    floats = (np.float32, np.float64)
+    if e.dtype in floats and omega.dtype in floats:
         out = np.empty((3, 3))
         compiled("moment_pass")(e, omega, out)
         return out
@@ -163,6 +164,24 @@ def stokes_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
                 gx = zero
             gy = s0_row[below[q]] - s[q]
             ok_run[q] &= gx * gx + gy * gy < g2 * (s[q] * s[q])
+
+
+def fill_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    rows: NDArray, inv: NDArray, valid: NDArray
+) -> None:
+    """Harmless data for the invalid pixels in one pass, in place
+    (:func:`polins.compass.image.fill_invalid`): ``rows (3 or 4, n)`` get (1, 0, 0[, 0]),
+    ``inv (n,)`` (or ``(0,)`` for none) gets 1, where ``valid (n,)`` is False."""
+    four, per_pixel = rows.shape[0] > 3, inv.size > 0
+    for i in range(valid.size):
+        if not valid[i]:
+            rows[0, i] = 1.0
+            rows[1, i] = 0.0
+            rows[2, i] = 0.0
+            if four:
+                rows[3, i] = 0.0
+            if per_pixel:
+                inv[i] = 1.0
 
 
 def kept(  # pragma: no cover - compiled by numba, which coverage cannot trace
@@ -408,11 +427,12 @@ def ml_pass(  # pragma: no cover - compiled by numba, which coverage cannot trac
 
 def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> None:  # pragma: no cover
     """``out (3, 3) = sum_i omega_i e_i e_i^T`` of ``e (3, n)``, ``omega (n,)`` in one pass
-    (a float64 reduction: compiled with reassociation, i.e. summed in vector lanes)."""
+    (a float64 reduction: compiled with reassociation, i.e. summed in vector lanes; float32
+    input is cast to float64 first)."""
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0
     for i in range(omega.size):
-        w = omega[i]
-        x, y, z = e[0, i], e[1, i], e[2, i]
+        w = np.float64(omega[i])
+        x, y, z = np.float64(e[0, i]), np.float64(e[1, i]), np.float64(e[2, i])
         wx, wy = w * x, w * y
         a00 += wx * x
         a01 += wx * y
@@ -424,6 +444,63 @@ def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> None:  # pragma: no
     out[0, 1] = out[1, 0] = a01
     out[0, 2] = out[2, 0] = a02
     out[1, 2] = out[2, 1] = a12
+
+
+def evector_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    s1: NDArray,
+    s2: NDArray,
+    inv: NDArray,
+    basis: NDArray,
+    mask: NDArray,
+    flags: NDArray,
+    e: NDArray,
+    omega: NDArray,
+) -> int:
+    """The E-vectors and weights of the eigen solution in one pass
+    (:func:`polins.compass.eigen.eigen_level_rows`): the numpy expressions of
+    :func:`polins.compass.lens.evector_rows` and of the weights, operation for operation in
+    the rows' dtype (bit-identical to them).
+
+    ``s1, s2 (n,)`` the Stokes rows; ``inv`` ``1/sigma_L^2`` ``(n,)`` or ``(1,)`` in their
+    dtype; ``basis (3, 2, n)`` the inverse lens basis; ``mask (n,)`` bool, or ``(0,)`` for
+    all pixels; ``flags`` = (projection, weighted, 1e-30, 1, 0) in the rows' dtype. Writes the
+    unnormalised E-vectors ``e (3, n)`` and the weights ``omega (n,)`` (``w/|e|^2``, 0 for
+    masked pixels) in the rows' dtype (float32 halves the pass's memory traffic; the sums
+    that use them cast to float64) and returns the number of non-zero weights."""
+    projection, weighted = flags[0] != 0, flags[1] != 0
+    tiny, one, zero = flags[2], flags[3], flags[4]
+    per_pixel, masked = inv.size > 1, mask.size > 0
+    w = inv[0]
+    count = 0
+    for i in range(s1.size):
+        a, b = s1[i], s2[i]
+        p2 = a * a + b * b
+        p = np.sqrt(p2)
+        pos = a >= 0
+        h1 = p + a if pos else b
+        h2 = b if pos else p - a
+        if projection:
+            e0, e1 = h1, h2
+        else:
+            e0 = basis[0, 0, i] * h1 + basis[0, 1, i] * h2
+            e1 = basis[1, 0, i] * h1 + basis[1, 1, i] * h2
+        e2 = basis[2, 0, i] * h1 + basis[2, 1, i] * h2
+        norm2 = e0 * e0
+        norm2 += e1 * e1
+        norm2 += e2 * e2
+        norm2 += tiny
+        if weighted:
+            if per_pixel:
+                w = inv[i]
+            om = p2 * w / norm2
+        else:
+            om = one / norm2
+        if masked:
+            om = om * (one if mask[i] else zero)
+        e[0, i], e[1, i], e[2, i] = e0, e1, e2
+        omega[i] = om
+        count += om != 0
+    return count
 
 
 def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cannot trace
@@ -445,6 +522,45 @@ def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cann
             s2 += e[2, i] * w
             s3 += omega[i]
         out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
+
+
+def sandwich_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    e: NDArray, omega: NDArray, sun_c: NDArray, starts: NDArray, middle: NDArray, out: NDArray
+) -> None:
+    """The eigen solution's sandwich middle and jackknife run sums in one pass, in float64
+    (:func:`polins.compass.sectors.eigen_sandwich_sums`): per pixel the weighted residual
+    ``wr = (s . e) omega`` in the order of :func:`polins.compass.eigen.weighted_residuals`
+    (bit-identical), ``middle (3, 3) = sum wr^2 e e^T`` and, per run of pixels beginning at
+    ``starts (m,)`` (``starts[0] = 0``, the last run ends at ``n``), ``out (m, 4)`` =
+    (``sum wr e`` (3), ``sum omega``) as :func:`eigen_run_sums`. Float32 ``e`` and
+    ``omega`` are cast to float64 first; sums in numpy's pixel order (no reassociation)."""
+    n, m = omega.size, starts.size
+    sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for r in range(m):
+        end = starts[r + 1] if r + 1 < m else n
+        s0 = s1 = s2 = s3 = 0.0
+        for i in range(starts[r], end):
+            x, y, z = np.float64(e[0, i]), np.float64(e[1, i]), np.float64(e[2, i])
+            om = np.float64(omega[i])
+            w = (sx * x + sy * y + sz * z) * om
+            s0 += x * w
+            s1 += y * w
+            s2 += z * w
+            s3 += om
+            w2 = w * w
+            wx, wy = w2 * x, w2 * y
+            a00 += wx * x
+            a01 += wx * y
+            a02 += wx * z
+            a11 += wy * y
+            a12 += wy * z
+            a22 += (w2 * z) * z
+        out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
+    middle[0, 0], middle[1, 1], middle[2, 2] = a00, a11, a22
+    middle[0, 1] = middle[1, 0] = a01
+    middle[0, 2] = middle[2, 0] = a02
+    middle[1, 2] = middle[2, 1] = a12
 
 
 ZENITH_SUMS = 13
@@ -469,58 +585,85 @@ def zenith_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
     ``(S0, 0), (0, S0), (S1, -S2), (S2, S1)``."""
     n = valid.size
     per_pixel = inv.size > 1
-    acc = np.zeros(ZENITH_SUMS)
+    # The rotation as scalars, the sums in registers (the compiler cannot keep them there
+    # past the stores into the output rows).
+    l00, l01, l02 = mat_lc[0, 0], mat_lc[0, 1], mat_lc[0, 2]
+    l10, l11, l12 = mat_lc[1, 0], mat_lc[1, 1], mat_lc[1, 2]
+    l20, l21, l22 = mat_lc[2, 0], mat_lc[2, 1], mat_lc[2, 2]
+    a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = a11 = a12 = 0.0
     k = 0
     for i in range(n):
-        up = mat_lc[2, 0] * rays[0, i] + mat_lc[2, 1] * rays[1, i] + mat_lc[2, 2] * rays[2, i]
-        if not valid[i] or not up > cos_edge:
-            mask[i] = False
+        rx, ry, rz = rays[0, i], rays[1, i], rays[2, i]
+        ok = valid[i] and l20 * rx + l21 * ry + l22 * rz > cos_edge
+        mask[i] = ok
+        if not ok:
             continue
-        mask[i] = True
-        h1x = h1y = h2x = h2y = 0.0
-        for j in range(3):
-            h1x += mat_lc[0, j] * basis[j, 0, i]
-            h1y += mat_lc[1, j] * basis[j, 0, i]
-            h2x += mat_lc[0, j] * basis[j, 1, i]
-            h2y += mat_lc[1, j] * basis[j, 1, i]
-        norm = 0.5 * (h1x * h1x + h1y * h1y + h2x * h2x + h2y * h2y)
-        q1x = 0.5 * (h1x * h1x - h1y * h1y - h2x * h2x + h2y * h2y) / norm
-        q1y = (h1x * h1y - h2x * h2y) / norm
-        q2x = (h1x * h2x - h1y * h2y) / norm
-        q2y = (h1x * h2y + h2x * h1y) / norm
+        b00, b01, b10, b11 = basis[0, 0, i], basis[0, 1, i], basis[1, 0, i], basis[1, 1, i]
+        b20, b21 = basis[2, 0, i], basis[2, 1, i]
+        h1x = l00 * b00 + l01 * b10 + l02 * b20
+        h1y = l10 * b00 + l11 * b10 + l12 * b20
+        h2x = l00 * b01 + l01 * b11 + l02 * b21
+        h2y = l10 * b01 + l11 * b11 + l12 * b21
+        inv_norm = 2.0 / (h1x * h1x + h1y * h1y + h2x * h2x + h2y * h2y)  # one division
+        q1x = 0.5 * (h1x * h1x - h1y * h1y - h2x * h2x + h2y * h2y) * inv_norm
+        q1y = (h1x * h1y - h2x * h2y) * inv_norm
+        q2x = (h1x * h2x - h1y * h2y) * inv_norm
+        q2y = (h1x * h2y + h2x * h1y) * inv_norm
         w = float(inv[i] if per_pixel else inv[0])
         s0, s1, s2 = float(est[0, i]), float(est[1, i]), float(est[2, i])
         cx = w * (q1x * s1 + q2x * s2)
         cy = w * (q1y * s1 + q2y * s2)
         contrib[0, k] = cx
         contrib[1, k] = cy
-        ray_l[0, k] = (
-            mat_lc[0, 0] * rays[0, i] + mat_lc[0, 1] * rays[1, i] + mat_lc[0, 2] * rays[2, i]
-        )
-        ray_l[1, k] = (
-            mat_lc[1, 0] * rays[0, i] + mat_lc[1, 1] * rays[1, i] + mat_lc[1, 2] * rays[2, i]
-        )
+        ray_l[0, k] = l00 * rx + l01 * ry + l02 * rz
+        ray_l[1, k] = l10 * rx + l11 * ry + l12 * rz
         k += 1
-        acc[0] += cx
-        acc[1] += cy
-        acc[2] += w * (q1x * q1x + q2x * q2x)
-        acc[3] += w * (q1x * q1y + q2x * q2y)
-        acc[4] += w * (q1y * q1y + q2y * q2y)
+        a0 += cx
+        a1 += cy
+        a2 += w * (q1x * q1x + q2x * q2x)
+        a3 += w * (q1x * q1y + q2x * q2y)
+        a4 += w * (q1y * q1y + q2y * q2y)
         ws0 = w * s0
-        acc[5] += q1x * ws0
-        acc[6] += q1y * ws0
-        acc[7] += q2x * ws0
-        acc[8] += q2y * ws0
-        acc[9] += w * (q1x * s1 - q2x * s2)
-        acc[10] += w * (q1y * s1 - q2y * s2)
-        acc[11] += w * (q1x * s2 + q2x * s1)
-        acc[12] += w * (q1y * s2 + q2y * s1)
-    for j in range(ZENITH_SUMS):
-        sums[j] = acc[j]
+        a5 += q1x * ws0
+        a6 += q1y * ws0
+        a7 += q2x * ws0
+        a8 += q2y * ws0
+        a9 += w * (q1x * s1 - q2x * s2)
+        a10 += w * (q1y * s1 - q2y * s2)
+        a11 += w * (q1x * s2 + q2x * s1)
+        a12 += w * (q1y * s2 + q2y * s1)
+    sums[0], sums[1], sums[2], sums[3], sums[4] = a0, a1, a2, a3, a4
+    sums[5], sums[6], sums[7], sums[8] = a5, a6, a7, a8
+    sums[9], sums[10], sums[11], sums[12] = a9, a10, a11, a12
     return k
 
 
+def mirror_sums(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    contrib: NDArray, ray_l: NDArray, k: int, azimuth: NDArray, bounds: NDArray, out: NDArray
+) -> None:
+    """Per-group sums of the mirror-pair jackknife (:func:`polins.compass.zenith.zenith_mean`)
+    in one pass over the first ``k`` columns of ``contrib (2, n)`` and ``ray_l (2, n)``:
+    ``out (3, G)`` += (``sum contrib`` (2), pixel count) of group ``g``, the number of
+    boundaries ``bounds (2, G - 1)`` = (cos b_j, sin b_j) (ascending angles b_j in
+    ``(0, pi)``) that the angle between the horizontal ray and the sun's azimuth
+    ``azimuth`` = (cos A, sin A) reaches (no trigonometry: a sign of a cross product)."""
+    c, s = azimuth[0], azimuth[1]
+    n_bounds = bounds.shape[1]
+    for i in range(k):
+        x = c * ray_l[0, i] + s * ray_l[1, i]
+        y = abs(c * ray_l[1, i] - s * ray_l[0, i])
+        g = 0
+        for j in range(n_bounds):
+            if y * bounds[0, j] - x * bounds[1, j] >= 0.0:
+                g += 1
+        out[0, g] += contrib[0, i]
+        out[1, g] += contrib[1, i]
+        out[2, g] += 1.0
+
+
 _REDUCTIONS = ("moment_pass", "ml_pass", "zenith_pass")
+# mirror_sums and evector_pass keep numpy's order: the first decides groups, the second
+# repeats numpy's float32 arithmetic bit for bit.
 """Kernels that sum in float64 over long loops: compiled with reassociation (vector
 lanes), which moves their results by float64 rounding only (:func:`ml_pass`: its per-pixel
 terms by the rows' rounding), and with numpy's error model (no checks of the divisions,

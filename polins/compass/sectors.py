@@ -41,6 +41,8 @@ __all__ = [
     "SECTOR_RINGS",
     "SectorRuns",
     "eigen_jackknife",
+    "eigen_jackknife_sums",
+    "eigen_sandwich_sums",
     "group_sums",
     "jackknife_variance",
     "ml_jackknife",
@@ -170,7 +172,35 @@ def eigen_jackknife(
     """Leave-one-group-out azimuth deviations ``(G,)`` [rad] of the eigen sun of
     camera-frame E-vectors ``e (3, n)`` with weights ``omega (n,)`` (the moment
     ``M = sum omega e e^T``), and each group's share of the weights ``(G,)``; ``wr (n,)``
-    is ``omega_i (e_i . s)`` (:func:`polins.compass.eigen.weighted_residuals`).
+    is ``omega_i (e_i . s)`` (:func:`polins.compass.eigen.weighted_residuals`). The
+    per-run sums of :func:`eigen_jackknife_sums`, then that function."""
+    run_sums = np.empty((runs.starts.size, 4))
+    compiled("eigen_run_sums")(e, wr, omega, runs.starts, run_sums)  # one pass, float64
+    return eigen_jackknife_sums(run_sums, runs, mat_lc, solution, sun_l)
+
+
+def eigen_sandwich_sums(
+    e: NDArray, omega: NDArray, sun_c: NDArray, runs: SectorRuns
+) -> tuple[FloatArray, FloatArray]:
+    """The middle ``sum_i (omega_i (e_i . s))^2 e_i e_i^T`` ``(3, 3)`` of the eigen
+    solution's sandwich covariance (camera frame, docs/model.md §10.2) and the per-run
+    sums ``(m, 4)`` of :func:`eigen_jackknife_sums`, in one compiled pass over ``e (3, n)``
+    and ``omega (n,)`` with the camera-frame sun ``sun_c (3,)``."""
+    middle, run_sums = np.empty((3, 3)), np.empty((runs.starts.size, 4))
+    compiled("sandwich_pass")(e, omega, np.asarray(sun_c, dtype=np.float64), runs.starts,
+                              middle, run_sums)  # fmt: skip
+    return middle, run_sums
+
+
+def eigen_jackknife_sums(
+    run_sums: NDArray,
+    runs: SectorRuns,
+    mat_lc: NDArray,
+    solution: EigenSolution,
+    sun_l: NDArray,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`eigen_jackknife` from the per-run sums ``(m, 4)`` = (``sum omega_i (e_i . s)
+    e_i`` (3), ``sum omega_i``) of the runs of ``runs``.
 
     First order in the removed moment ``M_g``: ``ds_g = A+ M_g s`` with
     ``A+ = sum_{j=2,3} v_j v_j^T / (lambda_j - lambda_1)`` of the level-frame ``solution``
@@ -178,8 +208,6 @@ def eigen_jackknife(
     the full-set level-frame sun.
     """
     sun_c = mat_lc.T @ sun_l
-    run_sums = np.empty((runs.starts.size, 4))
-    compiled("eigen_run_sums")(e, wr, omega, runs.starts, run_sums)  # one pass, float64
     sums = group_sums(run_sums.T, runs, sun_c)
     with np.errstate(invalid="ignore"):  # a zero eigen gap: NaN deviations, no warning
         ds = (sums[:, :3] @ mat_lc.T) @ gap_pseudo_inverse(solution).T  # (G, 3) level frame

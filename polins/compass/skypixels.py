@@ -10,6 +10,7 @@ subsample and of the full set that the solve stage applies along the predicted A
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,6 +20,7 @@ from polins.compass.eigen import EigenSolution, eigen_level_rows
 from polins.compass.heading import Geometry, resolve_sun_sign
 from polins.compass.image import ImageStokes
 from polins.compass.kernels import dot_rows
+from polins.compass.lens import CameraConstants
 from polins.compass.measurement import MeasureOptions, Refusal
 from polins.compass.prediction import PixelData, pixel_data
 from polins.compass.selection import Selection
@@ -70,6 +72,20 @@ class SkyPixels:
     eig0: EigenSolution
     sun_l0: NDArray
     cells: NDArray
+
+
+@lru_cache(maxsize=8)
+def _field_angle_max(cache: CameraConstants) -> float:
+    """Largest angle of a field-of-view ray from the optical axis [rad]."""
+    return float(np.arccos(np.clip(np.min(cache.rays[2]), -1.0, 1.0)))
+
+
+def _field_above(cache: CameraConstants, cos_tilt: float) -> bool:
+    """Every field-of-view ray is at least :data:`HORIZON_MIN` above the level horizon
+    (with 1e-5 to spare for the rays' rounding) when the optical axis is ``acos(cos_tilt)``
+    from the level zenith: the per-pixel test is then not needed."""
+    lowest = np.arccos(cos_tilt) + _field_angle_max(cache)  # from the zenith [rad]
+    return bool(lowest < np.pi / 2 and np.cos(lowest) > np.sin(HORIZON_MIN) + 1e-5)
 
 
 def _excluded_sun(sun_c: NDArray, rays: NDArray, cos_excl: float) -> NDArray:
@@ -143,9 +159,10 @@ def sky_pixels(
     if opt.roi is not None:  # the region of interest of this image (a new mask)
         valid = valid & (cache.rays[2] >= img.dtype(np.cos(opt.roi)))
     up_c: NDArray = geo.mat_cl[:, 2].astype(img.dtype)  # the level zenith, camera frame
-    above = dot_rows(up_c, cache.rays) >= img.dtype(np.sin(HORIZON_MIN))
-    if not above.all():
-        valid = valid & above
+    if not _field_above(cache, float(np.clip(geo.mat_cl[2, 2], -1.0, 1.0))):
+        above = dot_rows(up_c, cache.rays) >= img.dtype(np.sin(HORIZON_MIN))
+        if not above.all():
+            valid = valid & above
     rows_sub = img.estimate.take(sub.index, axis=1)
     valid_sub = valid[sub.index]
     eig0 = _starting_sun(img, geo, opt, rows_sub, valid_sub, weighted)

@@ -11,6 +11,7 @@ the eigenvector over sky sectors (docs/model.md §10.2, docs/measurement.md §6,
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,15 +22,19 @@ from polins.compass.eigen import (
     eigen_gap,
     eigen_level_rows,
     sandwich_covariance,
-    weighted_residuals,
 )
 from polins.compass.heading import Geometry, resolve_sun_sign, yaw_variance_from_sun_covariance
 from polins.compass.image import ImageStokes
 from polins.compass.jointml import ml_evaluate, sun_covariance
-from polins.compass.kernels import dot, moment
+from polins.compass.kernels import dot
 from polins.compass.lens import subsample
 from polins.compass.measurement import MeasureOptions
-from polins.compass.sectors import eigen_jackknife, jackknife_variance, sector_runs
+from polins.compass.sectors import (
+    eigen_jackknife_sums,
+    eigen_sandwich_sums,
+    jackknife_variance,
+    sector_runs,
+)
 from polins.compass.selection import selection_mask
 from polins.compass.skypixels import SkyPixels
 from polins.compass.solve import NEUTRAL_SEP, SolveSetup, compensated_solution
@@ -132,8 +137,8 @@ def solve_compensated(
     extra += [0.0] * opt.fit_delta
     theta = np.array([a0, *([] if fixed else [z0]), *extra, opt.epsilon0])
     dop_test = None
-    if opt.clouds == "auto":  # thin clouds by the fitted sky's DoP (§4)
-        dop_test = _dop_test(img, cam, px, geo, CLOUD_FIT_RATIO)
+    if opt.clouds == "auto":  # thin clouds by the fitted sky's DoP (§4), built when needed
+        dop_test = functools.cache(lambda: _dop_test(img, cam, px, geo, CLOUD_FIT_RATIO))
     sub, cache = img.sub, img.cache
     data = (px.data_sub if img.stride > 1 else px.data_full, px.data_full)
     solved = compensated_solution(
@@ -187,12 +192,11 @@ def solve_traditional(
     sun_l = eig.sun
     if geo.sun_n is not None:
         sun_l = resolve_sun_sign(eig.sun, geo.sun_n, geo.yaw_prior, opt.horizon_fallback)
-    wr = weighted_residuals(e, omega, mat_cl @ sun_l)
     # The sandwich's middle sum_i (w_i r_i)^2 u_i u_i^T (docs/model.md §10.2,
-    # docs/measurement.md §6); wr also feeds the jackknife.
-    middle = moment(e, wr * wr)
+    # docs/measurement.md §6) and the jackknife's sums, in one pass.
+    middle, run_sums = eigen_sandwich_sums(e, omega, mat_cl @ sun_l, sector_runs(cam))
     cov_sun_l = sandwich_covariance(eig, mat_lc @ middle @ mat_lc.T)
-    deltas, share = eigen_jackknife(e, wr, omega, sector_runs(cam), mat_lc, eig, sun_l)
+    deltas, share = eigen_jackknife_sums(run_sums, sector_runs(cam), mat_lc, eig, sun_l)
     theta = np.array([np.arctan2(sun_l[1], sun_l[0]), np.arccos(np.clip(sun_l[2], -1, 1)), 0.0])
     epsilon = float("nan")
     if img.epsilon_px is not None:

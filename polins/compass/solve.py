@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +50,7 @@ __all__ = [
     "MAX_ITERATIONS",
     "NEUTRAL_SEP",
     "SEPARABILITY_MAX",
+    "SEPARABILITY_STOP",
     "SEP_MIN",
     "SEP_Z_MIN",
     "CompensatedSolution",
@@ -85,6 +87,14 @@ SEPARABILITY_MAX = 0.98
 """Largest accepted correlation of epsilon with the sun parameters
 (:func:`polins.compass.jointml.epsilon_correlation`); above it the chain falls back to the
 eigen solution (docs/measurement.md §11)."""
+
+SEPARABILITY_STOP = 0.99
+"""A Rayleigh-sky fit whose linearization gives a correlation of epsilon with the sun
+parameters above this stops there and falls back (its iterations would not bring it below
+:data:`SEPARABILITY_MAX`: over the narrow-field and fisheye images of
+docs/measurement.md §11 the correlation moved by less than 0.008 from the first
+linearization to the last). The Berry-sky fit runs on: its fallback to the Rayleigh sky
+changes the parameters."""
 
 SCORE_MARGIN = 0.2
 """The Berry sky is solved when the one-step separation square of the score test reaches
@@ -125,6 +135,7 @@ class Fit:
     iterations: int
     tol_sigma: float = 1e-2
     sector_h: NDArray | None = None
+    stop_correlation: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -172,7 +183,7 @@ def run_fit(
     return gauss_newton(fit.data, theta0, setup.zenith, setup.mat_cl, loss=opt.loss,
                         max_iterations=fit.iterations, tol_sigma=fit.tol_sigma, select=select,
                         epsilon_bound=EPSILON_MAX, sectors=fit.sectors, sky=fit.sky,
-                        sector_h=fit.sector_h)  # fmt: skip
+                        sector_h=fit.sector_h, stop_correlation=fit.stop_correlation)  # fmt: skip
 
 
 def _sky(rays: NDArray, opt: MeasureOptions, berry: bool = True) -> SkyModel | None:
@@ -238,7 +249,7 @@ def _drop_clouds(
     mask: NDArray | None,
     select: Selection,
     cells: NDArray,
-    dop_test: DopTest | None,
+    dop_test: Callable[[], DopTest] | None,
 ) -> tuple[MLSolution, NDArray | None, NDArray]:
     """Cloud passes on one pixel set (rotated and, with ``dop_test``, depolarized cells):
     the solution, its mask and the dropped cells ``(CLOUD_CELLS**2,)`` bool."""
@@ -256,7 +267,7 @@ def _drop_clouds(
                 np.sqrt(max(float(ml.theta[setup.k_sep]), 0.0)) if sky.fit_sep else sky.neutral_sep
             )
             zenith_sun = float(ml.theta[1]) if zenith is None else zenith
-            flagged = flagged | fitted_sky_depolarized(dop_test, float(ml.theta[0]), zenith_sun,
+            flagged = flagged | fitted_sky_depolarized(dop_test(), float(ml.theta[0]), zenith_sun,
                                                        float(sep))  # fmt: skip
         flagged &= ~dropped
         if not flagged.any():
@@ -282,12 +293,15 @@ def _fit_sky(
     sky = _sky(rays, opt)
     berry = sky is not None and sky.fit_sep
     if sky is None or not berry or _separation_possible(setup, data, theta, select, sky):
-        fit = Fit(data, sectors, sky, MAX_ITERATIONS, tol_sigma=0.1)
+        stop = SEPARABILITY_STOP if not berry else 1.0
+        fit = Fit(data, sectors, sky, MAX_ITERATIONS, tol_sigma=0.1, stop_correlation=stop)
         ml, mask = run_fit(setup, fit, theta, select)
         if not berry or _separation_identified(ml, setup.k_sep):
             return ml, mask, fit
         theta = ml.theta
-    fit = Fit(data, sectors, _sky(rays, opt, berry=False), MAX_ITERATIONS, tol_sigma=0.1)
+    rayleigh = _sky(rays, opt, berry=False)
+    fit = Fit(data, sectors, rayleigh, MAX_ITERATIONS, tol_sigma=0.1,
+              stop_correlation=SEPARABILITY_STOP)  # fmt: skip
     ml, mask = run_fit(setup, fit, np.delete(theta, setup.k_sep), select)
     return ml, mask, fit
 
@@ -323,7 +337,7 @@ def compensated_solution(
     cells: tuple[NDArray, NDArray],
     sectors: tuple[SectorRuns, SectorRuns],
     rays: tuple[NDArray, NDArray],
-    dop_test: DopTest | None = None,
+    dop_test: Callable[[], DopTest] | None = None,
 ) -> CompensatedSolution:
     """The joint ML of one image (module notes).
 
@@ -343,8 +357,10 @@ def compensated_solution(
         Jackknife runs of the subsample and of the full set.
     rays : ((3, n_sub), (3, n))
         Camera-frame unit rays of the subsample and of the full set.
-    dop_test : DopTest, optional
-        The fitted sky's DoP test of the cloud passes; None: none.
+    dop_test : callable, optional
+        Returns the fitted sky's DoP test of the cloud passes (called when a pass needs
+        it: a solution that falls back never builds it; it should return one cached
+        object); None: no DoP test.
     """
     k_sep = setup.k_sep
     if data[0] is data[1]:  # no subsample: the full set solved directly

@@ -106,20 +106,27 @@ MIRROR_SECTORS = 8
 """Groups of the mirror-pair jackknife: sectors of ``|pixel azimuth - sun azimuth|``."""
 
 
-def _mirror_jackknife(contrib: NDArray, ray_l: NDArray, azimuth_sun: float) -> float:
-    """Delete-one-group jackknife variance [rad^2] of the azimuth of ``sum contrib`` (2, n)
-    over groups of pixels mirrored about the sun's vertical plane (by the angle between
+_MIRROR_BOUNDS = np.array(
+    [np.cos(np.arange(1, MIRROR_SECTORS) * np.pi / MIRROR_SECTORS),
+     np.sin(np.arange(1, MIRROR_SECTORS) * np.pi / MIRROR_SECTORS)]
+)  # fmt: skip
+"""(cos, sin) of the boundaries between the mirror-pair sectors [-]."""
+
+
+def _mirror_jackknife(contrib: NDArray, ray_l: NDArray, k: int, azimuth_sun: float) -> float:
+    """Delete-one-group jackknife variance [rad^2] of the azimuth of the sum of the first
+    ``k`` columns of ``contrib`` (2, n) over groups of pixels mirrored about the sun's vertical plane (by the angle between
     the horizontal parts of their level rays ``ray_l`` (2, n) and the sun's azimuth): on
     a symmetric sky every group's sum lies on that plane's doubled angle, so only
     asymmetries move it."""
-    c, s = np.cos(azimuth_sun), np.sin(azimuth_sun)
-    rel = np.abs(np.arctan2(c * ray_l[1] - s * ray_l[0], c * ray_l[0] + s * ray_l[1]))
-    group = np.minimum((rel * (MIRROR_SECTORS / np.pi)).astype(np.intp), MIRROR_SECTORS - 1)
-    sums = np.stack([np.bincount(group, c, MIRROR_SECTORS) for c in contrib])  # (2, G)
+    group_sums = np.zeros((3, MIRROR_SECTORS))
+    azimuth = np.array([np.cos(azimuth_sun), np.sin(azimuth_sun)])
+    compiled("mirror_sums")(contrib, ray_l, k, azimuth, _MIRROR_BOUNDS, group_sums)
+    sums = group_sums[:2]  # (2, G)
     total = sums.sum(axis=1, keepdims=True)
     left = total - sums
     phi = 0.5 * np.unwrap(np.arctan2(left[1], left[0]) - np.arctan2(total[1], total[0]))
-    used = np.bincount(group, minlength=MIRROR_SECTORS) > 0
+    used = group_sums[2] > 0
     g = int(np.count_nonzero(used))
     if g < 2:
         return float("nan")
@@ -170,7 +177,7 @@ def zenith_mean(
     g_delta = float(np.hypot(d_azimuth[0], d_azimuth[1]))
     g_mixing = float(np.hypot(d_azimuth[2], d_azimuth[3]))
     azimuth = 0.5 * float(np.arctan2(m[1], m[0])) + 0.5 * np.pi
-    var_jack = _mirror_jackknife(contrib[:, :k], ray_l[:, :k], azimuth)
+    var_jack = _mirror_jackknife(contrib, ray_l, k, azimuth)
     return ZenithMean(azimuth, 0.25 * var_2phi, var_jack, g_delta, g_mixing), mask
 
 

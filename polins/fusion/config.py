@@ -83,6 +83,11 @@ class FuseConfig:
     when set away from their defaults. An IMU model with a ``[filter]`` table (a file of
     ``polins tune``, ``ImuModel.filter_options``) sets those options, under the ones given
     explicitly; ``replace(imu_model=...)`` with such a model applies them too.
+
+    ``standstill_model`` is not an option: the IMU model of the standstill detector's test
+    when it is held apart from ``imu_model`` (:func:`polins.tuning.tune` holds its start
+    model, so that every candidate of a search has the same rest epochs; docs/tuning.md);
+    None: ``imu_model``.
     """
 
     imu_model: ImuModel
@@ -95,6 +100,7 @@ class FuseConfig:
     graph: GraphSolver
     output: Output
     site_is_assumed: bool = field(default=False, repr=False)
+    standstill_model: ImuModel | None = field(default=None, repr=False)
 
     def __init__(
         self,
@@ -109,6 +115,7 @@ class FuseConfig:
         graph: GraphSolver | None = None,
         output: Output | None = None,
         site_is_assumed: bool = False,
+        standstill_model: ImuModel | None = None,
         **options: Any,
     ) -> None:
         site = site_from_shorthand(site, options)
@@ -128,6 +135,7 @@ class FuseConfig:
         object.__setattr__(self, "imu_model", model)
         object.__setattr__(self, "site", None if site is None else _site(site))
         object.__setattr__(self, "site_is_assumed", bool(site_is_assumed))
+        object.__setattr__(self, "standstill_model", standstill_model)
 
     # ---------------------------------------------------------------- building
     @classmethod
@@ -147,6 +155,7 @@ class FuseConfig:
             options = {**dict(keep["imu_model"].filter_options), **options}
         keep["site"] = site if site is not None else self.site
         keep["site_is_assumed"] = self.site_is_assumed and site is None
+        keep["standstill_model"] = options.pop("standstill_model", self.standstill_model)
         for name in PARTS:
             if name in options:
                 keep[name] = options.pop(name)
@@ -163,6 +172,12 @@ class FuseConfig:
     def imu(self) -> ImuModel:
         """The IMU model."""
         return self.imu_model
+
+    @property
+    def standstill_imu(self) -> ImuModel:
+        """The IMU model of the standstill detector's test (:mod:`polins.fusion.vehicle`):
+        ``standstill_model`` when held, else the IMU model."""
+        return self.standstill_model if self.standstill_model is not None else self.imu_model
 
     @property
     def mechanize_earth_rate(self) -> bool:

@@ -22,7 +22,9 @@ plus white noise. Its statistic ::
 
 with the per-sample variances of the IMU model, ``s_w^2 = ARW^2 / dt + b_g^2 + Omega_ie^2``
 and ``s_f^2 = VRW^2 / dt``, is chi-square with ``6 n - 3`` degrees of freedom at rest; the
-window is static when ``T`` is below its ``STANDSTILL_PROB`` quantile. Turning on the spot
+window is static when ``T`` is below its ``STANDSTILL_PROB`` quantile. The model of the test
+is ``FuseConfig.standstill_imu``: the filter's, unless a tuning holds it apart (the rest
+epochs then stay those of the held model while the filter's noise changes). Turning on the spot
 fails the gyro term, driving fails the specific-force term through the road's vibration
 (a perfectly smooth drive at constant speed is indistinguishable from rest for any IMU).
 The window is causal (it ends at the sample), so the ESKF, the stream and the graph detect
@@ -148,7 +150,9 @@ class VehicleAiding:
         self.static = config.aiding.vehicle == "static"
         self.every = max(1, round(1.0 / (NHC_RATE_HZ * dt)))
         self.n = window_samples(STANDSTILL_WINDOW_S, dt)
-        self.gyro_var, self.accel_var = standstill_variances(config.imu, dt)
+        # the test's variances: of the detector's model (held apart from the filter's by a
+        # tuning, so that the rest epochs do not change with the tuned noise)
+        self.gyro_var, self.accel_var = standstill_variances(config.standstill_imu, dt)
         self.threshold = standstill_threshold(self.n)
         # zero angular rate: the mean of the `every` samples up to an epoch at rest
         self.zaru_std = zero_rate_std(config.imu, self.every, dt)

@@ -13,7 +13,6 @@ every sample when the rate is None).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections import deque
 from collections.abc import Callable
@@ -28,19 +27,25 @@ from polins.fusion.eskf.filter import ESKF
 from polins.fusion.eskf.propagate import advance, interpolate
 from polins.fusion.items import UpdateRecord
 from polins.ins.state import NavState, concatenate, solution_table
-from polins.ins.strapdown import Mechanization, strapdown
 from polins.loop.prior import Sample
 
 FloatArray = NDArray[np.float64]
 
 
-@functools.cache
-def load_kernels() -> None:
-    """Load the filter's compiled strapdown (numba, cached on disk) once per process: a
-    stream's constructor calls it, so that the call that first runs the filter does not."""
-    nav0 = NavState(0.0, Rotation.identity(), np.zeros(3), 0.0, 0.0, 0.0)
-    gravity = np.tile([0.0, 0.0, 9.8], (2, 1))
-    strapdown(nav0, np.array([0.0, 0.01]), np.zeros((2, 3)), gravity, Mechanization())
+def take(states: NavState, index: NDArray[np.int_]) -> NavState:
+    """The states ``index`` of a batched state, batched."""
+    return NavState(
+        t=np.asarray(states.t)[index],
+        rot_nb=states.rot_nb[index],
+        vel_n=np.asarray(states.vel_n)[index],
+        lat=np.asarray(states.lat)[index],
+        lon=np.asarray(states.lon)[index],
+        alt_m=np.asarray(states.alt_m)[index],
+        errors={k: np.asarray(v)[index] for k, v in states.errors.items()},
+        sigma={k: np.asarray(v)[index] for k, v in states.sigma.items()},
+        att_cov=None if states.att_cov is None else np.asarray(states.att_cov)[index],
+        yaw_aligned=np.broadcast_to(states.yaw_aligned, (len(states),))[index],
+    )
 
 
 class FilterRunner:
@@ -181,9 +186,9 @@ class FilterRunner:
         if rows.all():
             self.solution.append(states)
         elif rows.any():
-            self.solution.append(concatenate([states.at(int(i)) for i in np.flatnonzero(rows)]))
+            self.solution.append(take(states, np.flatnonzero(rows)))
         for i in np.flatnonzero(self.new_cells(np.asarray(states.t))):
             self.snaps.append(states.at(int(i)))
 
 
-__all__ = ["FilterRunner", "load_kernels"]
+__all__ = ["FilterRunner"]

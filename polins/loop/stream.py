@@ -54,12 +54,14 @@ With a thread or process executor ``add_imu`` never waits for an image and ``add
 never runs the filter; the inline executor measures in whichever call makes the image's
 prior known. ``state()`` costs one filter copy and a fast-path run over the held-back
 samples after a measurement update, else a run over the samples since the last call (the
-live estimate is the filter replayed over the held-back samples). The constructor loads the
-filter's compiled strapdown (:func:`polins.loop.runner.load_kernels`), once per process.
+live estimate is the filter replayed over the held-back samples). The filter's compiled
+strapdown is loaded when this module is imported
+(:func:`polins.fusion.eskf.propagate.load_kernels`).
 """
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import itertools
 import math
@@ -74,7 +76,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.errors import UserInputError
-from polins.frames import heading_deg_from_yaw, rot_nb_from_euler
+from polins.frames import heading_deg_from_yaw
 from polins.fusion.config import (
     TIME_TOL_S,
     FuseConfig,
@@ -87,13 +89,14 @@ from polins.fusion.faults import (
     EventKind,
     GyroHeadingCheck,
     ImuScreen,
+    ImuUnitsError,
     UnitsWindow,
     default_max_gap_s,
     gap_item,
     gap_reason,
 )
 from polins.fusion.inputs import PRIOR_COLUMNS, heading_proxy
-from polins.fusion.items import UpdateRecord, records_table
+from polins.fusion.items import UpdateRecord, items_from_table, records_table
 from polins.fusion.parts import AUTO, ODOMETER_STD
 from polins.fusion.vehicle import odometer_items
 from polins.ins.state import NavState
@@ -108,7 +111,7 @@ from polins.loop.measurer import (
 )
 from polins.loop.options import LoopOptions
 from polins.loop.prior import PriorJob, Sample, SunGrid
-from polins.loop.runner import FilterRunner, load_kernels
+from polins.loop.runner import FilterRunner
 from polins.loop.state import StreamState
 from polins.loop.tables import EventBuffer, measurement_frame
 from polins.models import CameraModel, ImuModel, load_camera, load_imu
@@ -134,6 +137,11 @@ def with_odometer(config: FuseConfig) -> FuseConfig:
     if config.aiding.odometer_std == AUTO:
         return config.replace(odometer_std=ODOMETER_STD)
     return config
+
+
+def _columns(row: dict[str, Any]) -> tuple[str, ...]:
+    """The column names of a measurement row, in order."""
+    return tuple(row)
 
 
 class NavigationStream:
@@ -219,7 +227,6 @@ class NavigationStream:
         self._tol = TIME_TOL_S
         self.workers = workers
         self.max_in_flight = self.options.max_in_flight or (2 * workers + 1)
-        load_kernels()  # here, not in the first call that runs the filter
         measurer = ImageMeasurer(camera, self.options.method, self.options.measure_kwargs())
         self._executor, self._submit_fn = make_executor(executor, workers, measurer)
         self.sun_at = SunGrid(self.config.site, self.epoch_utc)
@@ -425,13 +432,16 @@ class NavigationStream:
                                         max_rows=self.options.max_table_rows)  # fmt: skip
         self._units.add(t[keep], w[keep], f[keep])
         self._heading_check.add_imu(t[keep], w[keep], f[keep])
-        ends = set(gap_ends.tolist())
-        for k in np.flatnonzero(keep).tolist():
-            sample = (float(t[k]), w[k], f[k])
-            if k in ends and self._last is not None:
-                self._bridge(self._last, sample)
-            self._buf.append(sample)
-            self._last = sample
+        kept = np.flatnonzero(keep)
+        bounds = [0, *np.searchsorted(kept, gap_ends).tolist(), len(kept)]
+        for j, (a, b) in enumerate(itertools.pairwise(bounds)):  # the runs between gaps
+            run = kept[a:b]
+            samples = list(zip(t[run].tolist(), w[run], f[run], strict=True))
+            if j > 0 and self._last is not None:  # the run starts after a gap
+                self._bridge(self._last, samples[0])
+            self._buf.extend(samples)
+            if samples:
+                self._last = samples[-1]
         return keep
 
     def _bridge(self, before: Sample, after: Sample) -> None:
@@ -641,10 +651,35 @@ class NavigationStream:
         img.future = self._executor.submit(self._submit_fn, img.item, img.sun_n, prior)
         img.item = None  # the raw image is the worker's now
 
-    def _hand_over(self, img: PendingImage) -> None:
-        """Give an image's measurement to the filter (before it passes the image time)."""
+    def _hand_over(self, images: list[PendingImage]) -> None:
+        """Give images' measurements to the filter (before it passes their times), in
+        time order: their rows as one measurement table (``items_from_table``, the rules of
+        ``polins.fuse``; rows with the same columns at once)."""
         f = self.filter
         assert f is not None
+        rows: list[dict[str, Any]] = []
+        done = 0
+        try:
+            for img in images:
+                done += 1
+                row = self._row_of(img)
+                if row is not None:
+                    rows.append(row)
+        except ImuUnitsError:  # the images after it stay queued
+            self._images.extendleft(reversed(images[done:]))
+            raise
+        finally:  # the rows before it are handed over all the same
+            for _, group in itertools.groupby(rows, key=_columns):
+                block = list(group)
+                items = items_from_table({k: [row[k] for row in block] for k in block[0]},
+                                         use_sun=f.config.gating.use_sun,
+                                         heading_bias=f.config.heading_bias)  # fmt: skip
+                self._collect(f.add_items(items))
+            f.records.clear()  # bounded memory: verdicts are kept in the measurement rows
+
+    def _row_of(self, img: PendingImage) -> dict[str, float] | None:
+        """The measurement-table row of a measured image for the filter (None when it was
+        not measured); its row of the measurement log waits for the filter's verdict."""
         if img.row is None:
             assert img.future is not None
             img.row = dict(img.future.result())
@@ -658,22 +693,23 @@ class NavigationStream:
         if not row.get("ok"):
             row.update(accepted=False, update_reason="not measured")
             self._rows.append(row)
-            return
+            return None
         self._heading_check.add_headings(img.t, heading_proxy(row))  # ImuUnitsError: deg/s
-        cols: dict[str, Any] = {"sky": {c: row[c] for c in SKY_COLUMNS if c in row}}
+        cols: dict[str, float] = {"t": img.t}
         if "yaw" in row:
             cols.update(yaw=row["yaw"], yaw_std=float(self.config.yaw_sigma(row["yaw_std"])))
         if "sun_bx" in row:
-            cols.update(sun_b=[row["sun_bx"], row["sun_by"], row["sun_bz"]],
-                        sun_std=float(self.config.sun_sigma(row["sun_std"])))  # fmt: skip
+            cols.update({f"sun_b{c}": row[f"sun_b{c}"] for c in "xyz"})
+            cols["sun_std"] = float(self.config.sun_sigma(row["sun_std"]))
+        else:
+            cols.update(sun_bx=math.nan, sun_by=math.nan, sun_bz=math.nan)
+        cols.update({f"sun_n{c}": row[f"sun_n{c}"] for c in "xyz"})
         if all(np.isfinite(row.get(c, np.nan)) for c in PRIOR_COLUMNS):
-            cols["rot_nb_prior"] = rot_nb_from_euler(
-                row["prior_yaw"], row["prior_pitch"], row["prior_roll"]
-            )
+            cols.update({c: row[c] for c in PRIOR_COLUMNS})
+        cols.update({c: float(row[c]) for c in SKY_COLUMNS if c in row})
         self._by_t[img.t] = row
         self._head_valid = False  # the head may have passed the measurement's time
-        self._collect(f.add_measurement(img.t, sun_n=img.sun_n, **cols))
-        f.records.clear()  # bounded memory: verdicts are kept in the measurement rows
+        return cols
 
     def _collect(self, records: Iterable[UpdateRecord]) -> None:
         for rec in records:
@@ -711,10 +747,8 @@ class NavigationStream:
         else:
             t_wait = max(self._screen.t_latest - self.options.max_image_delay_s,
                          self._t_last_image)  # fmt: skip
-        n = 1
-        while n < len(self._buf) and self._buf[n][0] < t_image and self._buf[n][0] <= t_wait:
-            n += 1
-        return n
+        times = [sample[0] for sample in self._buf]  # increasing
+        return max(1, min(bisect.bisect_left(times, t_image), bisect.bisect_right(times, t_wait)))
 
     def _trim(self) -> None:
         """Forget snapshots and IMU history that no future prior can need."""
@@ -749,11 +783,12 @@ class NavigationStream:
     def _hand_over_ready(self, block: bool) -> bool:
         """Hand the measured images over in time order (the filter applies each at its
         time; ``block``: wait for the measurements); True if any was."""
-        progressed = False
+        ready = []
         while self._images and self._images[0].dispatched and (self._images[0].resolved or block):
-            self._hand_over(self._images.popleft())
-            progressed = True
-        return progressed
+            ready.append(self._images.popleft())
+        if ready:
+            self._hand_over(ready)
+        return bool(ready)
 
     def _dispatch_ready(self) -> bool:
         """Dispatch the waiting images whose prior is known; True if any was."""

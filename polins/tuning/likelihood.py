@@ -22,6 +22,13 @@ identified either, but takes the bound: the likelihood keeps rising beyond it (a
 simulator's exact standstill asks for a zero-velocity sigma of 0). The identifiable ones
 are refitted with the others held there.
 
+The standstill detector's test follows the IMU noise (:mod:`polins.fusion.vehicle`), so a
+candidate's ARW would change which epochs carry zero-velocity and zero-rate updates and the
+likelihood would jump. Each search holds the detector's model
+(``FuseConfig.standstill_model``), first at the start values, then at the search's
+estimate, until the estimate's rest epochs are those it was fitted with (at most
+:data:`DETECTOR_ROUNDS` searches): the tuned file then detects the epochs it was tuned on.
+
 Parameters (:data:`PARAMETERS`): the white-noise and random-walk densities of the IMU model
 (SI, :class:`polins.models.ImuModel` fields) and the measurement-noise filter options:
 ``yaw_floor_deg`` / ``sun_floor_deg``, a floor [deg] added in quadrature to every
@@ -45,6 +52,7 @@ from scipy.optimize import minimize
 
 from polins.errors import UserInputError
 from polins.fusion import FuseConfig, FusionResult, ImplausibleRunError, run_fusion
+from polins.fusion.vehicle import vehicle_items
 from polins.models import ImuModel
 from polins.tuning.innovations import InnovationStats, innovation_arrays, innovation_stats
 
@@ -70,6 +78,8 @@ _OPTION_KIND = {"yaw_floor_deg": "yaw", "yaw_std_scale": "yaw", "sun_floor_deg":
                 "odometer_std": "odo"}  # fmt: skip
 _FLOOR_START_DEG = 0.05  # a floor's start when none is given and the log asks for none
 N_SCORE_BLOCKS = 20  # time blocks of the robust (sandwich) information's score sums
+DETECTOR_ROUNDS = 4  # most searches, each with the standstill detector held at the last estimate
+REST_KINDS = ("zupt", "zaru")  # the updates at the standstill detector's rest epochs
 
 
 def check_params(params: Sequence[str]) -> tuple[str, ...]:
@@ -210,7 +220,8 @@ class TuneResult:
         -1 / +1: the estimate is on the search's lower / upper bound (the log asks for a
         smaller / larger value); 0: inside.
     nll_before, nll_after : float
-        Negative log-likelihood (ungated) at the start and at ``values``.
+        Negative log-likelihood (ungated) at the start and at ``values``, both with the
+        standstill detector held at the tuned values (the rest epochs of the tuned file).
     stats_before, stats_after : dict of str to InnovationStats
         Innovation statistics per kind with the start and the tuned values (gated as
         ``config``).
@@ -253,6 +264,8 @@ class TuneResult:
     def notes(self) -> list[str]:
         """What an identified value means when it moved far from the model file's."""
         tuned_kinds = {_OPTION_KIND[p] for p in self.params if p in _OPTION_KIND}
+        if "gyro_arw" in self.params:
+            tuned_kinds.add("zaru")  # the zero-rate sigma is the gyro's white noise
         untuned = [kind for kind, st in self.stats_before.items()
                    if not st.consistent and kind not in tuned_kinds]  # fmt: skip
         out = []
@@ -491,12 +504,12 @@ def tune(
     params = check_params(params)
     cfg = config or FuseConfig()
     start = _start_values(cfg.resolve(odometry=odometry is not None), params, initial or {})
-    lik = _Likelihood(imu, measurements, cfg, rot_nb0, odometry)
+    lik = _Likelihood(imu, measurements, cfg, rot_nb0, odometry, start)
 
     def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
         return lik.nll({**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))})
 
-    def fit(names: tuple[str, ...], fixed: Mapping[str, float], x0: FloatArray) -> FloatArray:
+    def search(names: tuple[str, ...], fixed: Mapping[str, float], x0: FloatArray) -> FloatArray:
         half = math.log(search_factor)
         bounds = [(t - half, t + half) for t in np.log([start[p] for p in names])]
         # converged when a step gains less than about 0.01 nats: far below the 0.5 nats of
@@ -505,6 +518,17 @@ def tune(
         res = minimize(nll, x0, args=(names, fixed), method="L-BFGS-B", bounds=bounds,
                        options={"eps": 1e-3, "ftol": ftol, "gtol": 0.05})  # fmt: skip
         return np.asarray(res.x, dtype=float)
+
+    def fit(names: tuple[str, ...], fixed: Mapping[str, float], x0: FloatArray) -> FloatArray:
+        # the search with the detector held, then held again at the estimate until the
+        # estimate's rest epochs are those it was fitted with (docs/tuning.md)
+        theta = x0
+        for k in range(DETECTOR_ROUNDS):
+            theta = search(names, fixed, theta)
+            values = {**fixed, **dict(zip(names, np.exp(theta).tolist(), strict=True))}
+            if k == DETECTOR_ROUNDS - 1 or not lik.hold(values):
+                break
+        return theta
 
     theta_start = np.log([start[p] for p in params])
     theta = fit(params, {}, theta_start)
@@ -559,16 +583,49 @@ def tune(
 
 
 class _Likelihood:
-    """The filter runs of one tuning: the log, the configuration, and a memory of the
-    ungated runs' likelihood terms by parameter values (the search revisits points)."""
+    """The filter runs of one tuning: the log, the configuration, the standstill
+    detector's held model, and a memory of the ungated runs' likelihood terms by parameter
+    values (the search revisits points).
+
+    The ungated runs hold the standstill detector's model (``FuseConfig.standstill_model``,
+    :meth:`hold`): the detector's test follows the IMU noise, and with it free the rest
+    epochs, and the zero-velocity and zero-rate updates at them, would change from one
+    candidate to the next, making the likelihood jump (docs/tuning.md). The zero-rate sigma
+    still follows each candidate's ARW (a smooth function)."""
 
     def __init__(self, imu: pd.DataFrame, measurements: pd.DataFrame, config: FuseConfig,
-                 rot_nb0: Any, odometry: pd.DataFrame | None) -> None:  # fmt: skip
+                 rot_nb0: Any, odometry: pd.DataFrame | None,
+                 start: Mapping[str, float]) -> None:  # fmt: skip
         self.imu, self.measurements, self.config = imu, measurements, config
-        self.ungated = config.replace(gate_prob="off", smooth=False)
         self.rot_nb0, self.odometry = rot_nb0, odometry
         self.count = 0
         self._terms: dict[tuple[tuple[str, float], ...], pd.DataFrame] = {}
+        self.ungated = config
+        self.epochs = np.zeros(0)
+        self.hold(start)
+
+    def rest_epochs(self, values: Mapping[str, float]) -> FloatArray:
+        """The times [s] of the zero-velocity and zero-rate updates that the standstill
+        detector gives with the IMU model of ``values``."""
+        run = with_values(self.config, self.measurements, values)[0]
+        run = run.resolve(odometry=self.odometry is not None)
+        t = self.imu["t"].to_numpy(dtype=float)
+        w = self.imu[["gx", "gy", "gz"]].to_numpy(dtype=float)
+        f = self.imu[["ax", "ay", "az"]].to_numpy(dtype=float)
+        return np.array([it.t for it in vehicle_items(run, t, w, f) if it.kind in REST_KINDS])
+
+    def hold(self, values: Mapping[str, float]) -> bool:
+        """Hold the detector at the IMU model of ``values``; whether its rest epochs changed
+        (the memory of runs is then cleared)."""
+        epochs = self.rest_epochs(values)
+        changed = not np.array_equal(epochs, self.epochs)
+        if changed or self.ungated is self.config:
+            detector = with_values(self.config, self.measurements, values)[0].imu
+            self.ungated = self.config.replace(gate_prob="off", smooth=False,
+                                               standstill_model=detector)  # fmt: skip
+            self.epochs = epochs
+            self._terms.clear()
+        return changed
 
     def run(self, values: Mapping[str, float], *, gated: bool = False) -> FusionResult:
         """The filter with ``values`` (gated as the configuration, or without a gate)."""

@@ -4,7 +4,7 @@
 geodetic position), the sensor-error estimates by block name and the error state ``x``
 with its covariance ``P`` (blocks of :mod:`polins.fusion.eskf.blocks`). The reported
 estimate is always ``nominal (+) x``. The prediction is ``x = Phi x``, ``P = Phi P Phi^T + Q``
-(filterpy's ``predict``), the update ``filterpy.kalman.update`` (Joseph form); innovations are gated with a chi-square test
+(filterpy's ``predict``), the update filterpy's (Joseph form: :func:`kalman_update`); innovations are gated with a chi-square test
 (:func:`~polins.fusion.items.gate_limit`, each rejection logged with its reason) and the
 normalised innovation squared (NIS) of every update is recorded.
 
@@ -41,6 +41,7 @@ import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+from filterpy.kalman import KalmanFilter
 from filterpy.kalman import update as kf_update
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -92,6 +93,20 @@ def _innovation(
     Sm = H @ (P @ H.T) + lin.R
     nis = float(y @ np.linalg.solve(Sm, y))
     return nis, tuple(y.tolist()), tuple(Sm.ravel().tolist())
+
+
+def kalman_update(
+    kf: KalmanFilter, x: FloatArray, P: FloatArray, lin: Linearized
+) -> tuple[FloatArray, FloatArray]:
+    """The Kalman update of ``(x, P)`` by ``lin`` in filterpy's Joseph form: a scalar
+    measurement through ``KalmanFilter.update_sequential`` (the gain without a matrix
+    inverse; ``kf`` of the state's size lends its arrays), a vector one through
+    ``filterpy.kalman.update``. Both give the same numbers for a scalar."""
+    if lin.residual.shape[0] != 1:
+        return kf_update(x, P, lin.residual, lin.R, lin.H)
+    kf.x, kf.P = x[:, None].copy(), P  # filterpy's column state; updated in place
+    kf.update_sequential(0, lin.residual, lin.R, lin.H)
+    return kf.x[:, 0], kf.P
 
 
 class ESKF:
@@ -157,6 +172,7 @@ class ESKF:
         self.errors = {b.name: np.zeros(b.size) for b in self.layout.sensor}
         self.x = np.zeros(self.n)
         self.P = self.layout.initial_covariance(self.model, config)
+        self._kf = KalmanFilter(dim_x=self.n, dim_z=1)  # lends its arrays to kalman_update
         self.records: list[UpdateRecord] = []
         self.events: list[FusionEvent] = []  # yaw re-acquisitions
         self.yaw_aligned = rot_nb0 is not None
@@ -509,8 +525,10 @@ class ESKF:
         if item.kind in ("yaw", "sun") and self.acquisition.held:
             self.acquisition.clear()
         x_before = self.x
-        update = kf_update if self.yaw_aligned else yaw_consider_update  # yaw unknown
-        self.x, self.P = update(self.x, self.P, lin.residual, lin.R, lin.H)
+        if self.yaw_aligned:
+            self.x, self.P = kalman_update(self._kf, self.x, self.P, lin)
+        else:  # yaw unknown
+            self.x, self.P = yaw_consider_update(self.x, self.P, lin.residual, lin.R, lin.H)
         self.correction += self.x - x_before
         return self._record(item, dim, nis, True, "", nu, S)
 

@@ -15,6 +15,9 @@ covariance linearly between the posterior at the step start and the prior at the
 within the step the error state evolves under ``Phi(tau)``, so the difference is of the
 order of the discretisation error (tests/test_eskf.py compares with a reference run at one
 covariance step per IMU interval). The nominal part of a row is the strapdown's sample.
+
+Importing this module loads the compiled strapdown (:func:`load_kernels`: numba, its
+machine code cached on disk), so that the first run of the filter in a process does not.
 """
 
 from __future__ import annotations
@@ -85,6 +88,14 @@ class Filter(Protocol):
     def reject(self, item: MeasurementItem, reason: str) -> UpdateRecord: ...
     def take_items(self, t_end: float) -> list[MeasurementItem]: ...
     def finish_run(self, t: float, gyro_b: FloatArray, accel_b: FloatArray, count: int) -> None: ...
+
+
+def load_kernels() -> None:
+    """Load the compiled strapdown the fast path runs (once per process: numba, the machine
+    code cached on disk next to :mod:`polins.ins.strapdown`)."""
+    nav0 = NavState(0.0, Rotation.identity(), np.zeros(3), 0.0, 0.0, 0.0)
+    gravity = np.tile([0.0, 0.0, 9.8], (2, 1))
+    strapdown(nav0, np.array([0.0, 0.01]), np.zeros((2, 3)), gravity, Mechanization())
 
 
 @dataclass(frozen=True, eq=False)
@@ -456,3 +467,6 @@ def interpolate(
         att_cov=val[:, 2 * n :].reshape(-1, 3, 3),
         yaw_aligned=rows.yaw_aligned,
     )
+
+
+load_kernels()  # at import, not in the first run of the filter (module docstring)

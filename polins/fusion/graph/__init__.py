@@ -7,7 +7,7 @@ the ESKF (``att, vel, pos, bg, ba``) from the same inputs and
 keyframe states, and returns the same solution table
 (:func:`polins.ins.state.solution_table`). Modules: :mod:`~polins.fusion.graph.factors`,
 :mod:`~polins.fusion.graph.problem`, :mod:`~polins.fusion.graph.solvers`,
-:mod:`~polins.fusion.graph.output`.
+:mod:`~polins.fusion.graph.start`, :mod:`~polins.fusion.graph.output`.
 
 Graph
 -----
@@ -79,9 +79,12 @@ Solvers
 -------
 ``"batch"``: Gauss-Newton over the whole log (a smoother, like ESKF + RTS), see
 :func:`~polins.fusion.graph.solvers.gauss_newton_qr` for why neither Levenberg-Marquardt
-(``optimizer="levenberg-marquardt"``, slower) nor Cholesky; sigmas from the QR-eliminated
-Bayes tree. Outliers are gated on the post-fit residuals (``r^T (R - H P H^T)^-1 r``
-against the chi-square quantile ``gate_prob``) and the graph is re-solved without them.
+(``optimizer="levenberg-marquardt"``, slower) nor Cholesky; it starts from the ESKF's
+solution on the same inputs (:mod:`~polins.fusion.graph.start`); sigmas from the
+QR-eliminated Bayes tree, every variable's in one pass
+(:func:`~polins.fusion.graph.solvers.marginal_covariances`). Outliers are gated on the
+post-fit residuals (``r^T (R - H P H^T)^-1 r`` against the chi-square quantile
+``gate_prob``) and the graph is re-solved without them.
 ``"isam2"``: incremental ``gtsam.ISAM2`` as used online: each keyframe is reported as
 estimated when it was added (causal, like the filter); gating on the predicted residual
 with the previous keyframe's covariance. ``"fixed_lag"``:
@@ -99,6 +102,7 @@ import time
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from tqdm import tqdm
 
 try:
@@ -128,21 +132,27 @@ from polins.fusion.graph.problem import Problem, keyframe_times
 from polins.fusion.graph.solvers import (
     gauss_newton_qr,
     marginal_covariance_qr,
+    marginal_covariances,
     solve_batch,
     solve_incremental,
 )
+from polins.fusion.graph.start import filter_values
 from polins.fusion.inputs import Prepared, output_mask
 from polins.fusion.items import UpdateRecord, records_table
 from polins.fusion.result import FusionResult, events_table
 from polins.ins.state import solution_table
 
 
-def causal_gate(prep: Prepared, prob: Problem) -> dict[int, tuple[float, str]]:
+def causal_gate(
+    prep: Prepared, prob: Problem, upd: pd.DataFrame | None = None
+) -> dict[int, tuple[float, str]]:
     """The ESKF's verdicts on the standstill detector's zero-velocity and zero-rate factors
     (``prob.detected``): index into ``prob.meas`` -> (NIS, reason) of those the ESKF's
     gate rejected, found by kind and time (both place the detector's updates at the same
-    epochs, :func:`polins.fusion.vehicle.vehicle_items`)."""
-    upd = fuse_eskf(prep).updates
+    epochs, :func:`polins.fusion.vehicle.vehicle_items`). ``upd``: the ESKF's update table
+    of ``prep`` if already run."""
+    if upd is None:
+        upd = fuse_eskf(prep).updates
     rejected = upd[~upd["accepted"].to_numpy(dtype=bool)]
     out = {}
     for i in sorted(prob.detected):
@@ -195,9 +205,11 @@ def fuse_graph(prep: Prepared, progress: bool = False) -> FusionResult:
     t_built = time.perf_counter()
     with tqdm(desc=f"graph {config.graph.solver}", disable=not progress, bar_format=BAR) as bar:
         if config.graph.solver == "batch":
-            bar.set_postfix_str("causal gate (ESKF)")
-            causal = causal_gate(prep, prob) if prob.detected else {}
-            est = solve_batch(prob, records, info, causal, bar.set_postfix_str)
+            bar.set_postfix_str("ESKF (causal gate, initial values)")
+            eskf = fuse_eskf(prep)
+            causal = causal_gate(prep, prob, eskf.updates) if prob.detected else {}
+            start = filter_values(prob, eskf.solution)
+            est = solve_batch(prob, records, info, causal, bar.set_postfix_str, start)
         else:
             est = solve_incremental(prob, records, info, progress=bar)
     t_solved = time.perf_counter()
@@ -236,6 +248,7 @@ __all__ = [
     "keyframe_times",
     "levelling_factor",
     "marginal_covariance_qr",
+    "marginal_covariances",
     "non_holonomic_factor",
     "pose_cov_body_from_nav",
     "pose_cov_nav_from_body",

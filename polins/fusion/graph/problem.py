@@ -18,7 +18,6 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 
 from polins.fusion.acquisition import consensus, yaw_offset
@@ -579,7 +578,10 @@ class Estimates:
         self.pos_n[k] = pose.translation()
         self.vel_n[k] = vel
         self.bias[k] = np.concatenate([bias.gyroscope(), bias.accelerometer()])
-        cov = block_diag(pose_cov_nav_from_body(mat_nb, cov_pose_b), cov_vel, cov_bias)
+        cov = np.zeros((N_ERROR, N_ERROR))  # GTSAM's blocks: pose, velocity, bias
+        cov[:6, :6] = pose_cov_nav_from_body(mat_nb, cov_pose_b)
+        cov[6:9, 6:9] = cov_vel
+        cov[9:, 9:] = cov_bias
         self.cov[k] = 0.0
         self.cov[k, :N_ERROR, :N_ERROR] = cov[np.ix_(ESKF_FROM_GTSAM, ESKF_FROM_GTSAM)]
         self.yaw_known[k] = yaw_known
@@ -592,7 +594,9 @@ class Estimates:
         ``marginal(key)`` (``sg`` and ``sa`` independent blocks)."""
         key_g, key_a = scale_keys(k)
         self.scale[k] = np.concatenate([value(key_g), value(key_a)])
-        self.scale_cov[k] = block_diag(marginal(key_g), marginal(key_a))
+        self.scale_cov[k] = 0.0
+        self.scale_cov[k, :3, :3] = marginal(key_g)
+        self.scale_cov[k, 3:, 3:] = marginal(key_a)
 
     def values(self, k: int) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias]:
         """Keyframe ``k`` as GTSAM values."""

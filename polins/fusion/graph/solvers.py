@@ -8,8 +8,7 @@ diagnostics to ``info``, and returns the keyframe
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from functools import partial
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import gtsam
@@ -109,6 +108,52 @@ def marginal_covariance_qr(bayes_tree: gtsam.GaussianBayesTree, key: int) -> Flo
     return r_inv @ r_inv.T
 
 
+def marginal_covariances(
+    bayes_tree: gtsam.GaussianBayesTree, dims: Mapping[int, int]
+) -> dict[int, FloatArray]:
+    """Marginal covariance of every variable of a QR-eliminated Bayes tree, in one pass from
+    the roots (the result of :func:`marginal_covariance_qr` for each key).
+
+    Each clique's conditional ``R x_F + S x_S = d`` (unit noise, ``F`` its frontal, ``S`` its
+    separator variables, ``dims`` their sizes) gives the joint covariance of ``(F, S)`` from
+    that of ``S``, which lies in the parent's joint (the running intersection property):
+    ``P_FS = -A P_SS``, ``P_FF = R^-1 R^-T + A P_SS A^T`` with ``A = R^-1 S``. A parent's
+    joint is kept until its children are done: the work is linear in the cliques.
+    """
+    out: dict[int, FloatArray] = {}
+    # (clique, the parent's joint covariance and the offsets of its keys)
+    stack: list[tuple[Any, FloatArray | None, dict[int, int] | None]]
+    stack = [(root, None, None) for root in bayes_tree.roots()]
+    while stack:
+        clique, parent_cov, parent_at = stack.pop()
+        cond = clique.conditional()
+        r = np.array(cond.R(), dtype=float, copy=True)
+        keys = list(cond.keys())
+        at, offset, n_front = {}, 0, 0
+        for key in keys:
+            at[key] = offset
+            offset += dims[key]
+            n_front += offset <= r.shape[0]
+        r_inv = np.linalg.inv(r)  # (upper triangular, small)
+        cov = np.empty((offset, offset))
+        cov[: r.shape[0], : r.shape[0]] = r_inv @ r_inv.T
+        if offset > r.shape[0]:
+            assert parent_cov is not None and parent_at is not None
+            sep = np.concatenate([parent_at[k] + np.arange(dims[k]) for k in keys[n_front:]])
+            p_ss = parent_cov[np.ix_(sep, sep)]
+            a = r_inv @ np.array(cond.S(), dtype=float, copy=True)
+            p_fs = -a @ p_ss
+            cov[: r.shape[0], : r.shape[0]] += a @ p_ss @ a.T
+            cov[: r.shape[0], r.shape[0] :] = p_fs
+            cov[r.shape[0] :, : r.shape[0]] = p_fs.T
+            cov[r.shape[0] :, r.shape[0] :] = p_ss
+        for key in keys[:n_front]:
+            sl = slice(at[key], at[key] + dims[key])
+            out[key] = cov[sl, sl].copy()
+        stack.extend((clique[j], cov, at) for j in range(clique.nrChildren()))
+    return out
+
+
 def optimize(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prob: Problem
 ) -> tuple[gtsam.Values, int, gtsam.GaussianFactorGraph]:
@@ -168,6 +213,7 @@ def solve_batch(
     info: dict[str, Any],
     causal: dict[int, tuple[float, str]] | None = None,
     progress: Callable[[str], None] | None = None,
+    start: gtsam.Values | None = None,
 ) -> Estimates:
     """Gauss-Newton (QR) over the whole log, post-fit gating, QR marginals.
 
@@ -177,6 +223,10 @@ def solve_batch(
     undo. ``causal`` gives that pass's verdicts (index into ``prob.meas`` -> NIS, reason;
     :func:`polins.fusion.graph.fuse_graph` takes them from the ESKF's run); without it an
     ISAM2 pass (:func:`solve_incremental`) gates them. ``progress`` is told each stage.
+    ``start``: initial values of every key, also the first linearization point of the
+    preintegration (:func:`polins.fusion.graph.start.filter_values`); without them, dead
+    reckoning, and with the Earth rate the first solve is repeated once, re-preintegrated
+    with the transport rate and bias of the first.
     """
     rejected: dict[int, tuple[float, str]] = {}
     if prob.detected and causal is None:
@@ -189,12 +239,13 @@ def solve_batch(
     result: gtsam.Values | None = None
     iterations: list[int] = []
     for gate_round in range(1 + MAX_GATE_ROUNDS):
-        # With the Earth rate, the first solve is repeated once: re-preintegrated with the
-        # transport rate and bias of the first; a re-solve after gating starts from there.
-        for p in range(2 if prob.earth_rate and result is None else 1):
+        # A re-solve (after gating, or the repeat from dead reckoning with the Earth rate)
+        # starts from the last result and is preintegrated there.
+        repeat = prob.earth_rate and result is None and start is None
+        for _ in range(2 if repeat else 1):
             if progress is not None:
                 progress(f"gate round {gate_round + 1}, solve {len(iterations) + 1}")
-            lin = result if (p > 0 or result is not None) else None
+            lin = result if result is not None else start
             graph, values = batch_graph(prob, set(rejected), lin)
             result, it, linear = optimize(graph, values, prob)
             iterations.append(it)
@@ -205,20 +256,22 @@ def solve_batch(
         zero = bayes_tree.optimize()  # (a zero step: the cost at the result is linear's)
         zero.setZero()
         est = Estimates.empty(len(prob.t_key), prob.states.n)
+        dims = {key: zero.dim(key) for key in result.keys()}
+        marginal = marginal_covariances(bayes_tree, dims).__getitem__
         # the scale factors are constants: one marginal (the last keyframe's) for all
         last = prob.scale_values(len(prob.t_key) - 1).keys()
-        scale_cov = [marginal_covariance_qr(bayes_tree, key) for key in last]
+        scale_cov = [marginal(key) for key in last]
         for k in range(len(prob.t_key)):
             est.store(
                 k,
                 result.atPose3(X(k)),
                 result.atVector(V(k)),
                 result.atConstantBias(B(k)),
-                marginal_covariance_qr(bayes_tree, X(k)),
-                marginal_covariance_qr(bayes_tree, V(k)),
-                marginal_covariance_qr(bayes_tree, B(k)),
+                marginal(X(k)),
+                marginal(V(k)),
+                marginal(B(k)),
                 prob.yaw_given or prob.n_headings > 0,
-                prob.states.read(k, result.atVector, partial(marginal_covariance_qr, bayes_tree)),
+                prob.states.read(k, result.atVector, marginal),
             )
             if prob.scale_jac is not None:
                 cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
