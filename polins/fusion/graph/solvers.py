@@ -24,6 +24,10 @@ from polins.fusion.measurement import ATT, N_ERROR, VEL
 
 FloatArray = NDArray[np.float64]
 
+# [s] The post-fit gate compares an exceedance with those this close in time: an outlier
+# inflates the residuals of its neighbours in the smoothed solution, not those further off.
+GATE_SPAN_S = 30.0
+
 
 class DivergedError(RuntimeError):
     """Gauss-Newton reached a non-finite cost."""
@@ -303,9 +307,11 @@ def post_fit_gate(
     The post-fit residual of a correct measurement has covariance ``R - H P H^T``
     (``P`` the smoothed covariance), so ``r^T (R - H P H^T)^-1 r`` is chi-square with
     ``dim`` degrees of freedom. An outlier also inflates its neighbours' residuals, so each
-    round gates only the grossest exceedances (NIS at least half the largest); the graph is
-    re-solved and the gate repeated. Returns the newly gated factors (empty: ``records``,
-    one per factor, has been written).
+    round gates only the grossest exceedances (NIS at least half the largest within
+    ``GATE_SPAN_S`` of it, :func:`local_worst`); the graph is re-solved and the gate
+    repeated. Outliers further apart are gated in the same round: the rounds do not grow
+    with the log's length. Returns the newly gated factors (empty: ``records``, one per
+    factor, has been written).
     """
     rows: list[UpdateRecord] = []
     exceed: dict[int, tuple[float, str]] = {}
@@ -327,8 +333,18 @@ def post_fit_gate(
     if not exceed:
         records.extend(rows)
         return {}
-    worst = max(nis for nis, _ in exceed.values())
-    return {i: v for i, v in exceed.items() if v[0] >= 0.5 * worst}
+    index = np.array(sorted(exceed, key=lambda i: prob.meas[i].item.t))
+    t_exceed = np.array([prob.meas[i].item.t for i in index])
+    nis_exceed = np.array([exceed[i][0] for i in index])
+    worst = local_worst(t_exceed, nis_exceed, GATE_SPAN_S)
+    return {int(i): exceed[int(i)] for i in index[nis_exceed >= 0.5 * worst]}
+
+
+def local_worst(t: FloatArray, nis: FloatArray, span_s: float) -> FloatArray:
+    """The largest of ``nis`` within ``span_s`` [s] of each time ``t`` [s] (sorted)."""
+    lo = np.searchsorted(t, t - span_s, side="left")
+    hi = np.searchsorted(t, t + span_s, side="right")
+    return np.array([nis[a:b].max() for a, b in zip(lo, hi, strict=True)])
 
 
 def solve_incremental(
