@@ -84,7 +84,8 @@ solution on the same inputs (:mod:`~polins.fusion.graph.start`); sigmas from the
 QR-eliminated Bayes tree, every variable's in one pass
 (:func:`~polins.fusion.graph.solvers.marginal_covariances`). Outliers are gated on the
 post-fit residuals (``r^T (R - H P H^T)^-1 r`` against the chi-square quantile
-``gate_prob``) and the graph is re-solved without them.
+``gate_prob``), each round those at least half the largest exceedance within 30 s
+(``solvers.GATE_SPAN_S``), and the graph is re-solved without them.
 ``"isam2"``: incremental ``gtsam.ISAM2`` as used online: each keyframe is reported as
 estimated when it was added (causal, like the filter); gating on the predicted residual
 with the previous keyframe's covariance. ``"fixed_lag"``:
@@ -154,14 +155,19 @@ def causal_gate(
     if upd is None:
         upd = fuse_eskf(prep).updates
     rejected = upd[~upd["accepted"].to_numpy(dtype=bool)]
+    by_kind = {
+        kind: (g["t"].to_numpy(dtype=float), g["nis"].to_numpy(dtype=float), list(g["reason"]))
+        for kind, g in rejected.groupby("name", sort=False)
+    }
     out = {}
     for i in sorted(prob.detected):
         item = prob.meas[i].item
-        gone = rejected[rejected["name"] == item.kind]
-        t_gone = gone["t"].to_numpy(dtype=float)
+        if item.kind not in by_kind:
+            continue
+        t_gone, nis, reason = by_kind[item.kind]
         j = int(np.searchsorted(t_gone, item.t - TIME_TOL_S))
         if j < len(t_gone) and abs(t_gone[j] - item.t) <= TIME_TOL_S:
-            out[i] = (float(gone["nis"].iloc[j]), str(gone["reason"].iloc[j]))
+            out[i] = (float(nis[j]), str(reason[j]))
     return out
 
 

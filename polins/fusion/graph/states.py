@@ -268,11 +268,12 @@ class GraphStates:
         lever_arm_b`` at the gyro rate interpolated to its time, as the ESKF's
         ``VehicleAiding.odometer``; its factor on ``X(k)``, ``V(k)`` and ``so``."""
         aiding = VehicleAiding(self.config, float(np.median(np.diff(t_imu))))
+        t_items = np.array([it.t for it in items], dtype=float)
+        rates = np.column_stack([np.interp(t_items, t_imu, gyro_b[:, i]) for i in range(3)])
         out: list[tuple[int, MeasurementItem, gtsam.NonlinearFactor]] = []
-        for it, k in zip(items, keys, strict=True):
+        for it, k, rate in zip(items, keys, rates.reshape(-1, 3), strict=True):
             if k is None:
                 continue
-            rate = np.array([np.interp(it.t, t_imu, gyro_b[:, i]) for i in range(3)])
             item = aiding.attach(it, rate)
             out.append((k, item, self.factor(item, k, X(k), V(k), False)))
         return out
