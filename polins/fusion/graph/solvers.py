@@ -259,6 +259,8 @@ def solve_batch(
         bayes_tree = linear.eliminateMultifrontal(graph.orderingCOLAMD(), gtsam.EliminateQR)
         zero = bayes_tree.optimize()  # (a zero step: the cost at the result is linear's)
         zero.setZero()
+        error, n_factors = linear.error(zero), graph.size()
+        del linear, graph  # (held only by the next round's solve: memory)
         est = Estimates.empty(len(prob.t_key), prob.states.n)
         dims = {key: zero.dim(key) for key in result.keys()}
         marginal = marginal_covariances(bayes_tree, dims).__getitem__
@@ -280,17 +282,13 @@ def solve_batch(
             if prob.scale_jac is not None:
                 cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
                 est.store_scale(k, result.atVector, cov_of.__getitem__)
+        del bayes_tree, marginal
         new = post_fit_gate(prob, est, rejected, records, final=gate_round == MAX_GATE_ROUNDS)
         if not new:
             break
         rejected.update(new)
     assert result is not None
-    info.update(
-        iterations=iterations,
-        error=linear.error(zero),
-        n_factors=graph.size(),
-        rejected=sorted(rejected),
-    )
+    info.update(iterations=iterations, error=error, n_factors=n_factors, rejected=sorted(rejected))
     return est
 
 
