@@ -26,6 +26,9 @@ reported, with RMS(err/sigma) of the measurement's sigma, modulo 180 deg. Rows:
 * calibrated from all 19 frames without their angles, scored on the odd frames;
 * calibrated from the even frames with their turntable angles, scored on the odd frames.
 
+Each calibration prints its channels, the channel-dependent radial shading it fits (written
+as a per-pixel gain map when significant), its notes and what its residual looks like.
+
 Prints figures; no assertions.
 """
 

@@ -788,3 +788,36 @@ def test_horizon_cut_of_the_used_pixels(tilt_deg):
     np.testing.assert_array_equal(px.valid, want)
     below = np.count_nonzero(img.valid & (up < np.sin(HORIZON_MIN)))
     assert (below > 1000) == (tilt_deg > 10.0)
+
+
+def test_separability_stop_changes_nothing_but_the_time(tmp_path, monkeypatch):
+    """A narrow pinhole (+-14 x +-12 deg) with the sun 5 deg above the horizon: the joint ML
+    is not separable, its fit stops at the first linearization (SEPARABILITY_STOP) and
+    falls back; without the stop it iterates and falls back to the same measurement."""
+    import polins.compass.solve as solve
+    from polins.sim import render_raw
+
+    text = CAM.path.read_text()
+    for old, new in [
+        ('projection = "kannala-brandt"', 'projection = "pinhole"'),
+        ("[0.029274, -0.013300, 0.009758, -0.004919]", "[0.0, 0.0, 0.0, 0.0, 0.0]"),
+        ("fov_max_deg = 80.0", "fov_max_deg = 40.0"),
+        ("fx_superpixel = 259.10", "fx_superpixel = 2500.0"),
+        ("fy_superpixel = 259.20", "fy_superpixel = 2500.0"),
+    ]:
+        text = text.replace(old, new)
+    (tmp_path / "narrow.toml").write_text(text)
+    cam = polins.load_camera(tmp_path / "narrow.toml").downscaled(4)
+    sun_n = polins.sun_vector_n(np.radians(200.0), np.radians(85.0))
+    rot = Rotation.from_euler("ZYX", [0.3, 0.02, -0.01])
+    raw = render_raw(cam, sun_n, rot, noise_std=1.5, rng=np.random.default_rng(1), epsilon=0.01)
+    stopped = measure(raw, cam)
+    monkeypatch.setattr(solve, "SEPARABILITY_STOP", 1.0)
+    iterated = measure(raw, cam)
+    corr = [float(m.reason.split("corr ")[1].split(")")[0]) for m in (stopped, iterated)]
+    assert corr[0] > solve.SEPARABILITY_MAX + 0.01 and corr[1] > solve.SEPARABILITY_MAX
+    for m in (stopped, iterated):
+        assert m.ok and m.method == "traditional" and "not separable" in m.reason
+    assert stopped.sun_azimuth_b == iterated.sun_azimuth_b
+    assert stopped.sun_azimuth_b_std == iterated.sun_azimuth_b_std
+    assert stopped.n_pixels == iterated.n_pixels

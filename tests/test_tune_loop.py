@@ -12,6 +12,7 @@ from polins.io import read_log
 from polins.io.model_files import imu_model_toml
 from polins.sim.scenario import simulate_log
 from polins.tuning import innovation_stats, tune
+from polins.tuning.likelihood import default_params
 
 CLAIMED_STD = math.radians(0.05)  # the compass's yaw_std
 TRUE_STD = math.radians(0.03)  # its errors: yaw_std_scale 0.6
@@ -32,6 +33,38 @@ def ugv(tmp_path_factory):
     return log, meas
 
 
+def fuse_with_the_tuned_file(log, meas, res, path):
+    """Write the tuned file as ``polins tune --out`` does, read the log with it as
+    ``polins fuse --imu`` does, fuse; the per-kind innovation statistics."""
+    path.write_text(imu_model_toml(res.tuned_model(name="tuned"), res.comment_lines()))
+    tuned_log = read_log(log.manifest_path, imu_model=polins.load_imu(path))
+    tuned = FuseConfig.from_log(tuned_log)
+    fused = run_fusion(tuned_log.imu, meas, config=tuned, odometry=tuned_log.odometry)
+    return innovation_stats(fused.updates, gate_prob=tuned.gate_probability)
+
+
+def test_tune_with_the_default_parameters_then_fuse_ends_inside_the_nis_bands(ugv, tmp_path):
+    """``polins tune`` without ``--params``, then ``polins fuse --imu tuned.toml``: the gyro
+    ARW stays at the model file's (the simulator's truth), the yaw scale comes out near
+    0.6, and every tuned kind's NIS, and the zero-rate one, ends inside its band."""
+    log, meas = ugv
+    config = FuseConfig.from_log(log)
+    params = default_params(config, odometry=True)
+    assert params == ("gyro_arw", "yaw_std_scale", "nhc_std", "odometer_std")
+    res = tune(log.imu, meas, config, params, odometry=log.odometry)
+    assert all(res.identifiable.values()), res.report()
+    truth = {"gyro_arw": log.imu_model.gyro_arw, "yaw_std_scale": TRUE_STD / CLAIMED_STD,
+             "odometer_std": 0.05}  # the simulated odometer's sigma  # fmt: skip
+    for p, value in truth.items():
+        assert abs(math.log(res.values[p] / value)) < 3 * res.robust_sigma_log[p], res.report()
+    assert not res.moved("gyro_arw") and not res.notes()
+    assert not res.stats_before["yaw"].consistent and not res.stats_before["nhc"].consistent
+    stats = fuse_with_the_tuned_file(log, meas, res, tmp_path / "tuned.toml")
+    for kind in ("yaw", "nhc", "odo", "zaru"):
+        assert stats[kind].consistent, (kind, stats[kind])
+        assert stats[kind].nis_mean == pytest.approx(res.stats_after[kind].nis_mean, rel=1e-9)
+
+
 def test_tune_then_fuse_with_the_tuned_file_ends_inside_the_nis_bands(ugv, tmp_path):
     log, meas = ugv
     config = FuseConfig.from_log(log)
@@ -49,12 +82,7 @@ def test_tune_then_fuse_with_the_tuned_file_ends_inside_the_nis_bands(ugv, tmp_p
     )
     assert res.values["nhc_std"] < 0.01  # the simulator's wheels do not slip
 
-    path = tmp_path / "tuned.toml"
-    path.write_text(imu_model_toml(res.tuned_model(name="tuned")))
-    tuned_log = read_log(log.manifest_path, imu_model=polins.load_imu(path))
-    tuned = FuseConfig.from_log(tuned_log)
-    fused = run_fusion(tuned_log.imu, meas, config=tuned, odometry=tuned_log.odometry)
-    stats = innovation_stats(fused.updates, gate_prob=tuned.gate_probability)
+    stats = fuse_with_the_tuned_file(log, meas, res, tmp_path / "tuned.toml")
     for kind in ("yaw", "nhc", "odo"):
         assert stats[kind].consistent, (kind, stats[kind])
     assert stats["nhc"].autocorr[0] < 0.3 < before["nhc"].autocorr[0]  # whiter innovations

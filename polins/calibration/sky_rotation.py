@@ -36,7 +36,15 @@ Pitfalls, and how they are handled:
   about the turn axis ``axis_n``; the fit takes it as known. Without the clock, keep the
   sequence within a few minutes.
 * **Exposure changes** between images are absorbed by the per-image scale ``s_j``; the dark
-  offsets must be known (calibrate them first with dark frames).
+  offsets must be known (calibrate them first with dark frames). With the turns unknown on
+  a narrow field, where every ring sees the same normalised polarization, a free scale per
+  image lets a turn error uneven over the turn trade against the gains' differential: the
+  exposure is then taken as smooth in time (:func:`exposure_basis`), and images whose
+  brightness jumps about that are refused.
+* **Channel-dependent radial shading.** The channels' gains may change differently with the
+  field angle, a camera-fixed polarization growing towards the edge (harmonic 0 of the
+  turn, changing ring by ring). The fit models ``g_k (1 + c_k (rho^2 - rho2_ref))`` and
+  returns its per-pixel gain map when significant.
 * **Turns spanning less than about 90 deg** leave the gains and the efficiencies
   degenerate: refused.
 * **The sun disc and saturation.** A ring that holds a saturated superpixel in any image
@@ -86,7 +94,7 @@ JOINT_ITERATIONS = 50  # unknown turns: the joint fit from the ring-mean AoP set
 EXPOSURE_JUMP_MAX = 0.005  # unknown turns: image brightness off a smooth drift, RMS log [-]
 TILT_STD_GROWTH_MAX = 3.0  # tilt terms that make the channel angles this much less certain: out
 TILT_TURN_MOVE_MAX_DEG = 2.0  # unknown turns: tilt terms that move the turns more fit else
-GAIN_STD_MAX = 0.005  # unknown turns: relative gain standard error above which it is refused
+GAIN_STD_MAX = 0.002  # unknown turns: a free exposure leaving the gains this uncertain: smooth it
 RESIDUAL_RATIO_WARN = 3.0  # residual RMS over the noise model above which the fit warns [-]
 RADIAL_SIGNIFICANT = 3.0  # radial shading coefficients above this many std make a gain map
 HARMONICS = 4  # harmonics of the turn in the residual's description
@@ -392,8 +400,8 @@ def residual_pattern(residuals: FloatArray, sigma: FloatArray, theta: FloatArray
     pol = 0.5 * ((fixed[:, 0] - fixed[:, 2]) ** 2 + (fixed[:, 1] - fixed[:, 3]) ** 2)
     pol_share = float(theta.size * pol.sum()) / total
     return (
-        f"residual {np.sqrt(np.mean(z**2)):.1f} x the noise model; {parts} of the turn "
-        f"(of which {100 * pol_share:.0f} % a camera-fixed polarization, 0/90 or 45/135 "
+        f"residual {np.sqrt(np.mean(z**2)):.1f} x the noise model; {parts} of the turn; "
+        f"{100 * pol_share:.0f} % a camera-fixed polarization (harmonic 0, the 0/90 or 45/135 "
         f"channels differing); by ring radius {np.round(radius, 3).tolist()}: "
         f"{np.round(by_ring, 1).tolist()} x"
     )
@@ -425,7 +433,8 @@ class _RingData:
     weight: FloatArray  # (R, n)
     radius: FloatArray  # (R,)
     signal: FloatArray  # (m, n, 4) [DN]
-    radius2: FloatArray  # (R,) the windows' mean squared normalised radius [-]
+    radius2: FloatArray | None  # (R,) the windows' mean squared normalised radius [-]; None:
+    # no radial shading fitted
     pixel_radius2: FloatArray  # (Hs, Ws) squared normalised radius of each superpixel [-]
 
 
@@ -542,57 +551,71 @@ def _fit_unknown_turns(
 ) -> tuple[TurnFit, bool, list[str]]:  # fmt: skip
     """Fit with the turns unknown, from the ring-mean AoP ``hint`` (pattern turns [rad]).
 
-    First with the exposure smooth in time (:func:`exposure_basis`); when the images'
-    brightness jumps about that (an automatic exposure), with a free scale per image. A free
-    scale lets a turn error that is uneven over the turn trade against the gains'
-    differential where the sky's normalised polarization is the same across the field (a
-    narrow field about the zenith; docs/calibrate.md#sky-rotation): such a fit is refused
-    when its gains stay uncertain. A fit that does not settle or is no physical polarizer
-    array is refused with the reason. A degenerate result is never returned."""
-    basis: FloatArray | None = exposure_basis(data.y.shape[0], times_s)
-    fit, why = _joint_fit(data, cam, hint, basis, factors)
-    jumps = exposure_jumps(fit, data.y) if not why else np.inf
-    notes = []
-    if jumps <= EXPOSURE_JUMP_MAX:
-        notes.append(f"turns fitted with the exposure smooth in time (jumps about it "
-                     f"{100 * jumps:.2g} % RMS)")  # fmt: skip
+    First with a free exposure per image. Where every ring sees the same normalised
+    polarization (a narrow field about the zenith), a free scale per image lets a turn
+    error that is uneven over the turn trade against the gains' differential
+    (docs/calibrate.md#sky-rotation): when that fit is no physical polarizer array or leaves
+    the gains uncertain by more than ``GAIN_STD_MAX`` (or the angles by more than
+    ``ANGLE_STD_MAX_DEG``), the exposure is taken as smooth in time (:func:`exposure_basis`),
+    which a fixed exposure is; images whose brightness jumps about that by more than
+    ``EXPOSURE_JUMP_MAX`` are then refused, and so is a fit that does not settle or is no
+    physical polarizer array. A degenerate result is never returned."""
+    fit, why = _joint_fit(data, cam, hint, None, factors)
+    if not why:
+        notes = ["turns fitted with a free exposure per image"]
+        final, tilt_used = _with_tilt(data, cam, fit, None, factors, tilt_terms, notes)
+        gain_std = float(np.max(final.gain_std / final.gain))
+        if gain_std <= GAIN_STD_MAX and _angle_std_deg(final) <= ANGLE_STD_MAX_DEG:
+            return final, tilt_used, notes
+        why = (f"the gains uncertain by {100 * gain_std:.2g} % and the channel angles by "
+               f"{_angle_std_deg(final):.2g} deg")  # fmt: skip
     else:
-        fit, why = _joint_fit(data, cam, hint, None, factors)
-        basis = None
-        notes.append("turns fitted with a free exposure per image (it jumps"
-                     + (f" by {100 * jumps:.2g} % RMS about a smooth drift)" if np.isfinite(jumps)
-                        else ")"))  # fmt: skip
-    if why:
+        why = f"no physical polarizer array ({why})"
+    basis = exposure_basis(data.y.shape[0], times_s)
+    fit, smooth_why = _joint_fit(data, cam, hint, basis, factors)
+    if smooth_why:
         raise UserInputError(
             f"sky-rotation: the turns cannot be fitted from these images: with them free the fit "
-            f"is no physical polarizer array ({why}); give the turns (turns=..., polins "
-            "calibrate sky-rotation --turns-deg)"
+            f"is no physical polarizer array ({smooth_why}; with a free exposure per image "
+            f"{why}); give the turns (turns=..., polins calibrate sky-rotation --turns-deg)"
         )
-    gain_std = float(np.max(fit.gain_std / fit.gain))
-    if gain_std > GAIN_STD_MAX:
+    jumps = exposure_jumps(fit, data.y)
+    if jumps > EXPOSURE_JUMP_MAX:
         raise UserInputError(
-            f"sky-rotation: with the turns unknown the gains stay uncertain by {100 * gain_std:.2g}"
-            " %: turn errors trade against the gains' differential where the sky's polarization "
-            "is the same across the field"
-            + ("; a fixed exposure tells them apart" if basis is None else "")
-            + "; give the turns (turns=..., polins calibrate sky-rotation --turns-deg)"
+            f"sky-rotation: with the turns free and a free exposure per image the fit leaves "
+            f"{why}: turn errors trade against the gains' differential where the sky's "
+            "polarization is the same across the field; a fixed exposure tells them apart, but "
+            f"the images' brightness jumps by {100 * jumps:.2g} % RMS about a smooth drift. Fix "
+            "the exposure, or give the turns (turns=..., polins calibrate sky-rotation "
+            "--turns-deg)"
         )
+    notes = [f"turns fitted with the exposure smooth in time (jumps about it {100 * jumps:.2g} "
+             f"% RMS): with a free exposure per image the fit left {why}"]  # fmt: skip
+    final, tilt_used = _with_tilt(data, cam, fit, basis, factors, tilt_terms, notes)
+    return final, tilt_used, notes
+
+
+def _with_tilt(
+    data: _RingData, cam: CameraModel, fit: TurnFit, basis: FloatArray | None,
+    factors: NDArray[np.complex128] | None, tilt_terms: bool, notes: list[str],
+) -> tuple[TurnFit, bool]:  # fmt: skip
+    """The fit with the tilt terms added from ``fit`` (its turns on the right branch) when
+    they are wanted and identified, else ``fit``; ``notes`` say why they were left out."""
     if not tilt_terms:
-        return fit, False, notes
-    # The tilt terms start from the fit without them, its turns on the right branch.
+        return fit, False
     branch = turns_modulo_2pi(data.signal, data.weight, cam)
     turn_start = fit.turn + np.pi * np.round((branch - fit.turn) / np.pi)
     tilted = fit_turning_polarization(
         data.y, data.sigma, cam, tilt_terms=True, turn_start=turn_start,
-        turn_prior_std=np.radians(1.0), scale_basis=basis, source_factors=factors, source_radius2=data.radius2,
+        turn_prior_std=np.radians(1.0), scale_basis=basis, source_factors=factors,
+        source_radius2=data.radius2,
     )  # fmt: skip
     moved = np.degrees(np.abs(np.angle(np.exp(2j * (tilted.turn - fit.turn)))).max() / 2)
     if moved > TILT_TURN_MOVE_MAX_DEG:
         notes.append(f"the tilt terms moved the fitted turns by up to {moved:.2g} deg: they fit "
                      "something other than a tilted turn axis, and are left out")  # fmt: skip
-        return fit, False, notes
-    fit, tilt_used = _tilt_or_not(fit, tilted, float(np.degrees(turn_span(-fit.turn))), notes)
-    return fit, tilt_used, notes
+        return fit, False
+    return _tilt_or_not(fit, tilted, float(np.degrees(turn_span(-fit.turn))), notes)
 
 
 def fit_sky_rotation(
@@ -675,14 +698,22 @@ def fit_sky_rotation(
                                  f"image, got {turns_arr.size}")  # fmt: skip
         check_turns(turns_arr, hint)
         _check_span(np.degrees(turn_span(turns_arr)), min_span_deg)
-        fit, tilt_used, notes = _fit_known_turns(data, cam, turns_arr, tilt_terms, factors)
     else:
         _check_span(np.degrees(turn_span(-hint)), 0.5 * min_span_deg)  # hopeless before a fit
-        times_s = None
-        if times_utc is not None:
-            idx = to_utc_index(times_utc)
-            times_s = np.asarray((idx - idx[0]).total_seconds(), dtype=float)
-        fit, tilt_used, notes = _fit_unknown_turns(data, cam, hint, tilt_terms, factors, times_s)
+    times_s = None
+    if times_utc is not None:
+        idx = to_utc_index(times_utc)
+        times_s = np.asarray((idx - idx[0]).total_seconds(), dtype=float)
+
+    def run(ring_data: _RingData) -> tuple[TurnFit, bool, list[str]]:
+        if known:
+            return _fit_known_turns(ring_data, cam, turns_arr, tilt_terms, factors)
+        return _fit_unknown_turns(ring_data, cam, hint, tilt_terms, factors, times_s)
+
+    fit, tilt_used, notes = run(data)
+    if not _shading_significant(fit):  # the nested model without it: no map, uniform gains
+        data = replace(data, radius2=None)
+        fit, tilt_used, notes = run(data)
     span = np.degrees(turn_span(-fit.turn))
     _check_span(span, min_span_deg)
     why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
@@ -697,6 +728,11 @@ def fit_sky_rotation(
         )
     return _result(fit, data, cam, m, span, tilt_used, factors is not None, ifov_correction,
                    known, notes)  # fmt: skip
+
+
+def _shading_significant(fit: TurnFit) -> bool:
+    """Some radial shading coefficient exceeds ``RADIAL_SIGNIFICANT`` standard errors."""
+    return bool(np.any(np.abs(fit.radial_gain) > RADIAL_SIGNIFICANT * fit.radial_gain_std))
 
 
 def _check_span(span: float, min_span_deg: float) -> None:
@@ -725,7 +761,7 @@ def _result(
         )
     turn = -fit.turn  # the pattern turns by -phi when the camera turns by +phi
     gain_map = None
-    if np.any(np.abs(fit.radial_gain) > RADIAL_SIGNIFICANT * fit.radial_gain_std):
+    if data.radius2 is not None:
         shading = 1.0 + (data.pixel_radius2 - data.radius2.mean())[..., None] * fit.radial_gain
         gain_map = fit.gain * np.maximum(shading, 0.1)
     return SkyRotationResult(

@@ -207,6 +207,10 @@ def summary_lines(result: Any, cam: Any) -> list[str]:
             lines.append(f"fx, fy, cx, cy [superpixel]: {k[0, 0]:.4f}, {k[1, 1]:.4f}, "
                          f"{k[0, 2]:.4f}, {k[1, 2]:.4f}")  # fmt: skip
             continue
+        if key in _MAP_SOURCES.values():
+            if value is not None:
+                lines.append(f"{key}: per-pixel, {' x '.join(map(str, np.shape(value)))}")
+            continue
         if key == "mat_bc":
             rows = np.asarray(value, dtype=float)
             lines.append("mat_bc: " + "; ".join(", ".join(f"{x:.6f}" for x in r) for r in rows))

@@ -131,8 +131,9 @@ def eigen_level_rows(
     no_mask = np.zeros(0, dtype=bool)
     flags = np.array([projection, weighted, 1e-30, 1.0, 0.0], dtype=dtype)
     e, omega = np.empty((3, s1.size), dtype=dtype), np.empty(s1.size, dtype=dtype)
-    n = compiled("evector_pass")(s1, s2, inv, basis, no_mask if mask is None else mask, flags,
-                                 e, omega)  # fmt: skip
+    compiled("evector_pass")(s1, s2, inv, basis, no_mask if mask is None else mask, flags,
+                             e, omega)  # fmt: skip
+    n = int(np.count_nonzero(omega))
     moment_c = moment(e, omega)
     sol = eigen_from_moment(mat_lc @ moment_c @ mat_lc.T, float(np.trace(moment_c)), n)
     return sol, e, omega

@@ -455,7 +455,7 @@ def evector_pass(  # pragma: no cover - compiled by numba, which coverage cannot
     flags: NDArray,
     e: NDArray,
     omega: NDArray,
-) -> int:
+) -> None:
     """The E-vectors and weights of the eigen solution in one pass
     (:func:`polins.compass.eigen.eigen_level_rows`): the numpy expressions of
     :func:`polins.compass.lens.evector_rows` and of the weights, operation for operation in
@@ -466,12 +466,11 @@ def evector_pass(  # pragma: no cover - compiled by numba, which coverage cannot
     all pixels; ``flags`` = (projection, weighted, 1e-30, 1, 0) in the rows' dtype. Writes the
     unnormalised E-vectors ``e (3, n)`` and the weights ``omega (n,)`` (``w/|e|^2``, 0 for
     masked pixels) in the rows' dtype (float32 halves the pass's memory traffic; the sums
-    that use them cast to float64) and returns the number of non-zero weights."""
+    that use them cast to float64). No count or sum in the loop: it runs in vector lanes."""
     projection, weighted = flags[0] != 0, flags[1] != 0
     tiny, one, zero = flags[2], flags[3], flags[4]
     per_pixel, masked = inv.size > 1, mask.size > 0
     w = inv[0]
-    count = 0
     for i in range(s1.size):
         a, b = s1[i], s2[i]
         p2 = a * a + b * b
@@ -499,8 +498,6 @@ def evector_pass(  # pragma: no cover - compiled by numba, which coverage cannot
             om = om * (one if mask[i] else zero)
         e[0, i], e[1, i], e[2, i] = e0, e1, e2
         omega[i] = om
-        count += om != 0
-    return count
 
 
 def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cannot trace
@@ -533,7 +530,8 @@ def sandwich_pass(  # pragma: no cover - compiled by numba, which coverage canno
     (bit-identical), ``middle (3, 3) = sum wr^2 e e^T`` and, per run of pixels beginning at
     ``starts (m,)`` (``starts[0] = 0``, the last run ends at ``n``), ``out (m, 4)`` =
     (``sum wr e`` (3), ``sum omega``) as :func:`eigen_run_sums`. Float32 ``e`` and
-    ``omega`` are cast to float64 first; sums in numpy's pixel order (no reassociation)."""
+    ``omega`` are cast to float64 first; sums in pixel order (the runs are about 50 pixels
+    long: vector lanes would cost more than they save)."""
     n, m = omega.size, starts.size
     sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0

@@ -89,12 +89,12 @@ SEPARABILITY_MAX = 0.98
 eigen solution (docs/measurement.md §11)."""
 
 SEPARABILITY_STOP = 0.99
-"""A Rayleigh-sky fit whose linearization gives a correlation of epsilon with the sun
-parameters above this stops there and falls back (its iterations would not bring it below
-:data:`SEPARABILITY_MAX`: over the narrow-field and fisheye images of
-docs/measurement.md §11 the correlation moved by less than 0.008 from the first
-linearization to the last). The Berry-sky fit runs on: its fallback to the Rayleigh sky
-changes the parameters."""
+"""A fit whose linearization gives a correlation of epsilon with the sun parameters above
+this stops there (its iterations would not bring it below :data:`SEPARABILITY_MAX`: over
+the narrow-field and fisheye images of docs/measurement.md §11 the correlation moved by
+less than 0.008 from the first linearization to the last). A stopped Rayleigh-sky fit is
+a fallback; a stopped Berry-sky fit hands over to the Rayleigh fit from the same start,
+and runs to its end when that one is separable (:func:`_fit_sky`)."""
 
 SCORE_MARGIN = 0.2
 """The Berry sky is solved when the one-step separation square of the score test reaches
@@ -278,6 +278,11 @@ def _drop_clouds(
     return ml, mask, dropped
 
 
+def _stopped(ml: MLSolution) -> bool:
+    """The Gauss-Newton stopped at :data:`SEPARABILITY_STOP` (not separable)."""
+    return not ml.converged and epsilon_correlation(ml.covariance) > SEPARABILITY_STOP
+
+
 def _fit_sky(
     setup: SolveSetup,
     data: PixelData,
@@ -288,20 +293,29 @@ def _fit_sky(
 ) -> tuple[MLSolution, NDArray | None, Fit]:
     """The iterated solve in the sky model, in the Rayleigh sky when the fitted
     neutral-point separation is not identified (sep 0: no neutral points seen), and only in
-    the Rayleigh sky when the score test at sep 0 finds nothing to fit."""
-    opt = setup.opt
+    the Rayleigh sky when the score test at sep 0 finds nothing to fit. A Berry-sky fit not
+    separable at its start (:data:`SEPARABILITY_STOP`) is followed by the Rayleigh fit from
+    the same start: when that is not separable either, it is the answer (a fallback);
+    otherwise the Berry fit runs to its end as usual."""
+    opt, k_sep = setup.opt, setup.k_sep
     sky = _sky(rays, opt)
     berry = sky is not None and sky.fit_sep
+    rayleigh = Fit(data, sectors, _sky(rays, opt, berry=False), MAX_ITERATIONS, tol_sigma=0.1,
+                   stop_correlation=SEPARABILITY_STOP)  # fmt: skip
     if sky is None or not berry or _separation_possible(setup, data, theta, select, sky):
-        stop = SEPARABILITY_STOP if not berry else 1.0
-        fit = Fit(data, sectors, sky, MAX_ITERATIONS, tol_sigma=0.1, stop_correlation=stop)
+        fit = Fit(data, sectors, sky, MAX_ITERATIONS, tol_sigma=0.1,
+                  stop_correlation=SEPARABILITY_STOP)  # fmt: skip
         ml, mask = run_fit(setup, fit, theta, select)
-        if not berry or _separation_identified(ml, setup.k_sep):
+        if berry and _stopped(ml):  # the Berry sky not separable at the start: the Rayleigh?
+            quick, quick_mask = run_fit(setup, rayleigh, np.delete(theta, k_sep), select)
+            if _stopped(quick):
+                return quick, quick_mask, rayleigh
+            ml, mask = run_fit(setup, dataclasses.replace(fit, stop_correlation=1.0), theta,
+                               select)  # fmt: skip
+        if not berry or _separation_identified(ml, k_sep):
             return ml, mask, fit
         theta = ml.theta
-    rayleigh = _sky(rays, opt, berry=False)
-    fit = Fit(data, sectors, rayleigh, MAX_ITERATIONS, tol_sigma=0.1,
-              stop_correlation=SEPARABILITY_STOP)  # fmt: skip
+    fit = rayleigh
     ml, mask = run_fit(setup, fit, np.delete(theta, setup.k_sep), select)
     return ml, mask, fit
 

@@ -100,8 +100,7 @@ def default_params(config: FuseConfig, *, odometry: bool = False) -> tuple[str, 
     scale and the NHC and odometer sigmas when on. Tuning the IMU without the
     pseudo-measurement sigmas lets it absorb their mismatch (docs/tuning.md, "What a log
     can identify"). The zero-velocity sigma is tuned only when asked (``standstill_std``):
-    it runs to its search bound on simulated logs, whose rests are exact, and there the
-    search leaves the other parameters at their starts."""
+    on a log whose rests are exact (a simulation) it runs to its search bound."""
     run = config.resolve(odometry=odometry)
     sigmas = {"nhc_std": run.nhc_sigma, "odometer_std": run.odometer_sigma}
     return ("gyro_arw", "yaw_std_scale", *(p for p, v in sigmas.items() if v is not None))
