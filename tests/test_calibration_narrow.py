@@ -136,6 +136,7 @@ def test_no_degenerate_calibration_from_bad_starts_on_a_narrow_field(scene, monk
         assert _centre_gain_error(res, base, gain) < 2e-3
 
 
+@pytest.mark.slow
 def test_a_uniform_field_needs_a_fixed_exposure_or_the_turns():
     """A field of one polarization (every ring alike, as a narrow field with the zenith 90 deg
     from the sun nearly is): with the exposure fixed the turns and gains come out; with a free
