@@ -33,38 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-PINHOLE_TOML = """\
-name = "pinhole-1280x720"
-description = "1280 x 720 8-bit DoFP pinhole looking up, fx = fy = 1280 px, centred"
-[sensor]
-width_px = 1280
-height_px = 720
-bit_depth = 8
-saturation_dn = 255
-mosaic_layout_deg = [[90, 45], [135, 0]]
-[polarizer]
-nominal_angle_deg = [0, 45, 90, 135]
-transmission_angle_deg = [0.0, 45.0, 90.0, 135.0]
-gain = [1.0, 1.0, 1.0, 1.0]
-efficiency = [1.0, 1.0, 1.0, 1.0]
-dark_offset_dn = [0.0, 0.0, 0.0, 0.0]
-[noise]
-read_noise_dn = 1.5
-conversion_gain_e_per_dn = inf
-[lens]
-projection = "pinhole"
-polarization_model = "projection"
-fx_superpixel = 640.0
-fy_superpixel = 640.0
-cx_superpixel = 319.5
-cy_superpixel = 179.5
-distortion = [0.0, 0.0, 0.0, 0.0]
-fov_max_deg = 30.0
-[mount]
-mat_bc = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-[occlusion]
-polygons_superpixel = []
-"""
+from bench_f3d import CAMERA_TOML as PINHOLE_TOML  # the F3D camera of main.m (benchmarks/)
 
 CAMERAS = ("paper-table1", "paper-table1/2", "pinhole-1280x720")
 

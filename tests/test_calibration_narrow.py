@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from test_calibration_scenes import mosaic, perturbed_camera, response, small_camera
+from test_sun_free import narrow_camera
 
 import polins
 from polins.calibration import fit_sky_rotation
@@ -22,28 +23,10 @@ TURNS_DEG = np.arange(0.0, 181.0, 10.0)  # a turntable's half turn
 HELD_OUT_DEG = np.arange(5.0, 180.0, 20.0)
 
 
-def _narrow_camera(tmp_path, half_fov_deg=26.0):
-    """The paper camera with a pinhole lens looking up, ideal channels, 1/8 resolution."""
-    cam = polins.load_camera("paper-table1")
-    fx = 612.0 / np.tan(np.radians(half_fov_deg))
-    text = cam.path.read_text()
-    for old, new in [
-        ('projection = "kannala-brandt"', 'projection = "pinhole"'),
-        ("[0.029274, -0.013300, 0.009758, -0.004919]", "[0.0, 0.0, 0.0, 0.0, 0.0]"),
-        ("fov_max_deg = 80.0", "fov_max_deg = 40.0"),
-        ("fx_superpixel = 259.10", f"fx_superpixel = {fx:.1f}"),
-        ("fy_superpixel = 259.20", f"fy_superpixel = {fx:.1f}"),
-    ]:
-        assert old in text
-        text = text.replace(old, new)
-    (tmp_path / "narrow.toml").write_text(text)
-    narrow = polins.load_camera(tmp_path / "narrow.toml").downscaled(8)
-    return narrow.with_changes(gain=np.ones(4), efficiency=np.ones(4))
-
-
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    base = _narrow_camera(tmp_path_factory.mktemp("narrow"))
+    narrow = narrow_camera(tmp_path_factory.mktemp("narrow"), factor=8)
+    base = narrow.with_changes(gain=np.ones(4), efficiency=np.ones(4))  # ideal channels
     rng = np.random.default_rng(41)
     true = base.with_changes(
         transmission_angle=base.transmission_angle + np.radians(rng.uniform(-0.5, 0.5, 4))
@@ -136,6 +119,7 @@ def test_no_degenerate_calibration_from_bad_starts_on_a_narrow_field(scene, monk
         assert _centre_gain_error(res, base, gain) < 2e-3
 
 
+@pytest.mark.slow
 def test_a_uniform_field_needs_a_fixed_exposure_or_the_turns():
     """A field of one polarization (every ring alike, as a narrow field with the zenith 90 deg
     from the sun nearly is): with the exposure fixed the turns and gains come out; with a free

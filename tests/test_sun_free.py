@@ -32,9 +32,10 @@ def _random_case(rng, elevation_deg=(20.0, 70.0), tilt_deg=5.0):
     return sun_n, rot
 
 
-def narrow_camera(tmp_path, half_fov_deg=26.0):
+def narrow_camera(tmp_path, half_fov_deg=26.0, factor=4):
     """The paper camera with a pinhole lens looking up (horizontal half field ``half_fov_deg``,
-    the vertical one 22 deg at 26), at 1/4 resolution (also tests/test_zenith.py's camera)."""
+    the vertical one 22 deg at 26), at ``1/factor`` resolution (also the camera of
+    tests/test_zenith.py and tests/test_calibration_narrow.py)."""
     fx = 612.0 / np.tan(np.radians(half_fov_deg))  # superpixel image 1224 wide
     text = CAM.path.read_text()
     for old, new in [
@@ -47,7 +48,7 @@ def narrow_camera(tmp_path, half_fov_deg=26.0):
         assert old in text
         text = text.replace(old, new)
     (tmp_path / "narrow.toml").write_text(text)
-    return polins.load_camera(tmp_path / "narrow.toml").downscaled(4)
+    return polins.load_camera(tmp_path / "narrow.toml").downscaled(factor)
 
 
 def _clear_sky(cam, sun_n, rot, rng, noise_std=1.5):

@@ -77,6 +77,7 @@ def test_likelihood_peaks_near_the_true_floor(drive):
     assert nll(FLOOR_DEG) < min(nll(FLOOR_DEG / 3), nll(FLOOR_DEG * 3)) - 100
 
 
+@pytest.mark.slow
 def test_tune_recovers_identifiable_and_names_unidentifiable(drive):
     imu, meas, config = drive
     model = config.imu

@@ -167,7 +167,7 @@ def fit_turning_polarization(
     source_factors : array_like, (m, R) complex, optional
         Known change of each source's linear polarization from image to image:
         ``L_r`` becomes ``L_r f_jr`` in image j (a sky that changes as the sun moves;
-        :func:`polins.calibration.sky_rotation.sun_motion_factors`). Default 1.
+        :func:`polins.calibration.rings.sun_motion_factors`). Default 1.
     max_iterations : int, optional
         Stop after about this many Levenberg-Marquardt iterations (each one Jacobian);
         ``converged`` says whether it met its tolerance. None: scipy's default.

@@ -12,7 +12,6 @@ import datetime as dt
 from dataclasses import dataclass
 
 import numpy as np
-import pvlib
 from numpy.typing import ArrayLike, NDArray
 
 from polins.site import TimeLike, to_utc_index
@@ -74,6 +73,8 @@ def sun_position(
         raise ValueError(f"lon_deg={lon_deg} outside [-180, 360] (degrees expected)")
     scalar = isinstance(t, str | dt.datetime)
     times = to_utc_index(t)
+    import pvlib  # imported on first use: it costs a third of a second at import
+
     pressure = pvlib.atmosphere.alt2pres(alt_m) if pressure_pa is None else pressure_pa
     spa = pvlib.solarposition.spa_python(
         times,

@@ -164,6 +164,7 @@ class ESKF:
         self.reset_interval_s = float(reset_interval_s)
         self.nhc_every = max(1, round(1.0 / (NHC_RATE_HZ * dt)))
         self.vehicle = VehicleAiding(config, dt)  # NHC, standstill (fusion/vehicle.py)
+        self._aid: list[tuple[float, FloatArray, FloatArray]] = []  # samples for the vehicle
         self.tilt_coupling = config.tilt_coupling
         self.t = float(t0)
         self.mat_nb = (rot_nb0 or Rotation.identity()).as_matrix()
@@ -234,6 +235,7 @@ class ESKF:
         new.acquisition, new.vehicle = copy.deepcopy(self.acquisition), self.vehicle.copy()
         new.model_part = copy.deepcopy(self.model_part)
         new._pending = list(self._pending)
+        new._aid = list(self._aid)
         if self._align_buffer is not None:
             new._align_buffer = list(self._align_buffer)
         new._sums = copy.deepcopy(self._sums)
@@ -443,7 +445,10 @@ class ESKF:
         self.P = Phi @ self.P @ Phi.T + Q
 
     def flush(self) -> None:
-        """Propagate the covariance over the step in progress (streaming)."""
+        """Propagate the covariance over the step in progress (streaming); hand the
+        vehicle's detector the samples it has not seen."""
+        if self._feed_vehicle():  # pragma: no cover - a bug: epochs are fed as they come
+            raise RuntimeError("vehicle items between the vehicle's epochs")
         if self._sums.n:
             self.predict(*self.step_matrices(self._step_nominal()))
             self._sums = StepSums()
@@ -610,10 +615,31 @@ class ESKF:
                 self._step(t, w, f)
             self._last = (t, w, f)
         self.count += 1
-        for _, item in self.vehicle.items(np.array([t]), w[None], f[None], self.count - 1):
-            self.apply(item)
+        if self.vehicle.active:
+            self._vehicle_sample(t, w, f)
         while self._pending and abs(self._pending[0].t - self.t) <= tol:
             self.apply(self._pending.pop(0))
+
+    def _vehicle_sample(self, t: float, w: FloatArray, f: FloatArray) -> None:
+        """The sample just consumed, for the vehicle's detector; at the vehicle's epochs
+        (where its items come) the samples since the last one are handed over and the
+        items applied."""
+        self._aid.append((t, w, f))
+        g = self.count - 1
+        if g >= 1 and g % self.vehicle.every == 0:
+            for _, item in self._feed_vehicle():
+                self.apply(item)
+
+    def _feed_vehicle(self) -> list[tuple[int, MeasurementItem]]:
+        """The samples held for the vehicle's detector since its last epoch, handed to it
+        at once (:meth:`VehicleAiding.items`: the same items as one call per sample);
+        its items."""
+        if not self._aid:
+            return []
+        t, w, f = zip(*self._aid, strict=True)
+        index0 = self.count - len(self._aid)
+        self._aid = []
+        return self.vehicle.items(np.array(t), np.array(w), np.array(f), index0)
 
     def _step(self, t1: float, w1: FloatArray, f1: FloatArray) -> None:
         """Propagate the nominal state to ``t1``; accumulate the covariance step."""
