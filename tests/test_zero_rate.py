@@ -22,6 +22,17 @@ from polins.models import load_imu
 
 MEMS = load_imu("mems-typical")
 RATE_N = earth_rate_n(math.radians(48.0))
+DT = 1.0 / MEMS.sample_rate_hz
+BIAS = np.array([1e-4, -2e-4, 5e-5])  # [rad/s]
+
+
+def at_rest(n: int, seed: int, bias: np.ndarray = BIAS):
+    """``n`` samples of the MEMS model at rest (level): times [s], gyro [rad/s] with the
+    constant ``bias``, specific force [m/s^2]."""
+    rng = np.random.default_rng(seed)
+    gyro = bias + rng.normal(0.0, MEMS.gyro_arw / math.sqrt(DT), (n, 3))
+    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, MEMS.accel_vrw / math.sqrt(DT), (n, 3))
+    return np.arange(n) * DT, gyro, accel
 
 
 def h_of(rot_nb: Rotation, bias_b: np.ndarray) -> np.ndarray:
@@ -77,13 +88,8 @@ def test_items_carry_the_mean_rate_of_the_samples_since_the_last_epoch():
     """At rest every kind of vehicle gets a zero-rate item at the NHC cadence: the mean of
     the raw rates since the previous epoch, with sigma ARW / sqrt(m dt); the ESKF's model
     of it is the shared one at its bias estimate."""
-    dt = 1.0 / MEMS.sample_rate_hz
-    rng = np.random.default_rng(1)
-    n = 400
-    t = np.arange(n) * dt
-    bias = np.array([1e-4, -2e-4, 5e-5])
-    gyro = bias + rng.normal(0.0, MEMS.gyro_arw / math.sqrt(dt), (n, 3))
-    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, MEMS.accel_vrw / math.sqrt(dt), (n, 3))
+    dt, bias, n = DT, BIAS, 400
+    t, gyro, accel = at_rest(n, seed=1)
     every = round(1.0 / (NHC_RATE_HZ * dt))
     for vehicle in ("free", "ground", "static"):
         cfg = FuseConfig.from_options(imu_model=MEMS, vehicle=vehicle, lat_deg=48.0, lon_deg=11.0,
@@ -109,13 +115,8 @@ def test_items_carry_the_mean_rate_of_the_samples_since_the_last_epoch():
 def test_zero_rate_items_are_consistent_with_the_bias():
     """Over many windows at rest the normalized residuals at the true bias are N(0, 1): the
     sigma ARW / sqrt(m dt) is that of the mean (non-overlapping samples)."""
-    dt = 1.0 / MEMS.sample_rate_hz
-    rng = np.random.default_rng(2)
-    n = 40000
-    t = np.arange(n) * dt
-    bias = np.array([1e-4, -2e-4, 5e-5])
-    gyro = bias + rng.normal(0.0, MEMS.gyro_arw / math.sqrt(dt), (n, 3))
-    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, MEMS.accel_vrw / math.sqrt(dt), (n, 3))
+    dt, bias, n = DT, BIAS, 40000
+    t, gyro, accel = at_rest(n, seed=2)
     cfg = FuseConfig.from_options(
         imu_model=MEMS, vehicle="free"
     )  # no site: the bias state carries the Earth rate
@@ -145,14 +146,9 @@ def test_zero_rate_item_kind_orders_with_zero_velocity():
 def test_a_held_detector_model_keeps_the_rest_epochs_and_the_sigma_follows_the_arw():
     """``standstill_model`` (a tuning holds its start model) fixes which epochs are at rest
     while the filter's ARW changes; the zero-rate sigma is the filter's ARW / sqrt(m dt)."""
-    dt = 1.0 / MEMS.sample_rate_hz
-    rng = np.random.default_rng(3)
-    n = 4000
-    t = np.arange(n) * dt
-    turn = np.where((t > 5.0) & (t < 12.0), math.radians(0.4), 0.0)  # a slow turn in between
-    gyro = rng.normal(0.0, MEMS.gyro_arw / math.sqrt(dt), (n, 3))
-    gyro[:, 2] += turn
-    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, MEMS.accel_vrw / math.sqrt(dt), (n, 3))
+    dt = DT
+    t, gyro, accel = at_rest(4000, seed=3, bias=np.zeros(3))
+    gyro[:, 2] += np.where((t > 5.0) & (t < 12.0), math.radians(0.4), 0.0)  # a slow turn between
     base = FuseConfig.from_options(imu_model=MEMS, vehicle="ground")
     wide = dataclasses.replace(MEMS, gyro_arw=4.0 * MEMS.gyro_arw)
 

@@ -96,6 +96,24 @@ class NavState:
             yaw_aligned=bool(np.broadcast_to(self.yaw_aligned, (len(self),))[i]),
         )
 
+    def take(self, index: ArrayLike) -> NavState:
+        """The states ``index`` (integer positions) of a batched state, batched."""
+        if self.rot_nb.single:
+            raise TypeError("take() needs a batched NavState")
+        idx = np.asarray(index, dtype=np.intp)
+        return NavState(
+            t=np.asarray(self.t)[idx],
+            rot_nb=self.rot_nb[idx],
+            vel_n=np.asarray(self.vel_n)[idx],
+            lat=np.asarray(self.lat)[idx],
+            lon=np.asarray(self.lon)[idx],
+            alt_m=np.asarray(self.alt_m)[idx],
+            errors={k: np.asarray(v)[idx] for k, v in self.errors.items()},
+            sigma={k: np.asarray(v)[idx] for k, v in self.sigma.items()},
+            att_cov=None if self.att_cov is None else np.asarray(self.att_cov)[idx],
+            yaw_aligned=np.broadcast_to(self.yaw_aligned, (len(self),))[idx],
+        )
+
     def batched(self) -> NavState:
         """The same state(s) with a leading axis (length 1 for a single state)."""
         if not self.rot_nb.single:

@@ -32,22 +32,6 @@ from polins.loop.prior import Sample
 FloatArray = NDArray[np.float64]
 
 
-def take(states: NavState, index: NDArray[np.int_]) -> NavState:
-    """The states ``index`` of a batched state, batched."""
-    return NavState(
-        t=np.asarray(states.t)[index],
-        rot_nb=states.rot_nb[index],
-        vel_n=np.asarray(states.vel_n)[index],
-        lat=np.asarray(states.lat)[index],
-        lon=np.asarray(states.lon)[index],
-        alt_m=np.asarray(states.alt_m)[index],
-        errors={k: np.asarray(v)[index] for k, v in states.errors.items()},
-        sigma={k: np.asarray(v)[index] for k, v in states.sigma.items()},
-        att_cov=None if states.att_cov is None else np.asarray(states.att_cov)[index],
-        yaw_aligned=np.broadcast_to(states.yaw_aligned, (len(states),))[index],
-    )
-
-
 class FilterRunner:
     """The ESKF of a stream, its snapshots and its solution buffer.
 
@@ -186,7 +170,7 @@ class FilterRunner:
         if rows.all():
             self.solution.append(states)
         elif rows.any():
-            self.solution.append(take(states, np.flatnonzero(rows)))
+            self.solution.append(states.take(np.flatnonzero(rows)))
         for i in np.flatnonzero(self.new_cells(np.asarray(states.t))):
             self.snaps.append(states.at(int(i)))
 

@@ -599,14 +599,13 @@ class _Likelihood:
         self.rot_nb0, self.odometry = rot_nb0, odometry
         self.count = 0
         self._terms: dict[tuple[tuple[str, float], ...], pd.DataFrame] = {}
-        self.ungated = config
-        self.epochs = np.zeros(0)
+        self.epochs: FloatArray | None = None
+        self.ungated: FuseConfig  # the runs' configuration, set by hold()
         self.hold(start)
 
-    def rest_epochs(self, values: Mapping[str, float]) -> FloatArray:
+    def rest_epochs(self, run: FuseConfig) -> FloatArray:
         """The times [s] of the zero-velocity and zero-rate updates that the standstill
-        detector gives with the IMU model of ``values``."""
-        run = with_values(self.config, self.measurements, values)[0]
+        detector gives with the configuration ``run``."""
         run = run.resolve(odometry=self.odometry is not None)
         t = self.imu["t"].to_numpy(dtype=float)
         w = self.imu[["gx", "gy", "gz"]].to_numpy(dtype=float)
@@ -616,12 +615,12 @@ class _Likelihood:
     def hold(self, values: Mapping[str, float]) -> bool:
         """Hold the detector at the IMU model of ``values``; whether its rest epochs changed
         (the memory of runs is then cleared)."""
-        epochs = self.rest_epochs(values)
-        changed = not np.array_equal(epochs, self.epochs)
-        if changed or self.ungated is self.config:
-            detector = with_values(self.config, self.measurements, values)[0].imu
+        run = with_values(self.config, self.measurements, values)[0]
+        epochs = self.rest_epochs(run)
+        changed = self.epochs is None or not np.array_equal(epochs, self.epochs)
+        if changed:
             self.ungated = self.config.replace(gate_prob="off", smooth=False,
-                                               standstill_model=detector)  # fmt: skip
+                                               standstill_model=run.imu)  # fmt: skip
             self.epochs = epochs
             self._terms.clear()
         return changed

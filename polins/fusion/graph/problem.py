@@ -476,6 +476,14 @@ class Problem:
         lon = self.lon + p[..., 0] / ((r_n + self.alt_m) * np.cos(self.lat))
         return lat, lon, self.alt_m + p[..., 2]
 
+    def local_position(self, lat: FloatArray, lon: FloatArray, alt_m: FloatArray) -> FloatArray:
+        """Local ENU positions ``(N, 3)`` [m] of geodetic ones [rad], [m]: the inverse of
+        :meth:`geodetic`."""
+        r_m, r_n = radii_of_curvature(self.lat)
+        east = (lon - self.lon) * (r_n + self.alt_m) * np.cos(self.lat)
+        north = (lat - self.lat) * (r_m + self.alt_m)
+        return np.stack([east, north, alt_m - self.alt_m], axis=-1)
+
     def preintegrate(
         self, k: int, bias: gtsam.imuBias.ConstantBias, correction: FloatArray
     ) -> gtsam.PreintegratedCombinedMeasurements:

@@ -20,23 +20,11 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from polins.fusion.graph.imu import scale_keys
 from polins.fusion.graph.problem import Problem
-from polins.ins.earth import radii_of_curvature
 from polins.ins.state import block_columns
 
 FloatArray = NDArray[np.float64]
 
 QUAT = ["qx", "qy", "qz", "qw"]  # scipy's order (scalar last)
-
-
-def local_position(
-    prob: Problem, lat: FloatArray, lon: FloatArray, alt_m: FloatArray
-) -> FloatArray:
-    """Local ENU positions [m] of geodetic ones [rad], [m]: the inverse of
-    :meth:`~polins.fusion.graph.problem.Problem.geodetic` (``(N, 3)``)."""
-    r_m, r_n = radii_of_curvature(prob.lat)
-    east = (lon - prob.lon) * (r_n + prob.alt_m) * np.cos(prob.lat)
-    north = (lat - prob.lat) * (r_m + prob.alt_m)
-    return np.stack([east, north, alt_m - prob.alt_m], axis=-1)
 
 
 def aligned_attitude(sol: pd.DataFrame) -> Rotation | None:
@@ -76,7 +64,7 @@ def filter_values(prob: Problem, sol: pd.DataFrame) -> gtsam.Values | None:
 
     vel = column(["ve", "vn", "vu"], np.zeros(3))
     geo = column(["lat_deg", "lon_deg", "alt_m"], np.zeros(3))
-    pos = local_position(prob, np.radians(geo[:, 0]), np.radians(geo[:, 1]), geo[:, 2])
+    pos = prob.local_position(np.radians(geo[:, 0]), np.radians(geo[:, 1]), geo[:, 2])
     bias = np.concatenate([column(block_columns("ba", 3), np.zeros(3)),
                            column(block_columns("bg", 3), np.zeros(3))], axis=-1)  # fmt: skip
     extra = np.tile(prob.states.guess, (len(t_key), 1))
