@@ -461,16 +461,17 @@ def evector_pass(  # pragma: no cover - compiled by numba, which coverage cannot
     :func:`polins.compass.lens.evector_rows` and of the weights, operation for operation in
     the rows' dtype (bit-identical to them).
 
-    ``s1, s2 (n,)`` the Stokes rows; ``inv`` ``1/sigma_L^2`` ``(n,)`` or ``(1,)`` in their
-    dtype; ``basis (3, 2, n)`` the inverse lens basis; ``mask (n,)`` bool, or ``(0,)`` for
-    all pixels; ``flags`` = (projection, weighted, 1e-30, 1, 0) in the rows' dtype. Writes the
-    unnormalised E-vectors ``e (3, n)`` and the weights ``omega (n,)`` (``w/|e|^2``, 0 for
-    masked pixels) in the rows' dtype (float32 halves the pass's memory traffic; the sums
-    that use them cast to float64). No count or sum in the loop: it runs in vector lanes."""
-    projection, weighted = flags[0] != 0, flags[1] != 0
-    tiny, one, zero = flags[2], flags[3], flags[4]
-    per_pixel, masked = inv.size > 1, mask.size > 0
-    w = inv[0]
+    ``s1, s2 (n,)`` the Stokes rows; ``inv`` ``1/sigma_L^2`` ``(n,)``, or ``(1, 1)`` for one
+    value, in their dtype; ``basis`` the inverse lens basis ``(3, 2, n)``, or its third row
+    ``(2, n)`` for the projection model (whose first two rows are the identity); ``mask
+    (n,)`` bool, or ``(0, 0)`` for all pixels; ``flags`` = (weighted, 1e-30, 1, 0) in the
+    rows' dtype. Writes the unnormalised E-vectors ``e (3, n)`` and the weights ``omega
+    (n,)`` (``w/|e|^2``, 0 for masked pixels) in the rows' dtype (float32 halves the pass's
+    memory traffic; the sums that use them cast to float64). The variants are told by the
+    arrays' dimensions, and there is no count or sum in the loop: it runs in vector lanes."""
+    weighted = flags[0] != 0
+    tiny, one, zero = flags[1], flags[2], flags[3]
+    w = inv[0, 0] if inv.ndim == 2 else one
     for i in range(s1.size):
         a, b = s1[i], s2[i]
         p2 = a * a + b * b
@@ -478,23 +479,24 @@ def evector_pass(  # pragma: no cover - compiled by numba, which coverage cannot
         pos = a >= 0
         h1 = p + a if pos else b
         h2 = b if pos else p - a
-        if projection:
+        if basis.ndim == 2:
             e0, e1 = h1, h2
+            e2 = basis[0, i] * h1 + basis[1, i] * h2
         else:
             e0 = basis[0, 0, i] * h1 + basis[0, 1, i] * h2
             e1 = basis[1, 0, i] * h1 + basis[1, 1, i] * h2
-        e2 = basis[2, 0, i] * h1 + basis[2, 1, i] * h2
+            e2 = basis[2, 0, i] * h1 + basis[2, 1, i] * h2
         norm2 = e0 * e0
         norm2 += e1 * e1
         norm2 += e2 * e2
         norm2 += tiny
-        if weighted:
-            if per_pixel:
-                w = inv[i]
+        if inv.ndim == 1:
+            om = p2 * inv[i] / norm2
+        elif weighted:
             om = p2 * w / norm2
         else:
             om = one / norm2
-        if masked:
+        if mask.ndim == 1:
             om = om * (one if mask[i] else zero)
         e[0, i], e[1, i], e[2, i] = e0, e1, e2
         omega[i] = om
@@ -522,19 +524,18 @@ def eigen_run_sums(  # pragma: no cover - compiled by numba, which coverage cann
 
 
 def sandwich_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
-    e: NDArray, omega: NDArray, sun_c: NDArray, starts: NDArray, middle: NDArray, out: NDArray
+    e: NDArray, omega: NDArray, sun_c: NDArray, starts: NDArray, out: NDArray
 ) -> None:
-    """The eigen solution's sandwich middle and jackknife run sums in one pass, in float64
+    """The eigen solution's jackknife run sums in one pass, in float64
     (:func:`polins.compass.sectors.eigen_sandwich_sums`): per pixel the weighted residual
     ``wr = (s . e) omega`` in the order of :func:`polins.compass.eigen.weighted_residuals`
-    (bit-identical), ``middle (3, 3) = sum wr^2 e e^T`` and, per run of pixels beginning at
-    ``starts (m,)`` (``starts[0] = 0``, the last run ends at ``n``), ``out (m, 4)`` =
-    (``sum wr e`` (3), ``sum omega``) as :func:`eigen_run_sums`. Float32 ``e`` and
-    ``omega`` are cast to float64 first; sums in pixel order (the runs are about 50 pixels
-    long: vector lanes would cost more than they save)."""
+    (bit-identical) and, per run of pixels beginning at ``starts (m,)`` (``starts[0] =
+    0``, the last run ends at ``n``), ``out (m, 4)`` = (``sum wr e`` (3), ``sum omega``)
+    as :func:`eigen_run_sums`. Float32 ``e`` and ``omega`` are cast to float64 first; sums
+    in pixel order (the runs are about 50 pixels long: vector lanes would cost more than
+    they save)."""
     n, m = omega.size, starts.size
     sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
-    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
     for r in range(m):
         end = starts[r + 1] if r + 1 < m else n
         s0 = s1 = s2 = s3 = 0.0
@@ -546,15 +547,28 @@ def sandwich_pass(  # pragma: no cover - compiled by numba, which coverage canno
             s1 += y * w
             s2 += z * w
             s3 += om
-            w2 = w * w
-            wx, wy = w2 * x, w2 * y
-            a00 += wx * x
-            a01 += wx * y
-            a02 += wx * z
-            a11 += wy * y
-            a12 += wy * z
-            a22 += (w2 * z) * z
         out[r, 0], out[r, 1], out[r, 2], out[r, 3] = s0, s1, s2, s3
+
+
+def middle_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    e: NDArray, omega: NDArray, sun_c: NDArray, middle: NDArray
+) -> None:
+    """The eigen solution's sandwich middle ``middle (3, 3) = sum wr^2 e e^T`` in one pass,
+    in float64 (:func:`polins.compass.sectors.eigen_sandwich_sums`), ``wr`` as in
+    :func:`sandwich_pass`; float32 ``e`` and ``omega`` are cast to float64 first."""
+    sx, sy, sz = sun_c[0], sun_c[1], sun_c[2]
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for i in range(omega.size):
+        x, y, z = np.float64(e[0, i]), np.float64(e[1, i]), np.float64(e[2, i])
+        w = (sx * x + sy * y + sz * z) * np.float64(omega[i])
+        w2 = w * w
+        wx, wy = w2 * x, w2 * y
+        a00 += wx * x
+        a01 += wx * y
+        a02 += wx * z
+        a11 += wy * y
+        a12 += wy * z
+        a22 += (w2 * z) * z
     middle[0, 0], middle[1, 1], middle[2, 2] = a00, a11, a22
     middle[0, 1] = middle[1, 0] = a01
     middle[0, 2] = middle[2, 0] = a02
@@ -565,109 +579,118 @@ ZENITH_SUMS = 13
 """Length of :func:`zenith_pass`'s sums."""
 
 
+def zenith_terms(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    basis: NDArray, i: int, mat_lc: NDArray, w: float, s1: float, s2: float
+) -> tuple[float, float, float, float, float, float]:
+    """The doubled level-frame rows ``(q1x, q1y, q2x, q2y)`` of pixel ``i`` of the inverse
+    basis ``basis`` (``(3, 2, n)``, or its third row ``(2, n)`` for the projection lens model,
+    whose first two rows are the identity) turned by ``mat_lc``, and its contribution
+    ``w (S1 q1 + S2 q2)`` (2) to the zenith cone's sum (:func:`zenith_pass`)."""
+    if basis.ndim == 2:
+        b00, b01, b10, b11 = 1.0, 0.0, 0.0, 1.0
+        b20, b21 = np.float64(basis[0, i]), np.float64(basis[1, i])
+    else:
+        b00, b01 = np.float64(basis[0, 0, i]), np.float64(basis[0, 1, i])
+        b10, b11 = np.float64(basis[1, 0, i]), np.float64(basis[1, 1, i])
+        b20, b21 = np.float64(basis[2, 0, i]), np.float64(basis[2, 1, i])
+    h1x = mat_lc[0, 0] * b00 + mat_lc[0, 1] * b10 + mat_lc[0, 2] * b20
+    h1y = mat_lc[1, 0] * b00 + mat_lc[1, 1] * b10 + mat_lc[1, 2] * b20
+    h2x = mat_lc[0, 0] * b01 + mat_lc[0, 1] * b11 + mat_lc[0, 2] * b21
+    h2y = mat_lc[1, 0] * b01 + mat_lc[1, 1] * b11 + mat_lc[1, 2] * b21
+    inv_norm = 2.0 / (h1x * h1x + h1y * h1y + h2x * h2x + h2y * h2y)  # one division
+    q1x = 0.5 * (h1x * h1x - h1y * h1y - h2x * h2x + h2y * h2y) * inv_norm
+    q1y = (h1x * h1y - h2x * h2y) * inv_norm
+    q2x = (h1x * h2x - h1y * h2y) * inv_norm
+    q2y = (h1x * h2y + h2x * h1y) * inv_norm
+    return q1x, q1y, q2x, q2y, w * (q1x * s1 + q2x * s2), w * (q1y * s1 + q2y * s2)
+
+
 def zenith_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
     est: NDArray, inv: NDArray, basis: NDArray, rays: NDArray, valid: NDArray,
-    mat_lc: NDArray, cos_edge: float, mask: NDArray, sums: NDArray,
-    contrib: NDArray, ray_l: NDArray,
-) -> int:  # fmt: skip
+    mat_lc: NDArray, cos_edge: float, mask: NDArray, sums: NDArray, contrib: NDArray,
+) -> None:  # fmt: skip
     """The zenith cone's sums in one pass over the field-of-view pixels
     (:func:`polins.compass.zenith.zenith_mean`, docs/measurement.md §13), in float64.
 
     A pixel is used when ``valid`` and its ray's level zenith cosine exceeds ``cos_edge``
-    (``mask`` out). Per used pixel, with ``w = inv`` (``(n,)`` or ``(1,)``) and the
-    doubled rows ``q1, q2`` of its basis ``(3, 2, n)`` turned by ``mat_lc`` (camera ->
-    level): ``c = w (S1 q1 + S2 q2)`` goes to ``contrib[:, k]`` and the horizontal part of
-    its level ray to ``ray_l[:, k]`` (``k`` the used pixels so far, returned), and ``sums`` (13,) holds
-    ``sum c`` (2), ``sum w (q1 q1^T + q2 q2^T)`` (xx, xy, yy) and the four sums
-    ``sum w (q1 d1 + q2 d2)`` (2 each) of the camera-fixed perturbations ``(d1, d2)`` =
-    ``(S0, 0), (0, S0), (S1, -S2), (S2, S1)``."""
-    n = valid.size
-    per_pixel = inv.size > 1
-    # The rotation as scalars, the sums in registers (the compiler cannot keep them there
-    # past the stores into the output rows).
-    l00, l01, l02 = mat_lc[0, 0], mat_lc[0, 1], mat_lc[0, 2]
-    l10, l11, l12 = mat_lc[1, 0], mat_lc[1, 1], mat_lc[1, 2]
+    (``mask`` out). Per used pixel, with ``w = inv`` (``(n,)``, or ``(1, 1)`` for one
+    value) and the doubled rows ``q1, q2`` of its basis turned by ``mat_lc`` (camera ->
+    level; :func:`zenith_terms`): ``sums`` (13,) holds ``sum c`` (2) of the contributions
+    ``c = w (S1 q1 + S2 q2)`` (written to ``contrib (2, n)``, 0 for the pixels not used),
+    ``sum w (q1 q1^T + q2 q2^T)`` (xx, xy, yy) and the four sums ``sum w (q1 d1 + q2 d2)``
+    (2 each) of the camera-fixed perturbations ``(d1, d2)`` = ``(S0, 0), (0, S0), (S1,
+    -S2), (S2, S1)``. Branch-free (a pixel not used has weight 0; its data are finite): the
+    loop runs in vector lanes."""
     l20, l21, l22 = mat_lc[2, 0], mat_lc[2, 1], mat_lc[2, 2]
     a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = a11 = a12 = 0.0
-    k = 0
-    for i in range(n):
-        rx, ry, rz = rays[0, i], rays[1, i], rays[2, i]
-        ok = valid[i] and l20 * rx + l21 * ry + l22 * rz > cos_edge
+    w = 0.0 if inv.ndim == 1 else np.float64(inv[0, 0])
+    for i in range(valid.size):
+        ok = valid[i] & (l20 * rays[0, i] + l21 * rays[1, i] + l22 * rays[2, i] > cos_edge)
         mask[i] = ok
-        if not ok:
-            continue
-        b00, b01, b10, b11 = basis[0, 0, i], basis[0, 1, i], basis[1, 0, i], basis[1, 1, i]
-        b20, b21 = basis[2, 0, i], basis[2, 1, i]
-        h1x = l00 * b00 + l01 * b10 + l02 * b20
-        h1y = l10 * b00 + l11 * b10 + l12 * b20
-        h2x = l00 * b01 + l01 * b11 + l02 * b21
-        h2y = l10 * b01 + l11 * b11 + l12 * b21
-        inv_norm = 2.0 / (h1x * h1x + h1y * h1y + h2x * h2x + h2y * h2y)  # one division
-        q1x = 0.5 * (h1x * h1x - h1y * h1y - h2x * h2x + h2y * h2y) * inv_norm
-        q1y = (h1x * h1y - h2x * h2y) * inv_norm
-        q2x = (h1x * h2x - h1y * h2y) * inv_norm
-        q2y = (h1x * h2y + h2x * h1y) * inv_norm
-        w = float(inv[i] if per_pixel else inv[0])
-        s0, s1, s2 = float(est[0, i]), float(est[1, i]), float(est[2, i])
-        cx = w * (q1x * s1 + q2x * s2)
-        cy = w * (q1y * s1 + q2y * s2)
-        contrib[0, k] = cx
-        contrib[1, k] = cy
-        ray_l[0, k] = l00 * rx + l01 * ry + l02 * rz
-        ray_l[1, k] = l10 * rx + l11 * ry + l12 * rz
-        k += 1
+        if inv.ndim == 1:
+            w = np.float64(inv[i])
+        w_ok = w * ok
+        s0, s1, s2 = np.float64(est[0, i]), np.float64(est[1, i]), np.float64(est[2, i])
+        q1x, q1y, q2x, q2y, cx, cy = zenith_terms(basis, i, mat_lc, w_ok, s1, s2)
+        contrib[0, i], contrib[1, i] = cx, cy
         a0 += cx
         a1 += cy
-        a2 += w * (q1x * q1x + q2x * q2x)
-        a3 += w * (q1x * q1y + q2x * q2y)
-        a4 += w * (q1y * q1y + q2y * q2y)
-        ws0 = w * s0
+        a2 += w_ok * (q1x * q1x + q2x * q2x)
+        a3 += w_ok * (q1x * q1y + q2x * q2y)
+        a4 += w_ok * (q1y * q1y + q2y * q2y)
+        ws0 = w_ok * s0
         a5 += q1x * ws0
         a6 += q1y * ws0
         a7 += q2x * ws0
         a8 += q2y * ws0
-        a9 += w * (q1x * s1 - q2x * s2)
-        a10 += w * (q1y * s1 - q2y * s2)
-        a11 += w * (q1x * s2 + q2x * s1)
-        a12 += w * (q1y * s2 + q2y * s1)
+        a9 += w_ok * (q1x * s1 - q2x * s2)
+        a10 += w_ok * (q1y * s1 - q2y * s2)
+        a11 += w_ok * (q1x * s2 + q2x * s1)
+        a12 += w_ok * (q1y * s2 + q2y * s1)
     sums[0], sums[1], sums[2], sums[3], sums[4] = a0, a1, a2, a3, a4
     sums[5], sums[6], sums[7], sums[8] = a5, a6, a7, a8
     sums[9], sums[10], sums[11], sums[12] = a9, a10, a11, a12
-    return k
 
 
-def mirror_sums(  # pragma: no cover - compiled by numba, which coverage cannot trace
-    contrib: NDArray, ray_l: NDArray, k: int, azimuth: NDArray, bounds: NDArray, out: NDArray
-) -> None:
+def mirror_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    contrib: NDArray, rays: NDArray, mask: NDArray, mat_lc: NDArray, azimuth: NDArray,
+    bounds: NDArray, out: NDArray,
+) -> None:  # fmt: skip
     """Per-group sums of the mirror-pair jackknife (:func:`polins.compass.zenith.zenith_mean`)
-    in one pass over the first ``k`` columns of ``contrib (2, n)`` and ``ray_l (2, n)``:
-    ``out (3, G)`` += (``sum contrib`` (2), pixel count) of group ``g``, the number of
-    boundaries ``bounds (2, G - 1)`` = (cos b_j, sin b_j) (ascending angles b_j in
-    ``(0, pi)``) that the angle between the horizontal ray and the sun's azimuth
-    ``azimuth`` = (cos A, sin A) reaches (no trigonometry: a sign of a cross product)."""
+    over the pixels of ``mask`` (``contrib (2, n)`` the contributions :func:`zenith_pass`
+    wrote, ``rays``, ``mat_lc`` its), in pixel order: ``out (3, G)`` += (``sum c`` (2),
+    pixel count) of group ``g``, the number of boundaries ``bounds (2, G - 1)`` = (cos b_j,
+    sin b_j) (ascending angles b_j in ``(0, pi)``) that the angle between the pixel's
+    horizontal level ray and the sun's azimuth ``azimuth`` = (cos A, sin A) reaches (no
+    trigonometry: a sign of a cross product)."""
     c, s = azimuth[0], azimuth[1]
+    l00, l01, l02 = mat_lc[0, 0], mat_lc[0, 1], mat_lc[0, 2]
+    l10, l11, l12 = mat_lc[1, 0], mat_lc[1, 1], mat_lc[1, 2]
     n_bounds = bounds.shape[1]
-    for i in range(k):
-        x = c * ray_l[0, i] + s * ray_l[1, i]
-        y = abs(c * ray_l[1, i] - s * ray_l[0, i])
+    for i in range(mask.size):
+        if not mask[i]:
+            continue
+        rx, ry, rz = rays[0, i], rays[1, i], rays[2, i]
+        hx = l00 * rx + l01 * ry + l02 * rz
+        hy = l10 * rx + l11 * ry + l12 * rz
+        x = c * hx + s * hy
+        y = abs(c * hy - s * hx)
         g = 0
         for j in range(n_bounds):
-            if y * bounds[0, j] - x * bounds[1, j] >= 0.0:
-                g += 1
+            g += y * bounds[0, j] - x * bounds[1, j] >= 0.0
         out[0, g] += contrib[0, i]
         out[1, g] += contrib[1, i]
         out[2, g] += 1.0
 
 
-_REDUCTIONS = ("moment_pass", "ml_pass", "zenith_pass")
-# mirror_sums and evector_pass keep numpy's order: the first decides groups, the second
-# repeats numpy's float32 arithmetic bit for bit.
+_REDUCTIONS = ("moment_pass", "ml_pass", "zenith_pass", "middle_pass")
 """Kernels that sum in float64 over long loops: compiled with reassociation (vector
 lanes), which moves their results by float64 rounding only (:func:`ml_pass`: its per-pixel
-terms by the rows' rounding), and with numpy's error model (no checks of the divisions,
-which keep them out of vector lanes); the others keep numpy's order exactly."""
+terms by the rows' rounding); the others keep numpy's order exactly. All are compiled with
+numpy's error model: a division by zero gives numpy's inf or NaN, and the divisions are not
+checked (a check keeps a loop out of vector lanes)."""
 
-_HELPERS = ("kept",)
+_HELPERS = ("kept", "zenith_terms")
 """Functions the kernels call: compiled first, without fast-math, in place of the Python
 function."""
 
@@ -679,11 +702,10 @@ def compiled(name: str) -> Any:
     import numba
 
     _compiled_helpers()
-    if name in _REDUCTIONS:
-        return numba.njit(cache=True, nogil=True, fastmath={"reassoc"}, error_model="numpy")(
-            globals()[name]
-        )
-    return numba.njit(cache=True, nogil=True)(globals()[name])
+    fastmath = {"reassoc"} if name in _REDUCTIONS else set()
+    return numba.njit(cache=True, nogil=True, fastmath=fastmath, error_model="numpy")(
+        globals()[name]
+    )
 
 
 @functools.cache
@@ -691,4 +713,4 @@ def _compiled_helpers() -> None:
     import numba
 
     for name in _HELPERS:
-        globals()[name] = numba.njit(cache=True, nogil=True)(globals()[name])
+        globals()[name] = numba.njit(cache=True, nogil=True, error_model="numpy")(globals()[name])

@@ -184,11 +184,13 @@ def eigen_sandwich_sums(
 ) -> tuple[FloatArray, FloatArray]:
     """The middle ``sum_i (omega_i (e_i . s))^2 e_i e_i^T`` ``(3, 3)`` of the eigen
     solution's sandwich covariance (camera frame, docs/model.md §10.2) and the per-run
-    sums ``(m, 4)`` of :func:`eigen_jackknife_sums`, in one compiled pass over ``e (3, n)``
-    and ``omega (n,)`` with the camera-frame sun ``sun_c (3,)``."""
+    sums ``(m, 4)`` of :func:`eigen_jackknife_sums`, in two compiled passes over ``e (3, n)``
+    and ``omega (n,)`` with the camera-frame sun ``sun_c (3,)`` (the runs' in pixel order,
+    the middle's in vector lanes)."""
     middle, run_sums = np.empty((3, 3)), np.empty((runs.starts.size, 4))
-    compiled("sandwich_pass")(e, omega, np.asarray(sun_c, dtype=np.float64), runs.starts,
-                              middle, run_sums)  # fmt: skip
+    sun = np.asarray(sun_c, dtype=np.float64)
+    compiled("sandwich_pass")(e, omega, sun, runs.starts, run_sums)
+    compiled("middle_pass")(e, omega, sun, middle)
     return middle, run_sums
 
 
