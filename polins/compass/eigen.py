@@ -134,8 +134,8 @@ def eigen_level_rows(
     compiled("evector_pass")(s1, s2, inv, basis[2] if projection else basis,
                              np.zeros((0, 0), bool) if mask is None else mask, flags, e,
                              omega)  # fmt: skip
-    n = int(np.count_nonzero(omega))
-    moment_c = moment(e, omega)
+    moment_c = np.empty((3, 3))
+    n = int(compiled("moment_pass")(e, omega, moment_c))
     sol = eigen_from_moment(mat_lc @ moment_c @ mat_lc.T, float(np.trace(moment_c)), n)
     return sol, e, omega
 

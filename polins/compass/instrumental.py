@@ -107,7 +107,6 @@ def _every(data: PixelData, k: int) -> PixelData:
         data.s0[::k],
         data.s1[::k],
         data.s2[::k],
-        data.c[::k],
         fwd,
         None if data.rays is None else np.ascontiguousarray(data.rays[:, ::k]),
         data.inv_sigma[::k] if isinstance(data.inv_sigma, np.ndarray) else data.inv_sigma,

@@ -425,12 +425,14 @@ def ml_pass(  # pragma: no cover - compiled by numba, which coverage cannot trac
         out[14] += rss
 
 
-def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> None:  # pragma: no cover
+def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> int:  # pragma: no cover
     """``out (3, 3) = sum_i omega_i e_i e_i^T`` of ``e (3, n)``, ``omega (n,)`` in one pass
     (a float64 reduction: compiled with reassociation, i.e. summed in vector lanes; float32
-    input is cast to float64 first)."""
+    input is cast to float64 first); returns the number of non-zero weights."""
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    count = 0
     for i in range(omega.size):
+        count += omega[i] != 0
         w = np.float64(omega[i])
         x, y, z = np.float64(e[0, i]), np.float64(e[1, i]), np.float64(e[2, i])
         wx, wy = w * x, w * y
@@ -444,6 +446,16 @@ def moment_pass(e: NDArray, omega: NDArray, out: NDArray) -> None:  # pragma: no
     out[0, 1] = out[1, 0] = a01
     out[0, 2] = out[2, 0] = a02
     out[1, 2] = out[2, 1] = a12
+    return count
+
+
+def square_sum_pass(x: NDArray, mask: NDArray) -> float:  # pragma: no cover
+    """``sum_i x_i^2`` over the pixels of ``mask`` in one pass, in float64 (a reduction)."""
+    total = 0.0
+    for i in range(x.size):
+        v = np.float64(x[i]) * mask[i]
+        total += v * v
+    return total
 
 
 def evector_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
@@ -683,7 +695,7 @@ def mirror_pass(  # pragma: no cover - compiled by numba, which coverage cannot 
         out[2, g] += 1.0
 
 
-_REDUCTIONS = ("moment_pass", "ml_pass", "zenith_pass", "middle_pass")
+_REDUCTIONS = ("moment_pass", "ml_pass", "zenith_pass", "middle_pass", "square_sum_pass")
 """Kernels that sum in float64 over long loops: compiled with reassociation (vector
 lanes), which moves their results by float64 rounding only (:func:`ml_pass`: its per-pixel
 terms by the rows' rounding); the others keep numpy's order exactly. All are compiled with

@@ -143,7 +143,7 @@ def solve_compensated(
     data = (px.data_sub if img.stride > 1 else px.data_full, px.data_full)
     solved = compensated_solution(
         SolveSetup(zenith, geo.mat_cl, opt), data, theta, (px.select_sub, px.select_full),
-        (px.cells.take(sub.index), px.cells), (sector_runs(cam, img.stride), sector_runs(cam)),
+        (px.cells_sub, px.cells), (sector_runs(cam, img.stride), sector_runs(cam)),
         (sub.rays, cache.rays), dop_test,
     )  # fmt: skip
     if solved.fallback:
