@@ -108,16 +108,16 @@ def _sky_pixels(rng, n, dtype, weighted):
     ],
 )
 def test_compiled_normal_equations_match_numpy(zenith, sky, weighted, p_min):
-    # The one-pass residual, Jacobian and group sums (polins.compass.kernels.ml_pass) give
+    # The one-pass residual, Jacobian and group sums (polins.compass.selection_kernels.ml_pass) give
     # the normal equations of ml_evaluate's rows (float32 rows, float64 sums: to float32
     # rounding) and the same pixel selection, bit for bit.
-    from polins.compass.jointml import ml_evaluate, ml_pass_sums
     from polins.compass.normal import (
         normal_equations,
         sector_normal_equations,
         sums_normal_equations,
         sums_sector_normal_equations,
     )
+    from polins.compass.residual import ml_evaluate, ml_pass_sums
     from polins.compass.sectors import SectorRuns
     from polins.compass.skymodel import sky_model
 

@@ -37,7 +37,6 @@ from polins.compass.heading import (
 )
 from polins.compass.image import ImageStokes, image_stokes
 from polins.compass.instrumental import fitted_sensitivity, instrumental_sensitivity
-from polins.compass.jointml import ml_evaluate
 from polins.compass.kernels import compiled
 from polins.compass.measurement import (
     Measurement,
@@ -47,6 +46,7 @@ from polins.compass.measurement import (
     check_method,
 )
 from polins.compass.pixels import check_raw
+from polins.compass.residual import ml_evaluate
 from polins.compass.skymodel import sky_model
 from polins.compass.skypixels import SkyPixels, sky_pixels
 from polins.compass.solution import Solution, solve_image

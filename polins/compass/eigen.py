@@ -122,7 +122,7 @@ def eigen_level_rows(
 
     The moment matrix is summed in float64: its smallest eigenvalue is ~0, and float32
     accumulation over 4e5 pixels would move the eigenvector by ~1e-5 rad. E-vectors and
-    weights come from one compiled pass (:func:`polins.compass.kernels.evector_pass`);
+    weights come from one compiled pass (:func:`polins.compass.eigen_kernels.evector_pass`);
     the weight sum is the moment's trace ``sum omega_i |e_i|^2`` (pixels without
     polarization, ``e = 0``, add nothing to it).
     """

@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.compass.jointml import ml_evaluate
 from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
+from polins.compass.residual import ml_evaluate
 from polins.compass.skymodel import SkyModel
 
 __all__ = ["fitted_sensitivity", "instrumental_sensitivity"]

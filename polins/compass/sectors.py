@@ -18,7 +18,7 @@ and for the eigen solution the first-order change of its smallest eigenvector wh
 sector's moment ``M_g`` is removed. The per-sector sums
 run over the pixels in index order as ``np.add.reduceat`` over runs of equal sector
 (sectors are contiguous in the image, so a row holds few runs); the eigen jackknife's in
-one compiled pass (:func:`polins.compass.kernels.eigen_run_sums`).
+one compiled pass (:func:`polins.compass.eigen_kernels.eigen_run_sums`).
 """
 
 from __future__ import annotations

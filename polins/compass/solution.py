@@ -25,10 +25,11 @@ from polins.compass.eigen import (
 )
 from polins.compass.heading import Geometry, resolve_sun_sign, yaw_variance_from_sun_covariance
 from polins.compass.image import ImageStokes
-from polins.compass.jointml import ml_evaluate, sun_covariance
+from polins.compass.jointml import sun_covariance
 from polins.compass.kernels import dot
 from polins.compass.lens import subsample
 from polins.compass.measurement import MeasureOptions
+from polins.compass.residual import ml_evaluate
 from polins.compass.sectors import (
     eigen_jackknife_sums,
     eigen_sandwich_sums,

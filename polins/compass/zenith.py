@@ -31,11 +31,12 @@ from scipy.ndimage import binary_erosion
 from polins.compass.branch import sun_angle_variances
 from polins.compass.heading import Geometry
 from polins.compass.image import ImageStokes
-from polins.compass.kernels import ZENITH_SUMS, compiled, dot_rows
+from polins.compass.kernels import compiled, dot_rows
 from polins.compass.measurement import MeasureOptions
 from polins.compass.pixels import PixelSet
 from polins.compass.skypixels import SkyPixels
 from polins.compass.solution import Solution
+from polins.compass.zenith_kernels import ZENITH_SUMS
 
 __all__ = [
     "CONE_MAX",
