@@ -315,3 +315,25 @@ def test_compiled_fill_matches_numpy(dtype):
     np.testing.assert_array_equal(inv, want_inv)
     fill_invalid(three, 1.0, valid)  # three rows, a common weight
     np.testing.assert_array_equal(three, want_rows[:3])
+
+
+def test_compiled_counts_and_noise_sum_match_numpy():
+    """The moment pass counts the non-zero weights; the noise estimate's masked sum of
+    squares is numpy's, to float64 rounding; PixelData's S0^2 - |L|^2 is computed once for
+    the copies with another mask."""
+    rng = np.random.default_rng(16)
+    n = 20_000
+    e = rng.normal(size=(3, n)).astype(np.float32)
+    omega = rng.uniform(0.0, 2.0, n).astype(np.float32)
+    omega[rng.random(n) < 0.3] = 0.0
+    out = np.empty((3, 3))
+    assert compiled("moment_pass")(e, omega, out) == np.count_nonzero(omega)
+    np.testing.assert_allclose(out, moment(e, omega), rtol=1e-12)
+    nu = rng.normal(0.0, 3.0, n).astype(np.float32)
+    mask = rng.random(n) < 0.6
+    want = float(np.sum(nu.astype(np.float64)[mask] ** 2))
+    np.testing.assert_allclose(compiled("square_sum_pass")(nu, mask), want, rtol=1e-12)
+    s = rng.normal(10.0, 1.0, (3, n)).astype(np.float32)
+    data = pixel_data(s[0], s[1], s[2], None, 1.0, rays=np.ones((3, n), np.float32))
+    np.testing.assert_array_equal(data.c, s[0] * s[0] - s[1] * s[1] - s[2] * s[2])
+    assert dataclasses.replace(data, mask=mask).c is data.c
