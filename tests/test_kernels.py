@@ -337,3 +337,16 @@ def test_compiled_counts_and_noise_sum_match_numpy():
     data = pixel_data(s[0], s[1], s[2], None, 1.0, rays=np.ones((3, n), np.float32))
     np.testing.assert_array_equal(data.c, s[0] * s[0] - s[1] * s[1] - s[2] * s[2])
     assert dataclasses.replace(data, mask=mask).c is data.c
+
+
+def test_compiled_cell_mask_matches_numpy():
+    """The pixels that stay valid when thin-cloud cells are dropped (one compiled pass over
+    uint16 cells) are numpy's, bit for bit."""
+    rng = np.random.default_rng(17)
+    n = 20_000
+    cells = rng.integers(0, 576, n)
+    valid = rng.random(n) < 0.8
+    flagged = rng.random(576) < 0.2
+    got = np.empty_like(valid)
+    compiled("cell_mask_pass")(valid, cells.astype(np.uint16), flagged, got)
+    np.testing.assert_array_equal(got, valid & ~flagged.take(cells))

@@ -13,6 +13,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 
+def cell_mask_pass(  # pragma: no cover - compiled by numba, which coverage cannot trace
+    valid: NDArray, cells: NDArray, flagged: NDArray, out: NDArray
+) -> None:
+    """``out = valid & ~flagged[cells]`` in one pass: the pixels ``(n,)`` that stay valid
+    when the cells ``flagged`` (bool per cell) are dropped, ``cells (n,)`` any integer."""
+    for i in range(valid.size):
+        out[i] = valid[i] > flagged[cells[i]]  # valid and not flagged, branch-free
+
+
 def kept(  # pragma: no cover - compiled by numba, which coverage cannot trace
     n1, n2, e2, s0, s1, s2, p, use_p, valid, px, py, pz, sx, sy, sz, dop_min, cos_exclusion
 ):

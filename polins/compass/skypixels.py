@@ -19,7 +19,7 @@ from polins.compass.clouds import CLOUD_DOP_RATIO, cloudy_cells, sky_cells
 from polins.compass.eigen import EigenSolution, eigen_level_rows
 from polins.compass.heading import Geometry, resolve_sun_sign
 from polins.compass.image import ImageStokes
-from polins.compass.kernels import dot_rows
+from polins.compass.kernels import compiled, dot_rows
 from polins.compass.lens import CameraConstants
 from polins.compass.measurement import MeasureOptions, Refusal
 from polins.compass.prediction import PixelData, pixel_data
@@ -81,6 +81,15 @@ def _cells_every(cam: CameraModel, stride: int) -> NDArray:
     """The thin-cloud cells of every ``stride``-th field-of-view pixel (the subsample's),
     cached per camera (read-only)."""
     cells = np.ascontiguousarray(sky_cells(cam)[::stride])
+    cells.setflags(write=False)
+    return cells
+
+
+@lru_cache(maxsize=8)
+def _cells16(cam: CameraModel) -> NDArray:
+    """The thin-cloud cells of the field-of-view pixels as uint16 (a quarter of the bytes
+    to read per image), cached per camera (read-only)."""
+    cells = sky_cells(cam).astype(np.uint16)
     cells.setflags(write=False)
     return cells
 
@@ -186,7 +195,9 @@ def sky_pixels(
         cloudy = cloudy_cells(rows_sub, sub.rays, geo.mat_cl @ sun_l0, CLOUD_DOP_RATIO,
                               valid_sub, cells_sub)  # fmt: skip
         if cloudy.any():
-            valid = valid & ~cloudy.take(cells)
+            kept = np.empty_like(valid)
+            compiled("cell_mask_pass")(valid, _cells16(cam), cloudy, kept)
+            valid = kept
             valid_sub = valid[sub.index]
 
     # The selection rules: the DoP and noise cuts along the predicted direction.
