@@ -192,7 +192,7 @@ def update_costs(imu: pd.DataFrame, meas: pd.DataFrame, kw: dict, repeat: int) -
     update."""
     import timeit
 
-    from polins.fusion.eskf.filter import kalman_update
+    from polins.fusion.eskf.update import kalman_update
     from polins.fusion.measurement import Linearized
 
     t = imu["t"].to_numpy()

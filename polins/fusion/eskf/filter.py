@@ -4,7 +4,8 @@
 geodetic position), the sensor-error estimates by block name and the error state ``x``
 with its covariance ``P`` (blocks of :mod:`polins.fusion.eskf.blocks`). The reported
 estimate is always ``nominal (+) x``. The prediction is ``x = Phi x``, ``P = Phi P Phi^T + Q``
-(filterpy's ``predict``), the update filterpy's (Joseph form: :func:`kalman_update`); innovations are gated with a chi-square test
+(filterpy's ``predict``), the update filterpy's (Joseph form:
+:func:`~polins.fusion.eskf.update.kalman_update`); innovations are gated with a chi-square test
 (:func:`~polins.fusion.items.gate_limit`, each rejection logged with its reason) and the
 normalised innovation squared (NIS) of every update is recorded.
 
@@ -42,7 +43,6 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
-from filterpy.kalman import update as kf_update
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
@@ -61,6 +61,7 @@ from polins.fusion.eskf.alignment import level
 from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav
 from polins.fusion.eskf.dynamics import StepNominal, StepSums, discretize, step_nominal
 from polins.fusion.eskf.propagate import advance
+from polins.fusion.eskf.update import innovation, kalman_update
 from polins.fusion.faults import FusionEvent, skip_in_gaps
 from polins.fusion.items import (
     HEADING_KINDS,
@@ -77,36 +78,6 @@ from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown_incr
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger("polins.fusion")
-
-
-def _innovation(
-    lin: Linearized, x: FloatArray, P: FloatArray
-) -> tuple[float, tuple[float, ...], tuple[float, ...]]:
-    """The NIS, the innovation and its covariance (row-major) for the update log."""
-    H = lin.H
-    if lin.residual.shape[0] == 1:  # scalar innovation: dot products
-        h = H[0]
-        y1 = float(lin.residual[0]) - float(h @ x)
-        s1 = float(h @ (P @ h)) + float(lin.R[0, 0])
-        return y1 * y1 / s1, (y1,), (s1,)
-    y = lin.residual - H @ x
-    Sm = H @ (P @ H.T) + lin.R
-    nis = float(y @ np.linalg.solve(Sm, y))
-    return nis, tuple(y.tolist()), tuple(Sm.ravel().tolist())
-
-
-def kalman_update(
-    kf: KalmanFilter, x: FloatArray, P: FloatArray, lin: Linearized
-) -> tuple[FloatArray, FloatArray]:
-    """The Kalman update of ``(x, P)`` by ``lin`` in filterpy's Joseph form: a scalar
-    measurement through ``KalmanFilter.update_sequential`` (the gain without a matrix
-    inverse; ``kf`` of the state's size lends its arrays), a vector one through
-    ``filterpy.kalman.update``. Both give the same numbers for a scalar."""
-    if lin.residual.shape[0] != 1:
-        return kf_update(x, P, lin.residual, lin.R, lin.H)
-    kf.x, kf.P = x[:, None].copy(), P  # filterpy's column state; updated in place
-    kf.update_sequential(0, lin.residual, lin.R, lin.H)
-    return kf.x[:, 0], kf.P
 
 
 class ESKF:
@@ -516,7 +487,7 @@ class ESKF:
 
     def _gate_and_update(self, item: MeasurementItem, lin: Linearized) -> UpdateRecord:
         """Chi-square gate on the NIS; the Kalman update if it passes, logged either way."""
-        nis, nu, S = _innovation(lin, self.x, self.P)
+        nis, nu, S = innovation(lin, self.x, self.P)
         dim = lin.residual.shape[0]
         limit = gate_limit(self.config.gate_probability, dim)
         if nis > limit:

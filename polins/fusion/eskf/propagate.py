@@ -44,6 +44,8 @@ IntArray = NDArray[np.int_]
 MAX_SEGMENT = 4096  # longest run of samples propagated at once (memory bound)
 MIN_SEGMENT = 256  # shortest planned run (after a reset by the attitude-error threshold)
 _CHUNK = 64  # covariance steps discretised at once
+_NODE_PARTS = ("x_pre", "x_post", "var_pre", "var_post", "att_pre", "att_post", "dx", "linked",
+               "P_pre", "P_post", "Phi")  # fmt: skip
 
 
 class Filter(Protocol):
@@ -142,27 +144,49 @@ class Rows:
 
 
 class _Log:
-    """Collects nodes and rows during :func:`advance`."""
+    """Collects nodes and rows during :func:`advance`.
+
+    A node keeps references to the filter's arrays (each step's prediction makes new
+    ones); at the end of each segment (:meth:`close_segment`) the segment's covariances
+    are reduced at once to their diagonals and attitude blocks, unless ``full``: a node
+    then holds ~1 KB instead of ~8 KB (22 states), an hour's 36 000 nodes 31 MB.
+    """
 
     def __init__(self, filt: Filter, full: bool) -> None:
         self.full = full
-        # per node: x_pre, x_post, P_pre, P_post, dx, linked, Phi; without ``full`` the
-        # covariances as (diagonal, attitude block) only: a node per covariance step
-        # holds ~1 KB instead of ~8 KB (22 states), an hour's 36 000 nodes 31 MB
-        self.nodes: list[tuple[Any, ...]] = []
+        self.n = filt.n
+        self.open: list[tuple[Any, ...]] = []  # the segment's nodes, not yet reduced
+        self.count = 0  # nodes so far
+        self.parts: dict[str, list[NDArray[Any]]] = {k: [] for k in _NODE_PARTS}
         self.rows: dict[str, list[NDArray[Any]]] = {k: [] for k in Rows.__dataclass_fields__}
         self.row_errors: dict[str, list[FloatArray]] = {k: [] for k in filt.errors}
-        self.node(filt, filt.x, filt.P, np.eye(filt.n), False)
+        self.node(filt, filt.x, filt.P, None, False)
 
-    def node(self, filt: Filter, x_pre: FloatArray, P_pre: FloatArray, Phi: FloatArray,
-             linked: bool) -> None:  # fmt: skip
-        kept: tuple[Any, Any] = (P_pre, filt.P)
-        if not self.full:  # (diagonal, attitude block)
-            kept = ((np.diagonal(P_pre).copy(), P_pre[0:3, 0:3].copy()),
-                    (np.diagonal(filt.P).copy(), filt.P[0:3, 0:3].copy()))  # fmt: skip
-        self.nodes.append((x_pre, filt.x, *kept, filt.correction, linked,
-                           Phi if self.full else None))  # fmt: skip
-        filt.correction = np.zeros(filt.n)
+    def node(self, filt: Filter, x_pre: FloatArray, P_pre: FloatArray,
+             Phi: FloatArray | None, linked: bool) -> None:  # fmt: skip
+        """The node at the filter's time (after its updates): the prior ``x_pre, P_pre``."""
+        self.open.append((x_pre, filt.x, P_pre, filt.P, filt.correction, linked, Phi))
+        self.count += 1
+        filt.correction = np.zeros(self.n)
+
+    def close_segment(self) -> None:
+        """Reduce the open nodes (class docstring)."""
+        if not self.open:
+            return
+        x_pre, x_post, P_pre, P_post, dx, linked, Phi = zip(*self.open, strict=True)
+        self.open = []
+        Pa, Pb = np.stack(P_pre), np.stack(P_post)
+        parts = {"x_pre": np.stack(x_pre), "x_post": np.stack(x_post), "dx": np.stack(dx),
+                 "linked": np.array(linked, dtype=bool),
+                 "var_pre": np.diagonal(Pa, axis1=1, axis2=2).copy(),
+                 "var_post": np.diagonal(Pb, axis1=1, axis2=2).copy(),
+                 "att_pre": Pa[:, 0:3, 0:3].copy(), "att_post": Pb[:, 0:3, 0:3].copy()}  # fmt: skip
+        if self.full:
+            eye = np.eye(self.n)
+            parts.update(P_pre=Pa, P_post=Pb,
+                         Phi=np.stack([eye if p is None else p for p in Phi]))  # fmt: skip
+        for key, value in parts.items():
+            self.parts[key].append(value)
 
     def add_rows(self, t: FloatArray, nominal: tuple[FloatArray, ...], errors: dict[str, FloatArray],
                  node: IntArray, w: FloatArray, aligned: NDArray[np.bool_]) -> None:  # fmt: skip
@@ -177,20 +201,8 @@ class _Log:
             self.row_errors[k].append(np.broadcast_to(v, (t.shape[0], v.shape[0])))
 
     def result(self) -> tuple[Nodes, Rows]:
-        x_pre, x_post, P_pre, P_post, dx, linked, Phi = zip(*self.nodes, strict=True)
-        if self.full:
-            Pa, Pb = np.stack(P_pre), np.stack(P_post)
-            var_a, var_b = np.diagonal(Pa, axis1=1, axis2=2), np.diagonal(Pb, axis1=1, axis2=2)
-            att_a, att_b = Pa[:, 0:3, 0:3], Pb[:, 0:3, 0:3]
-        else:
-            var_a, var_b = np.stack([p[0] for p in P_pre]), np.stack([p[0] for p in P_post])
-            att_a, att_b = np.stack([p[1] for p in P_pre]), np.stack([p[1] for p in P_post])
-        nodes = Nodes(
-            x_pre=np.stack(x_pre), x_post=np.stack(x_post), var_pre=var_a, var_post=var_b,
-            att_pre=att_a, att_post=att_b, dx=np.stack(dx), linked=np.array(linked),
-            P_pre=Pa if self.full else None, P_post=Pb if self.full else None,
-            Phi=np.stack(Phi) if self.full else None,
-        )  # fmt: skip
+        self.close_segment()
+        nodes = Nodes(**{k: np.concatenate(v) for k, v in self.parts.items() if v})
         rows = {k: np.concatenate(v) for k, v in self.rows.items() if k != "errors"}
         errors = {k: np.concatenate(v) for k, v in self.row_errors.items()}
         return nodes, Rows(errors=errors, **rows)
@@ -309,7 +321,7 @@ def advance(
         nominal = filt.nominal()
         rec.add_rows(
             np.array([nominal[0]]), tuple(np.asarray(v)[None] for v in nominal[1:]),
-            filt.errors, np.array([len(rec.nodes) - 1]), np.zeros(1),
+            filt.errors, np.array([rec.count - 1]), np.zeros(1),
             np.array([filt.yaw_aligned]),
         )  # fmt: skip
     return rec.result()
@@ -370,7 +382,7 @@ def _segment(
         sums[:, 13],
     )  # fmt: skip
     errors = {k: v.copy() for k, v in filt.errors.items()}
-    n_nodes = len(rec.nodes) if rec is not None else 0
+    n_nodes = rec.count if rec is not None else 0
     resets, done = filt.n_resets, S
     step_aligned = []
     t_l, lat_l, lon_l, alt_l = (v.tolist() for v in (T[s : e + 1], track.lat, track.lon,
@@ -388,11 +400,14 @@ def _segment(
         for it in epochs.get(s + i, ()):
             filt.apply(it)
         if rec is not None:
-            rec.node(filt, x_pre, P_pre, Phi[j % _CHUNK], epoch == filt.yaw_epoch)
+            rec.node(
+                filt, x_pre, P_pre, Phi[j % _CHUNK] if rec.full else None, epoch == filt.yaw_epoch
+            )
         if filt.n_resets != resets:
             done = j + 1
             break
     if rec is not None:
+        rec.close_segment()
         stop = s + int(b[done - 1])
         p = np.flatnonzero(out[s:stop]) + s
         if p.size:
