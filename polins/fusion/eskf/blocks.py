@@ -270,6 +270,17 @@ class Layout:
                 F[:, self.index[row_name], col] = block
         return F
 
+    def correct(
+        self, gyro_b: ArrayLike, accel_b: ArrayLike, errors: Mapping[str, FloatArray]
+    ) -> tuple[FloatArray, FloatArray]:
+        """IMU samples corrected with the sensor-error estimates ``errors`` (the blocks'
+        ``correct`` in block order: ``(w - bg) / (1 + sg)``, ``(f - ba) / (1 + sa)``)."""
+        w, f = np.asarray(gyro_b, dtype=float), np.asarray(accel_b, dtype=float)
+        for b in self.sensor:
+            if b.correct is not None:
+                w, f = b.correct(w, f, errors[b.name])
+        return w, f
+
     def noise_density(self, model: ImuModel) -> FloatArray:
         """Diagonal of the continuous process-noise density ``Qc``, ``(n,)``."""
         return np.concatenate([np.full(b.size, b.noise(model)) for b in self.blocks])
@@ -329,6 +340,14 @@ class Layout:
         for cols, jacobian in self._own_cols:
             H[:, cols] = jacobian(item, lin)  # type: ignore[misc,operator]
         return H
+
+
+def scale_divisors(errors: Mapping[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
+    """``1 / (1 + s)`` of the gyro and accelerometer scale-factor estimates in ``errors``
+    (ones without them)."""
+    if "sg" in errors:
+        return 1.0 / (1.0 + errors["sg"]), 1.0 / (1.0 + errors["sa"])
+    return np.ones(3), np.ones(3)
 
 
 def inject_nav(

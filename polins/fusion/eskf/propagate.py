@@ -26,11 +26,11 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.fusion.config import TIME_TOL_S, FuseConfig
-from polins.fusion.eskf.blocks import Layout, inject_nav
+from polins.fusion.eskf.blocks import Layout, inject_nav, scale_divisors
 from polins.fusion.eskf.dynamics import StepNominal, discretize, step_nominal
 from polins.fusion.items import MeasurementItem, UpdateRecord
 from polins.fusion.vehicle import VehicleAiding
@@ -81,15 +81,33 @@ class Filter(Protocol):
     @property
     def started(self) -> bool: ...
     def nominal(self) -> tuple[float, FloatArray, FloatArray, float, float, float]: ...
-    def corrected(
-        self, gyro_b: FloatArray, accel_b: FloatArray
-    ) -> tuple[FloatArray, FloatArray]: ...
-    def divisors(self) -> tuple[FloatArray, FloatArray]: ...
     def predict(self, Phi: FloatArray, Q: FloatArray) -> None: ...
     def apply(self, item: MeasurementItem) -> UpdateRecord | None: ...
     def reject(self, item: MeasurementItem, reason: str) -> UpdateRecord: ...
     def take_items(self, t_end: float) -> list[MeasurementItem]: ...
     def finish_run(self, t: float, gyro_b: FloatArray, accel_b: FloatArray, count: int) -> None: ...
+
+
+def checked_run(
+    t: ArrayLike, gyro_b: ArrayLike, accel_b: ArrayLike
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A run of IMU samples as arrays ``(N,)`` [s], ``(N, 3)`` [rad/s], ``(N, 3)`` [m/s^2];
+    ``ValueError`` (one line) for other shapes, non-finite values or times not increasing."""
+    t_a = np.asarray(t, dtype=float)
+    W = np.asarray(gyro_b, dtype=float)
+    A = np.asarray(accel_b, dtype=float)
+    N = t_a.shape[0] if t_a.ndim == 1 else -1
+    if N < 0 or W.shape != (N, 3) or A.shape != (N, 3):
+        raise ValueError(
+            f"propagate_many needs t (N,), gyro_b and accel_b (N, 3); got shapes "
+            f"{t_a.shape}, {W.shape}, {A.shape}"
+        )
+    if not (np.isfinite(t_a).all() and np.isfinite(W).all() and np.isfinite(A).all()):
+        raise ValueError("gyro_b and accel_b must be finite 3-vectors [rad/s], [m/s^2]")
+    if N > 1 and not np.all(np.diff(t_a) > 0):
+        k = int(np.flatnonzero(np.diff(t_a) <= 0)[0])
+        raise ValueError(f"IMU time {t_a[k + 1]} is not after the previous sample {t_a[k]}")
+    return t_a, W, A
 
 
 def load_kernels() -> None:
@@ -353,7 +371,7 @@ def _segment(
 ) -> int:
     """Steps of one segment from merged sample ``s``; returns where the next one starts."""
     e = int(ends[-1])
-    wc, fc = filt.corrected(W[s : e + 1], A[s : e + 1])
+    wc, fc = filt.layout.correct(W[s : e + 1], A[s : e + 1], filt.errors)
     t0, mat0, vel0, lat0, lon0, alt0 = filt.nominal()
     start = NavState(t0, Rotation.from_matrix(mat0, assume_valid=True), vel0, lat0, lon0, alt0)
     track = strapdown(start, T[s : e + 1], wc, fc, filt.mech)
@@ -376,7 +394,7 @@ def _segment(
     step = step_nominal(
         sums[:, 0], sums[:, 1:10].reshape(S, 3, 3), sums[:, 10:13], track.vel_n[a],
         track.lat[a], track.alt_m[a],
-        filt.mech, filt.divisors(),
+        filt.mech, scale_divisors(filt.errors),
         sums[:, 14:23].reshape(S, 3, 3) if sf else None,
         sums[:, 23:32].reshape(S, 3, 3) if sf else None,
         sums[:, 13],
