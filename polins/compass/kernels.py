@@ -45,7 +45,8 @@ def dot_rows(v: NDArray, rows: NDArray) -> NDArray:
 def moment(e: NDArray, omega: NDArray) -> NDArray:
     """Weighted moment ``sum_i omega_i e_i e_i^T`` ``(3, 3)`` of component-first vectors
     ``e`` ``(3, n)`` with weights ``omega`` ``(n,)``, in float64 (float32 or float64 input:
-    one compiled pass, :func:`moment_pass`, float32 values cast to float64)."""
+    one compiled pass, :func:`polins.compass.eigen_kernels.moment_pass`, float32 values cast
+    to float64)."""
     floats = (np.float32, np.float64)
     if e.dtype in floats and omega.dtype in floats:
         out = np.empty((3, 3))
