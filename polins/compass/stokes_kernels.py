@@ -59,6 +59,13 @@ def stokes_pass(  # pragma: no cover  # noqa: C901, PLR0915 (one loop, compiled 
     m30, m31, m32, m33 = m[3, 0, 0], m[3, 1, 0], m[3, 2, 0], m[3, 3, 0]
     o0, o1, o2, o3 = offset[0, 0], offset[1, 0], offset[2, 0], offset[3, 0]
     n_runs = runs.shape[0] - 1
+    longest = 0
+    for k in range(n_runs):
+        longest = max(longest, runs[k + 1, 2] - runs[k, 2])
+    # One run's channels: the strided mosaic is read once per run, the loops below then
+    # read contiguous float32 rows (in vector lanes).
+    ca, cb = np.empty(longest, f32), np.empty(longest, f32)
+    cc, cd = np.empty(longest, f32), np.empty(longest, f32)
     for k in range(n_runs):
         i2, p0, p1 = 2 * runs[k, 0], runs[k, 2], runs[k + 1, 2]
         col0 = 2 * runs[k, 1]
@@ -66,14 +73,19 @@ def stokes_pass(  # pragma: no cover  # noqa: C901, PLR0915 (one loop, compiled 
         ch_b = raw[i2 + position[1] // 2, col0 + position[1] % 2 :: 2]
         ch_c = raw[i2 + position[2] // 2, col0 + position[2] % 2 :: 2]
         ch_d = raw[i2 + position[3] // 2, col0 + position[3] % 2 :: 2]
+        for q in range(p1 - p0):  # the run's channels, contiguous in float32 (in cache)
+            ca[q] = f32(ch_a[q])
+            cb[q] = f32(ch_b[q])
+            cc[q] = f32(ch_c[q])
+            cd[q] = f32(ch_d[q])
         r0, r1, r2, r3 = rows[0, p0:p1], rows[1, p0:p1], rows[2, p0:p1], rows[3, p0:p1]
         ok_run, unsat_run = valid[p0:p1], unsaturated[p0:p1]
         if channels.shape[1] > 0:
             for q in range(p1 - p0):
-                channels[0, p0 + q] = f32(ch_a[q])
-                channels[1, p0 + q] = f32(ch_b[q])
-                channels[2, p0 + q] = f32(ch_c[q])
-                channels[3, p0 + q] = f32(ch_d[q])
+                channels[0, p0 + q] = ca[q]
+                channels[1, p0 + q] = cb[q]
+                channels[2, p0 + q] = cc[q]
+                channels[3, p0 + q] = cd[q]
         # Two loops per run (a few kB, in cache): branch-free arithmetic the compiler
         # vectorises, then the tests.
         if per_pixel_rows:  # einsum("ikn,kn->in") order, then the offsets
@@ -81,18 +93,18 @@ def stokes_pass(  # pragma: no cover  # noqa: C901, PLR0915 (one loop, compiled 
                 ma, mb, mc = m[i, 0, p0:p1], m[i, 1, p0:p1], m[i, 2, p0:p1]
                 md, oi, ri = m[i, 3, p0:p1], offset[i, p0:p1], rows[i, p0:p1]
                 for q in range(p1 - p0):
-                    a, b, c, d = f32(ch_a[q]), f32(ch_b[q]), f32(ch_c[q]), f32(ch_d[q])
+                    a, b, c, d = ca[q], cb[q], cc[q], cd[q]
                     ri[q] = (((zero + ma[q] * a) + mb[q] * b) + mc[q] * c) + md[q] * d - oi[q]
         for q in range(0 if per_pixel_rows else p1 - p0):
-            a, b, c, d = f32(ch_a[q]), f32(ch_b[q]), f32(ch_c[q]), f32(ch_d[q])
+            a, b, c, d = ca[q], cb[q], cc[q], cd[q]
             # einsum's order: ((m0 a + m1 b) + m2 c) + m3 d, then the offset
             r0[q] = (((zero + m00 * a) + m01 * b) + m02 * c) + m03 * d - o0
             r1[q] = (((zero + m10 * a) + m11 * b) + m12 * c) + m13 * d - o1
             r2[q] = (((zero + m20 * a) + m21 * b) + m22 * c) + m23 * d - o2
             r3[q] = (((zero + m30 * a) + m31 * b) + m32 * c) + m33 * d - o3
         for q in range(p1 - p0):
-            unsat = (f32(ch_a[q]) < sat) & (f32(ch_b[q]) < sat)
-            unsat &= (f32(ch_c[q]) < sat) & (f32(ch_d[q]) < sat)
+            unsat = (ca[q] < sat) & (cb[q] < sat)
+            unsat &= (cc[q] < sat) & (cd[q] < sat)
             unsat_run[q] = unsat
             s0, s1, s2 = r0[q], r1[q], r2[q]
             ok_run[q] = unsat & (s0 >= s0_min) & (s1 * s1 + s2 * s2 >= dop2 * (s0 * s0))
