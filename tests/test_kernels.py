@@ -350,3 +350,23 @@ def test_compiled_cell_mask_matches_numpy():
     got = np.empty_like(valid)
     compiled("cell_mask_pass")(valid, cells.astype(np.uint16), flagged, got)
     np.testing.assert_array_equal(got, valid & ~flagged.take(cells))
+
+
+@pytest.mark.parametrize("factor", [1, 4])
+def test_vertical_runs_are_the_runs_read_without_a_gather(factor):
+    """A run's vertical neighbours are read as a slice exactly when they are consecutive
+    (the Stokes pass's gradient then needs no gather); the fisheye has both kinds."""
+    import polins
+    from polins.compass.pixels import pixel_set
+
+    pixels = pixel_set(polins.load_camera("paper-table1").downscaled(factor))
+    bounds = pixels.runs[:, 2]
+    kinds = set()
+    for k, v0 in enumerate(pixels.vertical_runs):
+        below = pixels.vertical[bounds[k] : bounds[k + 1]]
+        consecutive = bool(np.all(np.diff(below) == 1))
+        assert (v0 >= 0) == consecutive
+        if consecutive:
+            np.testing.assert_array_equal(below, v0 + np.arange(below.size))
+        kinds.add(consecutive)
+    assert kinds == {True, False}

@@ -97,6 +97,10 @@ class PixelSet:
         The set as runs of horizontally adjacent superpixels: superpixel row, first column
         and first position of every run; a last row ``(0, 0, n)`` closes the final run (the
         compiled passes stream the mosaic rows run by run).
+    vertical_runs : (m,) int
+        Per run, the position of its first pixel's ``vertical`` neighbour when the run's
+        ``vertical`` positions are consecutive (the neighbours are a run themselves: read
+        without a gather), else -1.
     """
 
     shape: tuple[int, int]
@@ -108,6 +112,7 @@ class PixelSet:
     vertical: IntArray
     vertical_step: NDArray[np.float32]
     runs: IntArray
+    vertical_runs: IntArray
 
     @property
     def size(self) -> int:
@@ -149,10 +154,21 @@ def _build_pixel_set(cam: CameraModel, mask: BoolArray) -> PixelSet:
     runs = np.stack([i[start], j[start], start], -1)
     runs = np.vstack([runs, [0, 0, index.size]]).astype(np.intp)
     arrays = (index, pair_index, channel_at, right_step, horizontal_scale, vertical, vertical_step,
-              runs)  # fmt: skip
+              runs, _vertical_runs(vertical, runs[:, 2]))  # fmt: skip
     for arr in arrays:
         arr.setflags(write=False)
     return PixelSet((hs, ws), *arrays)
+
+
+def _vertical_runs(vertical: IntArray, bounds: IntArray) -> IntArray:
+    """:attr:`PixelSet.vertical_runs` of the runs between ``bounds (m + 1,)``."""
+    consecutive = np.r_[np.diff(vertical) == 1, True]  # position q: q + 1 follows it
+    out = np.full(bounds.size - 1, -1, dtype=np.intp)
+    for k in range(bounds.size - 1):
+        p0, p1 = int(bounds[k]), int(bounds[k + 1])
+        if p1 > p0 and consecutive[p0 : p1 - 1].all():
+            out[k] = vertical[p0]
+    return out
 
 
 @lru_cache(maxsize=8)

@@ -456,8 +456,8 @@ def stokes_image(
         chan = np.empty((4, n if channels else 0), np.float32)
         position = np.argsort(np.asarray(pixels.channel_at).ravel())  # channel -> 2 r + c
         native = np.ascontiguousarray(raw, dtype=raw.dtype.newbyteorder("="))
-        compiled("stokes_pass")(native, pixels.runs, position, matrix,
-                                offset, limits, noise, pixels.vertical, rows, sigma2_px, valid,
+        compiled("stokes_pass")(native, pixels.runs, position, matrix, offset, limits, noise,
+                                pixels.vertical, pixels.vertical_runs, rows, sigma2_px, valid,
                                 unsaturated, chan)  # fmt: skip
         sigma2: NDArray | float = sigma2_px
         if not shot:  # one number (read noise only), as stokes_noise_variance gives it

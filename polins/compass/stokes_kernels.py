@@ -23,6 +23,7 @@ def stokes_pass(  # pragma: no cover  # noqa: C901, PLR0915 (one loop, compiled 
     limits: NDArray,
     noise: NDArray,
     vertical: NDArray,
+    vertical_runs: NDArray,
     rows: NDArray,
     sigma2: NDArray,
     valid: NDArray,
@@ -38,7 +39,8 @@ def stokes_pass(  # pragma: no cover  # noqa: C901, PLR0915 (one loop, compiled 
     (4, 1)`` float32 the Stokes rows (S0, S1, S2, nu) and their dark-offset part, or
     ``(4, 4, n)`` and ``(4, n)`` per pixel; ``limits`` = (saturation, s0_min,
     redundancy^2 [float32 when the noise is one number], dop_min^2, gradient_max^2 or -1);
-    ``noise`` = (read^2, mean(g)/2, G_e, per-pixel flag); ``vertical (n,)`` the
+    ``noise`` = (read^2, mean(g)/2, G_e, per-pixel flag); ``vertical (n,)`` and
+    ``vertical_runs (m,)`` the
     :class:`polins.compass.pixels.PixelSet`'s. ``sigma2`` is written only with the
     per-pixel flag, ``channels (4, n)`` float32 only when it is not empty.
     """
@@ -125,10 +127,18 @@ def stokes_pass(  # pragma: no cover  # noqa: C901, PLR0915 (one loop, compiled 
         p0, p1 = runs[k, 2], runs[k + 1, 2]
         length = p1 - p0
         s, below, ok_run = s0_row[p0:p1], vertical[p0:p1], valid[p0:p1]
-        for q in range(1, length - 1):  # central difference inside the run
-            gx = ((s[q + 1] - s[q]) + (s[q] - s[q - 1])) * half
-            gy = s0_row[below[q]] - s[q]
-            ok_run[q] &= gx * gx + gy * gy < g2 * (s[q] * s[q])
+        v0 = vertical_runs[k]
+        if v0 >= 0:  # the vertical neighbours are a run themselves: no gather
+            sv = s0_row[v0 : v0 + length]
+            for q in range(1, length - 1):  # central difference inside the run
+                gx = ((s[q + 1] - s[q]) + (s[q] - s[q - 1])) * half
+                gy = sv[q] - s[q]
+                ok_run[q] &= gx * gx + gy * gy < g2 * (s[q] * s[q])
+        else:
+            for q in range(1, length - 1):
+                gx = ((s[q + 1] - s[q]) + (s[q] - s[q - 1])) * half
+                gy = s0_row[below[q]] - s[q]
+                ok_run[q] &= gx * gx + gy * gy < g2 * (s[q] * s[q])
         # One-sided at the ends (the same pixel when the run has one): the numbers of
         # numpy's sum of forward differences, where the missing side adds an exact zero.
         last = length - 1
