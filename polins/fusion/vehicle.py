@@ -363,7 +363,11 @@ class VehicleAiding:
 
 
 def consider_update(
-    x: FloatArray, P: FloatArray, residual: FloatArray, R: FloatArray, H: FloatArray,
+    x: FloatArray,
+    P: FloatArray,
+    residual: FloatArray,
+    R: FloatArray,
+    H: FloatArray,
     held: list[int],
 ) -> tuple[FloatArray, FloatArray]:
     """A Kalman update that leaves the states ``held`` alone (Schmidt-Kalman filter: their
@@ -387,7 +391,9 @@ def consider_states(name: str, yaw_aligned: bool, index: Mapping[str, slice]) ->
     and the headings observe instead (docs/filter.md §12.2)."""
     held = [] if yaw_aligned else [2]
     if name == "level":
-        held += [i for b in ("bg", "sg") if b in index for i in range(index[b].start, index[b].stop)]
+        held += [
+            i for b in ("bg", "sg") if b in index for i in range(index[b].start, index[b].stop)
+        ]
     return held
 
 
@@ -461,8 +467,14 @@ def with_standstill(measurements: pd.DataFrame | None, t: ArrayLike, std: float)
 
 
 __all__ = [
+    "LEVEL_INTERVAL_S",
+    "LEVEL_WINDOW_S",
     "STANDSTILL_PROB",
+    "ForceTracker",
     "VehicleAiding",
+    "consider_states",
+    "consider_update",
+    "level_variance",
     "mat_vb_from_mount",
     "odometer_items",
     "scaled_odometer",
@@ -473,8 +485,6 @@ __all__ = [
     "vehicle_items",
     "window_samples",
     "with_standstill",
-    "consider_states",
-    "consider_update",
     "yaw_consider_update",
     "zero_rate_std",
 ]
