@@ -24,7 +24,7 @@ from polins.fusion.api import run_fusion
 from polins.fusion.config import FuseConfig
 from polins.fusion.items import gate_limit
 from polins.fusion.measurement import BG, level, yaw_kernel
-from polins.fusion.vehicle import consider_states, consider_update, vehicle_items
+from polins.fusion.vehicle import VehicleAiding, consider_states, consider_update, vehicle_items
 from polins.models import load_imu
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
@@ -102,6 +102,24 @@ def test_the_levelling_sigma_covers_the_acceleration():
     taken = np.sum(z**2, axis=1) <= gate_limit(cfg.gate_probability, 2)
     assert 0.95 <= np.mean(taken) < 1.0, np.mean(taken)
     assert 0.6 <= np.mean(z[taken] ** 2) <= 1.4, np.mean(z[taken] ** 2)
+
+
+def test_the_levelling_items_do_not_depend_on_how_the_samples_come():
+    """The stream hands the samples over an epoch at a time, a log at once: the same
+    levelling items (times, forces, sigmas), one a second."""
+    _, imu, _, _, _ = drive(2, 30.0, MEMS)
+    cfg = FuseConfig.from_options(imu_model=MEMS, **SITE)
+    t = imu["t"].to_numpy()
+    w, f = imu[["gx", "gy", "gz"]].to_numpy(), imu[["ax", "ay", "az"]].to_numpy()
+    dt = float(t[1] - t[0])
+    whole = [it for _, it in VehicleAiding(cfg, dt).items(t, w, f, 0) if it.kind == "level"]
+    aiding, parts = VehicleAiding(cfg, dt), []
+    for k in range(0, len(t), 37):
+        s = slice(k, k + 37)
+        parts += [it for _, it in aiding.items(t[s], w[s], f[s], k) if it.kind == "level"]
+    assert [it.t for it in whole] == [it.t for it in parts] == list(np.arange(1.0, 31.0))
+    for a, b in zip(whole, parts, strict=True):
+        assert a.std == b.std and np.array_equal(a.force_b, b.force_b)
 
 
 def test_the_levelling_leaves_the_gyro_bias_alone():

@@ -316,19 +316,19 @@ class VehicleAiding:
         its change (:class:`ForceTracker`; ``w``, ``f`` hold ``old`` samples before ``t``)."""
         if self.level_var is None:
             return []
-        end = epochs + old + 1
-        epochs, end = epochs[end >= self.every], end[end >= self.every]
-        cw = np.concatenate([np.zeros((1, 3)), np.cumsum(w, axis=0)])
-        cf = np.concatenate([np.zeros((1, 3)), np.cumsum(f, axis=0)])
-        mean_w = (cw[end] - cw[end - self.every]) / self.every
-        mean_f = (cf[end] - cf[end - self.every]) / self.every
+        every, floor = self.every, math.sqrt(self.level_var)
         at_rest = set(rest.tolist())
-        last = ((index0 + epochs) // self.every) % self.level_every == 0
         out = []
-        for i, wi, fi, li in zip(epochs.tolist(), mean_w, mean_f, last.tolist(), strict=True):
-            found = self.tracker.add(wi, fi, i in at_rest, li)
+        for i in epochs.tolist():  # mostly one epoch a call (the stream)
+            end = i + old + 1
+            if end < every:
+                continue
+            last = ((index0 + i) // every) % self.level_every == 0
+            found = self.tracker.add(w[end - every : end].sum(axis=0) / every,
+                                     f[end - every : end].sum(axis=0) / every,
+                                     i in at_rest, last)  # fmt: skip
             if found is not None:
-                std = max(math.sqrt(self.level_var), found[1])
+                std = max(floor, found[1])
                 out.append((i, MeasurementItem(float(t[i]), "level", std, force_b=found[0])))
         return out
 
