@@ -115,6 +115,7 @@ def fit_turning_polarization(
     turn_prior_std: float | None = None,
     source_factors: ArrayLike | None = None,
     max_iterations: int | None = None,
+    source_correlation: ArrayLike | None = None,
 ) -> TurnFit:
     """Fit channel gains, efficiencies and angles to turning polarized sources.
 
@@ -171,6 +172,10 @@ def fit_turning_polarization(
     max_iterations : int, optional
         Stop after about this many Levenberg-Marquardt iterations (each one Jacobian);
         ``converged`` says whether it met its tolerance. None: scipy's default.
+    source_correlation : array_like, (R, R), optional
+        Correlation of the noise of the R sources' means within an image and channel (ring
+        windows that overlap share pixels): the residuals are whitened with it, so the
+        standard errors hold. Default: independent.
 
     Returns
     -------
@@ -194,6 +199,7 @@ def fit_turning_polarization(
         tilt_terms=tilt_terms,
         source_factors=source_factors,
         source_radius2=source_radius2,
+        source_correlation=source_correlation,
     )
     x0 = params.start_vector(start)
     if y_arr.size <= x0.size:
@@ -303,6 +309,7 @@ class _TurnParameters:
     log_eta_base: FloatArray
     factors: ComplexArray
     radius2: FloatArray | None
+    whiten: FloatArray | None  # (R, R) inverse Cholesky factor of the sources' correlation
 
     @classmethod
     def of(
@@ -316,6 +323,7 @@ class _TurnParameters:
         tilt_terms: bool,
         source_factors: ArrayLike | None,
         source_radius2: ArrayLike | None = None,
+        source_correlation: ArrayLike | None = None,
     ) -> _TurnParameters:
         """The parameters for ``shape`` = (m images, R sources)."""
         m, n_src = shape
@@ -351,6 +359,9 @@ class _TurnParameters:
             np.log(cam.efficiency),
             factors,
             radius2,
+            None
+            if source_correlation is None
+            else np.linalg.inv(np.linalg.cholesky(np.asarray(source_correlation, dtype=float))),
         )
 
     @property
@@ -428,7 +439,10 @@ class _TurnParameters:
         self, x: FloatArray, y_arr: FloatArray, sig: FloatArray, turn_prior_std: float | None
     ) -> FloatArray:
         """Normalised residuals of the channel means, the turn prior and the gauge terms."""
-        r = ((self.model(x) - y_arr) / sig).ravel()
+        r = (self.model(x) - y_arr) / sig
+        if self.whiten is not None:
+            r = np.einsum("rs,msk->mrk", self.whiten, r)
+        r = r.ravel()
         _, _, _, scale, theta, _, _ = self.unpack(x)
         extra = []
         if turn_prior_std is not None and self.fit_turn:
@@ -443,15 +457,15 @@ class _TurnParameters:
 
 
 def _turn_fit(params: _TurnParameters, sol: OptimizeResult, y_arr: FloatArray) -> TurnFit:
-    """The :class:`TurnFit` of a solved Malus fit: standard errors from the Jacobian
-    scaled by chi2/dof, then the conventions for what the data cannot fix (module
-    docstring)."""
+    """The :class:`TurnFit` of a solved Malus fit: standard errors from the Jacobian scaled
+    by chi2/dof when above 1 (never below the declared noise), then the conventions for what
+    the data cannot fix (module docstring)."""
     cam, q, m, fit_src = params.cam, params.q, params.m, params.start.fit_src
     gain, eta, alpha, scale, theta, s0r, lr = params.unpack(sol.x)
     dof = y_arr.size - sol.x.size
     chi2_dof = float(np.sum(sol.fun[: y_arr.size] ** 2) / dof)
     jac = sol.jac
-    cov = np.linalg.pinv(jac.T @ jac) * max(chi2_dof, 1e-12)
+    cov = np.linalg.pinv(jac.T @ jac) * max(chi2_dof, 1.0)  # never below the declared noise
     blocks = np.split(np.arange(sol.x.size), params.cuts)
 
     def std_of(jac_block: FloatArray, idx: NDArray[np.int_]) -> FloatArray:

@@ -25,8 +25,12 @@ Pitfalls, and how they are handled:
   at the first and third harmonics; ``tilt_terms`` (default) fits these terms per ring,
   which needs turns spread over the circle (the fit is refused when the channel angles
   come out uncertain by more than 0.25 deg). Without them a 0.5 deg tilt costs about
-  1 deg of channel angle. An axis offset from the camera (a lever arm) does not matter
-  for a sky at infinity. ``noise_ratio`` well above 1 says the model does not hold.
+  1 deg of channel angle. Their second order (the sky's curvature precessing, at the even
+  harmonics where the channel errors show) is taken by centring the rings on the turn axis
+  found from the images (:func:`polins.calibration.rings.on_turn_axis`) and refitting,
+  when the tilt terms are kept and the axis is off the optical one. An axis offset from the
+  camera (a lever arm) does not matter for a sky at infinity. ``noise_ratio`` well above 1
+  says the model does not hold.
 * **The sun's motion.** Its azimuth changes by up to about 0.25 deg/min; with a vertical
   turn axis this is a turn of the whole sky, absorbed in the fitted turn angles. Its
   elevation change alters the ring means: a 20-minute sequence in the morning biases the
@@ -74,6 +78,7 @@ from polins.calibration.images import channel_changes, provenance
 from polins.calibration.malus import TurnFit, fit_turning_polarization
 from polins.calibration.rings import (
     RingData,
+    on_turn_axis,
     polarization_turns,
     ring_data,
     ring_sun_factors,
@@ -160,6 +165,13 @@ class SkyRotationResult:
     gain_map : (Hs, Ws, 4) or None
         The per-pixel gains of that shading, over the whole image, when it is significant
         (some ``|c_k|`` above 3 standard errors); None otherwise.
+    turn_axis_c : (3,)
+        The turn axis the rings were centred on, camera frame: found from the images
+        (:func:`polins.calibration.rings.turn_axis_c`), or the optical axis when no tilt
+        is significant or ``tilt_terms`` is off.
+    turn_axis_tilt_std : float
+        Standard error of the turn axis's tilt from the optical axis [rad] (inf: not
+        identified; 0: not searched).
     """
 
     gain: FloatArray
@@ -180,6 +192,8 @@ class SkyRotationResult:
     radial_gain: FloatArray = field(default_factory=lambda: np.zeros(4))
     radial_gain_std: FloatArray = field(default_factory=lambda: np.zeros(4))
     gain_map: FloatArray | None = None
+    turn_axis_c: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    turn_axis_tilt_std: float = 0.0
 
     def camera_changes(self) -> dict[str, Any]:
         """The camera-model fields this calibration sets (with the gain map when the
@@ -308,7 +322,8 @@ def _fit_known_turns(
     on what the turns identify."""
     theta = -np.asarray(turns, dtype=float)
     plain = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, source_factors=factors,
-                                     source_radius2=data.radius2)  # fmt: skip
+                                     source_radius2=data.radius2,
+                                     source_correlation=data.correlation)  # fmt: skip
     span = np.degrees(np.ptp(np.unwrap(turns)))
     notes = [f"with the turns known ({span:.0f} deg): gains to {np.max(plain.gain_std):.2g}, "
              f"channel angles to {_angle_std_deg(plain):.2g} deg, efficiencies to "
@@ -317,7 +332,8 @@ def _fit_known_turns(
     if not tilt_terms:
         return plain, False, notes
     tilted = fit_turning_polarization(data.y, data.sigma, cam, turn=theta, tilt_terms=True,
-                                      source_factors=factors, source_radius2=data.radius2)  # fmt: skip
+                                      source_factors=factors, source_radius2=data.radius2,
+                                      source_correlation=data.correlation)  # fmt: skip
     fit, tilt_used = _tilt_or_not(plain, tilted, span, notes)
     return fit, tilt_used, notes
 
@@ -348,6 +364,7 @@ def _joint_fit(
     """The fit with the turns free from ``hint``, and why it is no calibration ("" if it is)."""
     fit = fit_turning_polarization(data.y, data.sigma, cam, turn_start=hint, scale_basis=basis,
                                    source_factors=factors, source_radius2=data.radius2,
+                                   source_correlation=data.correlation,
                                    max_iterations=JOINT_ITERATIONS)  # fmt: skip
     why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
     if not fit.converged:
@@ -418,7 +435,7 @@ def _with_tilt(
     tilted = fit_turning_polarization(
         data.y, data.sigma, cam, tilt_terms=True, turn_start=turn_start,
         turn_prior_std=np.radians(1.0), scale_basis=basis, source_factors=factors,
-        source_radius2=data.radius2,
+        source_radius2=data.radius2, source_correlation=data.correlation,
     )  # fmt: skip
     moved = np.degrees(np.abs(np.angle(np.exp(2j * (tilted.turn - fit.turn)))).max() / 2)
     if moved > TILT_TURN_MOVE_MAX_DEG:
@@ -524,6 +541,11 @@ def fit_sky_rotation(
     if not _shading_significant(fit):  # the nested model without it: no map, uniform gains
         data = replace(data, radius2=None)
         fit, tilt_used, notes = run(data)
+    if tilt_used:  # the turns cover the circle: the rings on the turn axis take its 2nd order
+        data = on_turn_axis(data, cam)
+        if data.axis_c[2] != 1.0:
+            fit, tilt_used, notes = run(data)
+    axis_note = _axis_note(data)
     span = np.degrees(turn_span(-fit.turn))
     _check_span(span, min_span_deg)
     why = degeneracy(fit.gain, fit.angle, fit.efficiency, cam)
@@ -537,7 +559,15 @@ def fit_sky_rotation(
             f"images spread over a full turn{advice}"
         )
     return _result(fit, data, cam, m, span, tilt_used, factors is not None, ifov_correction,
-                   known, notes)  # fmt: skip
+                   known, [*notes, axis_note] if axis_note else notes)  # fmt: skip
+
+
+def _axis_note(data: RingData) -> str:
+    """Where the rings were centred, when on a turn axis found off the optical axis."""
+    if data.axis_c[2] == 1.0:
+        return ""
+    return (f"rings centred on the turn axis, found {np.degrees(np.arccos(data.axis_c[2])):.2f} +- "
+            f"{np.degrees(data.axis_tilt_std):.2g} deg from the optical axis")  # fmt: skip
 
 
 def _shading_significant(fit: TurnFit) -> bool:
@@ -592,6 +622,8 @@ def _result(
         radial_gain=fit.radial_gain,
         radial_gain_std=fit.radial_gain_std,
         gain_map=gain_map,
+        turn_axis_c=data.axis_c,
+        turn_axis_tilt_std=data.axis_tilt_std,
         provenance=provenance(
             "sky-rotation",
             "ring means of clear-sky images turning about the optical axis, Malus-law fit"
@@ -606,6 +638,7 @@ def _result(
             residual_rms_dn=float(f"{rms:.3g}"),
             noise_ratio=float(f"{noise_ratio:.3g}"),
             radial_gain_max=float(f"{np.abs(fit.radial_gain).max():.3g}"),
+            turn_axis_tilt_deg=round(float(np.degrees(np.arccos(data.axis_c[2]))), 3),
         ),
     )
 
