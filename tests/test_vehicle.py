@@ -234,14 +234,9 @@ def test_graph_uses_the_vehicle_pseudo_measurements():
     free = drive.fuse(backend="graph")
     ground_scores = attitude_scores(drive.traj, graph.solution)
     free_scores = attitude_scores(drive.traj, free.solution)
-    # the free vehicle has the zero-rate updates at the stops and the levelling (docs/filter.md
-    # §12): its tilt is as good (pitch 0.17 deg, the ground vehicle's 0.16); the ground
-    # vehicle's NHC and zero-velocity factors observe the velocity, which the free one's
-    # do not
-    assert ground_scores["pitch"][0] < 1.2 * free_scores["pitch"][0], (ground_scores, free_scores)
-    sigma = {k: float(np.hypot(*r.solution[["ve_std", "vn_std"]].iloc[-1])) for k, r in
-             (("ground", graph), ("free", free))}  # fmt: skip
-    assert sigma["ground"] < 0.6 * sigma["free"], sigma  # 0.087 against 0.178 m/s
+    # the free vehicle has the zero-rate updates at the stops (docs/filter.md §12): pitch
+    # 0.22 deg against 0.71 without them; the ground vehicle's NHC does better
+    assert ground_scores["pitch"][0] < 0.85 * free_scores["pitch"][0], (ground_scores, free_scores)
     assert graph.info["n_keyframes"] > free.info["n_keyframes"]
     # the graph's odometer: tests/test_graph_states.py
 
@@ -365,12 +360,9 @@ def test_static_vehicle_has_zero_velocity_at_every_epoch():
                         FuseConfig.from_options(imu_model=MEMS, **SITE, vehicle="static"))  # fmt: skip
     zupt = static.updates[static.updates["name"] == "zupt"]
     assert len(zupt) == 300 and zupt["accepted"].all()
-    # the free vehicle's velocity is not observed (its levelling bounds the tilt only)
     speed = {k: float(np.hypot(*r.solution[["ve", "vn"]].iloc[-1])) for k, r in
              (("free", free), ("static", static))}  # fmt: skip
-    sigma = {k: float(np.hypot(*r.solution[["ve_std", "vn_std"]].iloc[-1])) for k, r in
-             (("free", free), ("static", static))}  # fmt: skip
-    assert speed["static"] < 0.01 and sigma["static"] < 0.01 < sigma["free"], (speed, sigma)
+    assert speed["static"] < 0.01 < speed["free"], speed
 
 
 def fast_and_per_sample(drive: Drive, cfg: FuseConfig, t_end: float = 15.0):

@@ -159,7 +159,7 @@ class Problem:
         n_given = len(zupts)
         zupts += [it for it in ground if it.kind == "zupt"]
         nhcs = [it for it in ground if it.kind == "nhc"]
-        zarus = [it for it in ground if it.kind in ("zaru", "level")]  # at rest, levelling
+        zarus = [it for it in ground if it.kind == "zaru"]
         # Times within TIME_TOL_S of an IMU sample are moved onto it (as the ESKF does).
         t_aid = snap_times([it.t for it in aiding], t_imu, TIME_TOL_S).tolist()
         t_zupt = snap_times([it.t for it in zupts], t_imu, TIME_TOL_S).tolist()
@@ -253,11 +253,7 @@ class Problem:
             zarus = [it for it in zarus if it.t >= first]
         for it in zarus:
             key = self.key_of(it.t)
-            if key is not None and it.force_b is not None:  # levelling (docs/filter.md §12)
-                self.detected.add(len(self.meas))
-                factor = levelling_factor(X(key), B(key), it.force_b, it.std)
-                self.meas.append(MeasFactor(key, it, factor))
-            elif key is not None and it.gyro_b is not None:
+            if key is not None and it.gyro_b is not None:
                 self.detected.add(len(self.meas))
                 factor = zero_rate_factor(X(key), B(key), it.gyro_b, it.std, it.rate_n)
                 self.meas.append(MeasFactor(key, it, factor))
