@@ -26,7 +26,9 @@ reference (one covariance step per IMU interval: the ESKF's internal ``cov_step_
 the sample interval): the discretisation error of the default step
 (``polins.fusion.config.COV_STEP_S``).
 
-With ``--graph``, also the time of the graph backend (batch solver) on the same inputs.
+With ``--graph``, also the time of the graph backend (batch solver) on the same inputs; with
+``--sections``, where the CPU time of one ``polins.fuse`` of each configuration goes (the
+filter's steps timed one by one: each timer adds about a microsecond per call).
 
 Run: ``python benchmarks/bench_fuse.py [--duration 120] [--imu mems-typical] [--repeat 5]
 [--graph]``.
@@ -192,7 +194,7 @@ def update_costs(imu: pd.DataFrame, meas: pd.DataFrame, kw: dict, repeat: int) -
     update."""
     import timeit
 
-    from polins.fusion.eskf.filter import kalman_update
+    from polins.fusion.eskf.update import kalman_update
     from polins.fusion.measurement import Linearized
 
     t = imu["t"].to_numpy()
@@ -214,6 +216,66 @@ def update_costs(imu: pd.DataFrame, meas: pd.DataFrame, kw: dict, repeat: int) -
                              number=200, repeat=repeat)  # fmt: skip
         out[key] = min(runs) / 200
     return out
+
+
+# the steps of the filter timed by --sections: ("module[:class]", attribute, label), the
+# functions replaced by timed ones where they are called from
+SECTIONS = (
+    ("polins.fusion.eskf.propagate", "strapdown", "strapdown (compiled), per segment"),
+    ("polins.fusion.eskf.propagate", "_chunk", "error dynamics F of 64 steps"),
+    ("polins.fusion.eskf.propagate", "discretize", "Phi, Q of 64 steps (Van Loan)"),
+    ("polins.fusion.eskf.filter:ESKF", "predict", "predict: Phi P Phi^T + Q"),
+    ("polins.fusion.eskf.filter:ESKF", "linearize", "linearize an item (z, H, R)"),
+    ("polins.fusion.eskf.filter", "innovation", "innovation, NIS (the gate)"),
+    ("polins.fusion.eskf.filter", "kalman_update", "filterpy update (Joseph form)"),
+    ("polins.fusion.eskf.filter:ESKF", "_model_heading_bias", "heading-bias model, a heading"),
+    ("polins.fusion.eskf.filter:ESKF", "apply", "apply an item (the four above in it)"),
+    ("polins.fusion.eskf.batch", "advance", "the filter's run (fast path)"),
+    ("polins.fusion.eskf.batch", "interpolate", "rows: nominal (+) x, sigmas"),
+    ("polins.fusion.eskf.batch", "solution_table", "solution table"),
+    ("polins.fusion.api", "prepare", "inputs: validation, fault policy, items"),
+)
+
+
+def sections(fn: Callable[[], object]) -> tuple[float, dict[str, tuple[float, int]]]:
+    """CPU time [s] of ``fn()`` and of each of :data:`SECTIONS` in it ([s], calls)."""
+    import importlib
+
+    spent: dict[str, list[float]] = {label: [0.0, 0] for _, _, label in SECTIONS}
+    patches = []
+    for where, name, label in SECTIONS:
+        mod_name, _, cls = where.partition(":")
+        owner = importlib.import_module(mod_name)
+        owner = getattr(owner, cls) if cls else owner
+        inner = getattr(owner, name)
+
+        def timed(*a, _inner=inner, _acc=spent[label], **k):
+            t0 = time.process_time()
+            try:
+                return _inner(*a, **k)
+            finally:
+                _acc[0] += time.process_time() - t0
+                _acc[1] += 1
+
+        patches.append(mock.patch.object(owner, name, timed))
+    with contextlib.ExitStack() as stack:
+        for p in patches:
+            stack.enter_context(p)
+        t0 = time.process_time()
+        fn()
+        total = time.process_time() - t0
+    return total, {k: (v[0], int(v[1])) for k, v in spent.items()}
+
+
+def print_sections(name: str, fn: Callable[[], object], n_samples: int) -> None:
+    fn()  # warm
+    total, spent = sections(fn)
+    print(f"\n{name}: CPU {1e3 * total:.1f} ms ({1e6 * total / n_samples:.2f} us a sample), "
+          "of which (nested: apply holds linearize .. filterpy):")  # fmt: skip
+    for label, (sec, calls) in spent.items():
+        if calls:
+            print(f"  {label:42s} {1e3 * sec:8.1f} ms {calls:7d} calls "
+                  f"{1e6 * sec / calls:9.1f} us/call")  # fmt: skip
 
 
 FIRST_FUSE = """
@@ -255,6 +317,8 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=120.0, help="drive length [s]")
     ap.add_argument("--imu", default="mems-typical", help="IMU model name")
     ap.add_argument("--repeat", type=int, default=5, help="timing repeats (best is kept)")
+    ap.add_argument("--sections", action="store_true",
+                    help="also print where the CPU time of one fuse goes")  # fmt: skip
     ap.add_argument("--graph", action="store_true",
                     help="also time the graph backend (batch) once on the same inputs")  # fmt: skip
     args = ap.parse_args()
@@ -334,6 +398,9 @@ def main() -> None:
     print(f"max difference to the fine-step reference: fuse {d_fuse:.1e} rad (Euler sigmas "
           f"{r_fuse:.1e} relative); propagate_many at the end {d_many:.1e} rad (attitude "
           f"sigmas {r_many:.1e})")  # fmt: skip
+    if args.sections:
+        print_sections("polins.fuse, default, 10 rows/s", lambda: polins.fuse(imu, meas, **kw), n)
+        print_sections("polins.fuse, ground, 10 rows/s", lambda: polins.fuse(imu, meas, **gkw), n)
     if args.graph:
         graph_s = best_time(lambda: polins.fuse(imu, meas, "graph", **kw), 1)
         print(f"graph backend (batch solver), the same inputs and options: {graph_s:.2f} s "

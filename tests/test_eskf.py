@@ -884,7 +884,7 @@ def test_kalman_update_is_filterpys_joseph_update():
     rows) equals ``filterpy.kalman.update`` and keeps P symmetric positive definite."""
     from filterpy.kalman import KalmanFilter, update
 
-    from polins.fusion.eskf.filter import kalman_update
+    from polins.fusion.eskf.update import kalman_update
     from polins.fusion.measurement import Linearized
 
     rng = np.random.default_rng(3)

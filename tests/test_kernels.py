@@ -108,16 +108,16 @@ def _sky_pixels(rng, n, dtype, weighted):
     ],
 )
 def test_compiled_normal_equations_match_numpy(zenith, sky, weighted, p_min):
-    # The one-pass residual, Jacobian and group sums (polins.compass.kernels.ml_pass) give
+    # The one-pass residual, Jacobian and group sums (polins.compass.selection_kernels.ml_pass) give
     # the normal equations of ml_evaluate's rows (float32 rows, float64 sums: to float32
     # rounding) and the same pixel selection, bit for bit.
-    from polins.compass.jointml import ml_evaluate, ml_pass_sums
     from polins.compass.normal import (
         normal_equations,
         sector_normal_equations,
         sums_normal_equations,
         sums_sector_normal_equations,
     )
+    from polins.compass.residual import ml_evaluate, ml_pass_sums
     from polins.compass.sectors import SectorRuns
     from polins.compass.skymodel import sky_model
 
@@ -203,22 +203,79 @@ def test_compiled_evectors_are_bit_identical(dtype, model, weights):
 
 def test_compiled_mirror_groups_match_angles():
     """The mirror-pair jackknife's groups (signs of cross products) are those of the
-    angle between each horizontal ray and the sun's azimuth, in sectors of pi/8."""
+    angle between each horizontal level ray and the sun's azimuth, in sectors of pi/8; the
+    pixels outside the mask add nothing."""
     rng = np.random.default_rng(12)
     k = 5000
     contrib = rng.normal(size=(2, k))
-    ray_l = rng.normal(size=(2, k))
+    rays = rng.normal(size=(3, k))
+    mask = rng.random(k) < 0.7
+    contrib[:, ~mask] = 0.0  # as the zenith pass writes them
+    mat_lc = Rotation.from_rotvec([0.05, -0.1, 0.8]).as_matrix()
+    ray_l = mat_lc @ rays
     azimuth = 0.7
     c, s = np.cos(azimuth), np.sin(azimuth)
     rel = np.abs(np.arctan2(c * ray_l[1] - s * ray_l[0], c * ray_l[0] + s * ray_l[1]))
     group = np.minimum((rel * (MIRROR_SECTORS / np.pi)).astype(np.intp), MIRROR_SECTORS - 1)
-    want = np.stack([np.bincount(group, w, MIRROR_SECTORS) for w in contrib])
+    want = np.stack([np.bincount(group[mask], w[mask], MIRROR_SECTORS) for w in contrib])
     b = np.arange(1, MIRROR_SECTORS) * np.pi / MIRROR_SECTORS
     got = np.zeros((3, MIRROR_SECTORS))
-    compiled("mirror_sums")(contrib, ray_l, k, np.array([c, s]),
+    compiled("mirror_pass")(contrib, rays, mask, mat_lc, np.array([c, s]),
                             np.array([np.cos(b), np.sin(b)]), got)  # fmt: skip
     np.testing.assert_allclose(got[:2], want, rtol=1e-12, atol=1e-12)
-    np.testing.assert_array_equal(got[2], np.bincount(group, minlength=MIRROR_SECTORS))
+    np.testing.assert_array_equal(got[2], np.bincount(group[mask], minlength=MIRROR_SECTORS))
+
+
+def _zenith_reference(est, inv, basis, rays, valid, mat_lc, cos_edge):
+    """The zenith cone's mask, sums and contributions with numpy (docs/measurement.md §13)."""
+    mask = valid & (mat_lc[2] @ rays > cos_edge)
+    h = np.einsum("ij,jkn->ikn", mat_lc[:2], basis.astype(np.float64))  # (2, 2, n): h1, h2
+    (h1x, h2x), (h1y, h2y) = h
+    inv_norm = 2.0 / (h1x**2 + h1y**2 + h2x**2 + h2y**2)
+    q1 = np.array([0.5 * (h1x**2 - h1y**2 - h2x**2 + h2y**2), h1x * h1y - h2x * h2y]) * inv_norm
+    q2 = np.array([h1x * h2x - h1y * h2y, h1x * h2y + h2x * h1y]) * inv_norm
+    s0, s1, s2 = est.astype(np.float64)
+    w = np.broadcast_to(np.asarray(inv, dtype=np.float64), s0.shape) * mask
+    c = w * (q1 * s1 + q2 * s2)
+    sums = np.concatenate([
+        c.sum(axis=1),
+        [np.sum(w * (q1[0] ** 2 + q2[0] ** 2)), np.sum(w * (q1[0] * q1[1] + q2[0] * q2[1])),
+         np.sum(w * (q1[1] ** 2 + q2[1] ** 2))],
+        (w * s0 * q1).sum(axis=1), (w * s0 * q2).sum(axis=1),
+        (w * (q1 * s1 - q2 * s2)).sum(axis=1), (w * (q1 * s2 + q2 * s1)).sum(axis=1),
+    ])  # fmt: skip
+    return mask, sums, c
+
+
+@pytest.mark.parametrize("model", ["projection", "meridian"])
+@pytest.mark.parametrize("weights", ["per pixel", "common"])
+def test_compiled_zenith_sums_match_numpy(model, weights):
+    """The zenith cone's mask (bit for bit), sums and per-pixel contributions (to float64
+    rounding) of one compiled pass are those of the numpy expressions, for either lens
+    model's basis (the projection model's passed as its third row)."""
+    rng = np.random.default_rng(15)
+    n = 20_000
+    rays = rng.normal(size=(3, n))
+    rays[2] = np.abs(rays[2]) + 1.0
+    rays /= np.linalg.norm(rays, axis=0)
+    rays = rays.astype(np.float32)
+    basis = np.ascontiguousarray(lens_basis_rows(rays.astype(np.float64), model), np.float32)
+    est = rng.normal(50.0, 20.0, (3, n)).astype(np.float32)
+    inv = {"per pixel": rng.uniform(0.5, 2.0, n).astype(np.float32),
+           "common": np.full((1, 1), 0.37, np.float32)}[weights]  # fmt: skip
+    valid = rng.random(n) < 0.8
+    mat_lc = Rotation.from_rotvec([0.03, -0.02, 0.4]).as_matrix()
+    cos_edge = 0.9
+    mask, sums, contrib = np.empty(n, bool), np.empty(13), np.empty((2, n))
+    compiled("zenith_pass")(est, inv, basis[2] if model == "projection" else basis, rays,
+                            valid, mat_lc, cos_edge, mask, sums, contrib)  # fmt: skip
+    want_mask, want_sums, want_contrib = _zenith_reference(est, inv.reshape(-1), basis,
+                                                           rays.astype(np.float64), valid,
+                                                           mat_lc, cos_edge)  # fmt: skip
+    assert 0 < np.count_nonzero(want_mask) < n
+    np.testing.assert_array_equal(mask, want_mask)
+    np.testing.assert_allclose(contrib, want_contrib, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(sums, want_sums, rtol=1e-10)
 
 
 def test_compiled_sandwich_sums_match_numpy():
@@ -258,3 +315,25 @@ def test_compiled_fill_matches_numpy(dtype):
     np.testing.assert_array_equal(inv, want_inv)
     fill_invalid(three, 1.0, valid)  # three rows, a common weight
     np.testing.assert_array_equal(three, want_rows[:3])
+
+
+def test_compiled_counts_and_noise_sum_match_numpy():
+    """The moment pass counts the non-zero weights; the noise estimate's masked sum of
+    squares is numpy's, to float64 rounding; PixelData's S0^2 - |L|^2 is computed once for
+    the copies with another mask."""
+    rng = np.random.default_rng(16)
+    n = 20_000
+    e = rng.normal(size=(3, n)).astype(np.float32)
+    omega = rng.uniform(0.0, 2.0, n).astype(np.float32)
+    omega[rng.random(n) < 0.3] = 0.0
+    out = np.empty((3, 3))
+    assert compiled("moment_pass")(e, omega, out) == np.count_nonzero(omega)
+    np.testing.assert_allclose(out, moment(e, omega), rtol=1e-12)
+    nu = rng.normal(0.0, 3.0, n).astype(np.float32)
+    mask = rng.random(n) < 0.6
+    want = float(np.sum(nu.astype(np.float64)[mask] ** 2))
+    np.testing.assert_allclose(compiled("square_sum_pass")(nu, mask), want, rtol=1e-12)
+    s = rng.normal(10.0, 1.0, (3, n)).astype(np.float32)
+    data = pixel_data(s[0], s[1], s[2], None, 1.0, rays=np.ones((3, n), np.float32))
+    np.testing.assert_array_equal(data.c, s[0] * s[0] - s[1] * s[1] - s[2] * s[2])
+    assert dataclasses.replace(data, mask=mask).c is data.c

@@ -244,7 +244,7 @@ def test_stream_memory_is_bounded(sim_log):
             nav.add_image(nxt[0], load_raw(nxt[1]))
             nxt = next(images, None)
         if nav.filter is not None:
-            sizes.append((len(nav._buf) + len(nav._pending), len(nav._hist), len(nav._snaps),
+            sizes.append((len(nav._buf) + nav._intake.n_pending, len(nav._runner.hist), len(nav._snaps),
                           len(nav._images)))  # fmt: skip
     nav.close()
     buf, hist, snaps, pending = np.max(np.array(sizes[400:]), axis=0)

@@ -194,9 +194,9 @@ def test_a_run_inside_one_snapshot_cell_is_filtered():
     config = config_with_site(FuseConfig(imu_model=MODEL, site=PAPER_SITE, output_rate_hz=1.0))
     runner = FilterRunner(config, 0.0, 1.0 / RATE_HZ, Rotation.identity(),
                           snapshot_every_s=0.1, max_rows=100)  # fmt: skip
-    samples = [(r[0], r[1:4], r[4:7]) for r in imu]
-    runner.run(samples[:101])  # up to t = 0.5 s
-    runner.run(samples[101:104])  # 0.505 .. 0.515 s: inside the 0.5 s cell
+    runner.run(imu[:101, 0], imu[:101, 1:4], imu[:101, 4:7])  # up to t = 0.5 s
+    runner.run(imu[101:104, 0], imu[101:104, 1:4], imu[101:104, 4:7])  # 0.505 .. 0.515 s:
+    # inside the 0.5 s cell
     assert runner.filter.t == pytest.approx(0.515)
     runner.finish()  # the last state is the solution's last row, as polins.fuse
     assert list(runner.drain_solution()["t"]) == pytest.approx([0.0, 0.515])

@@ -12,7 +12,7 @@ from polins.io import read_log
 from polins.io.model_files import imu_model_toml
 from polins.sim.scenario import simulate_log
 from polins.tuning import innovation_stats, tune
-from polins.tuning.likelihood import default_params
+from polins.tuning.parameters import default_params
 
 CLAIMED_STD = math.radians(0.05)  # the compass's yaw_std
 TRUE_STD = math.radians(0.03)  # its errors: yaw_std_scale 0.6

@@ -13,12 +13,8 @@ from polins.fusion import FuseConfig
 from polins.fusion.config import config_from_manifest
 from polins.io.model_files import imu_model_toml
 from polins.site import PAPER_SITE
-from polins.tuning.likelihood import (
-    central_hessian,
-    default_params,
-    sandwich_sigma,
-    score_information,
-)
+from polins.tuning.likelihood import central_hessian, sandwich_sigma, score_information
+from polins.tuning.parameters import default_params
 
 TUNED = (("yaw_std_scale", 0.8), ("nhc_std", 0.01), ("standstill_std", "off"))
 

@@ -18,7 +18,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     from polins.loop import LoopOptions, run_log
     from polins.models import load_imu
     from polins.tuning import tune
-    from polins.tuning.likelihood import check_params, default_params
+    from polins.tuning.parameters import check_params, default_params
 
     out = Path(args.out)
     check(out.suffix == ".toml", f"--out {out}: the tuned IMU model file must end in .toml")

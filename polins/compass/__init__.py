@@ -13,6 +13,7 @@ Modules in the order of the data flow::
     eigen        the eigen sun vector and its covariance
     prediction   the AoP a trial sun predicts; selection: which pixels enter the estimate
     skymodel     the joint ML's sky: the Berry neutral points, the camera-fixed polarization
+    residual     the joint ML's AoP-orthogonal residual, its Jacobian and sums
     jointml      joint maximum likelihood of the sun and epsilon; losses: its robust losses
     solve        one image's joint ML: subsample, cloud cells, full-set step
     sectors      the jackknife over sky sectors
@@ -23,5 +24,7 @@ Modules in the order of the data flow::
     measurement  Measurement and MeasureOptions; chain: the stages composed for one image
     measure      ``polins.measure``
     crlb         the Cramer-Rao bound of the yaw
-    kernels      BLAS-free row products and compiled passes used throughout
+    zenith       the zenith angle of polarization of a narrow field
+    kernels      BLAS-free row products; the compiler of the passes in stokes_kernels,
+                 selection_kernels, eigen_kernels, zenith_kernels
 """

@@ -37,8 +37,7 @@ from polins.compass.heading import (
 )
 from polins.compass.image import ImageStokes, image_stokes
 from polins.compass.instrumental import fitted_sensitivity, instrumental_sensitivity
-from polins.compass.jointml import ml_evaluate
-from polins.compass.kernels import dot
+from polins.compass.kernels import compiled
 from polins.compass.measurement import (
     Measurement,
     MeasurementMaps,
@@ -47,6 +46,7 @@ from polins.compass.measurement import (
     check_method,
 )
 from polins.compass.pixels import check_raw
+from polins.compass.residual import ml_evaluate
 from polins.compass.skymodel import sky_model
 from polins.compass.skypixels import SkyPixels, sky_pixels
 from polins.compass.solution import Solution, solve_image
@@ -211,8 +211,8 @@ def measure_stokes(
     if n_pixels < opt.min_pixels:
         reason = f"too few valid pixels ({n_pixels} < {opt.min_pixels})"
         return Measurement.refused(sol.method, reason, n_pixels), None
-    nu = img.rows[3] * sol.mask
-    noise_std_est = float(np.sqrt(dot(nu, nu) / n_pixels))
+    nu2 = compiled("square_sum_pass")(img.rows[3], sol.mask)
+    noise_std_est = float(np.sqrt(nu2 / n_pixels))
     mapped = _maps(img, px, sol, geo) if maps else None
     fixed = opt.fixed_zenith and method == "compensated" and geo.sun_n is not None
     try:

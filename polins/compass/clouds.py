@@ -18,9 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from polins.compass.jointml import ml_evaluate
 from polins.compass.lens import camera_constants
 from polins.compass.prediction import PixelData
+from polins.compass.residual import ml_evaluate
 from polins.compass.skymodel import SkyModel
 from polins.models import CameraModel
 from polins.sky.neutral_points import berry_neutral_points_level
@@ -248,7 +248,7 @@ def rotated_cells(
     data : PixelData
         The pixels with the mask the estimate used.
     theta, zenith, mat_cl, sky
-        The estimate and its model (:func:`polins.compass.jointml.ml_evaluate`).
+        The estimate and its model (:func:`polins.compass.residual.ml_evaluate`).
     cells : (n,) int
         The pixels' :func:`sky_cells`.
     """

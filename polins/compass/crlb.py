@@ -17,11 +17,11 @@ from scipy.spatial.transform import Rotation
 
 from polins.compass.camera import pixel_rays_c
 from polins.compass.heading import check_sun_and_attitude
-from polins.compass.jointml import ml_evaluate
 from polins.compass.lens import lens_forward_rows
 from polins.compass.pixels import pixel_set
 from polins.compass.polarimetry import stokes_calibration
 from polins.compass.prediction import pixel_data
+from polins.compass.residual import ml_evaluate
 from polins.compass.skypixels import SNR_MIN
 from polins.compass.sunlight import stokes_with_sunlight, sunlight_direction
 from polins.frames import rot_lb_from_rot_nb, yaw_from_rot_nb

@@ -122,19 +122,20 @@ def eigen_level_rows(
 
     The moment matrix is summed in float64: its smallest eigenvalue is ~0, and float32
     accumulation over 4e5 pixels would move the eigenvector by ~1e-5 rad. E-vectors and
-    weights come from one compiled pass (:func:`polins.compass.kernels.evector_pass`);
+    weights come from one compiled pass (:func:`polins.compass.eigen_kernels.evector_pass`);
     the weight sum is the moment's trace ``sum omega_i |e_i|^2`` (pixels without
     polarization, ``e = 0``, add nothing to it).
     """
     dtype = s1.dtype
-    inv = np.ascontiguousarray(inv_sigma2, dtype=dtype).reshape(-1)
-    no_mask = np.zeros(0, dtype=bool)
-    flags = np.array([projection, weighted, 1e-30, 1.0, 0.0], dtype=dtype)
+    inv = np.asarray(inv_sigma2, dtype=dtype)
+    inv = np.ascontiguousarray(inv) if inv.ndim else inv.reshape(1, 1)
+    flags = np.array([weighted, 1e-30, 1.0, 0.0], dtype=dtype)
     e, omega = np.empty((3, s1.size), dtype=dtype), np.empty(s1.size, dtype=dtype)
-    compiled("evector_pass")(s1, s2, inv, basis, no_mask if mask is None else mask, flags,
-                             e, omega)  # fmt: skip
-    n = int(np.count_nonzero(omega))
-    moment_c = moment(e, omega)
+    compiled("evector_pass")(s1, s2, inv, basis[2] if projection else basis,
+                             np.zeros((0, 0), bool) if mask is None else mask, flags, e,
+                             omega)  # fmt: skip
+    moment_c = np.empty((3, 3))
+    n = int(compiled("moment_pass")(e, omega, moment_c))
     sol = eigen_from_moment(mat_lc @ moment_c @ mat_lc.T, float(np.trace(moment_c)), n)
     return sol, e, omega
 

@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.compass.jointml import ml_evaluate
 from polins.compass.prediction import PixelData, doubled_prediction, image_plane_evector
+from polins.compass.residual import ml_evaluate
 from polins.compass.skymodel import SkyModel
 
 __all__ = ["fitted_sensitivity", "instrumental_sensitivity"]
@@ -107,7 +107,6 @@ def _every(data: PixelData, k: int) -> PixelData:
         data.s0[::k],
         data.s1[::k],
         data.s2[::k],
-        data.c[::k],
         fwd,
         None if data.rays is None else np.ascontiguousarray(data.rays[:, ::k]),
         data.inv_sigma[::k] if isinstance(data.inv_sigma, np.ndarray) else data.inv_sigma,

@@ -5,7 +5,7 @@ Gauss-Newton (:func:`polins.compass.jointml.gauss_newton`) needs ``H = J^T W J``
 their parts per group of sky sectors. With a robust loss (IRLS weights from the residuals)
 they are summed from the stored rows of ``r`` and ``J`` (:func:`normal_equations`,
 :func:`sector_normal_equations`). With the linear loss the rows are never stored: the
-compiled :func:`polins.compass.kernels.ml_pass` evaluates the residual and the Jacobian
+compiled :func:`polins.compass.selection_kernels.ml_pass` evaluates the residual and the Jacobian
 pixel after pixel, makes the pixel selection on the way, and sums per group of sky sectors
 (:func:`pass_sums`; docs/measurement.md §5).
 """
@@ -17,10 +17,11 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.compass.kernels import ML_SUMS, compiled, dot
+from polins.compass.kernels import compiled, dot
 from polins.compass.prediction import PixelData
 from polins.compass.sectors import SECTOR_AZIMUTHS, SECTOR_RINGS, SectorRuns, sector_sums
 from polins.compass.selection import Selection, compiled_arguments
+from polins.compass.selection_kernels import ML_SUMS
 
 FloatArray = NDArray[np.float64]
 
@@ -106,7 +107,7 @@ def pass_sums(
     sectors: SectorRuns | None,
 ) -> tuple[FloatArray, NDArray]:
     """Per-group sums ``(G, ML_SUMS)`` of the residual and Jacobian products
-    (:func:`polins.compass.kernels.ml_pass`) and the mask in force: the groups of
+    (:func:`polins.compass.selection_kernels.ml_pass`) and the mask in force: the groups of
     ``sectors`` (:meth:`SectorRuns.mirror_groups` for the sun ``cols[:, 0]``), or one.
 
     ``cols (3, 1 + j)`` are the camera-frame sun and its derivative columns, ``xy (1 + j,

@@ -18,7 +18,7 @@ camera without maps has one constant calibration matrix for all pixels.
 The row kernels :func:`stokes_rows` and :func:`validity_rows` work on component-first
 arrays (``(k, n)``, one contiguous row per component), the layout of the per-image chain
 (:mod:`polins.compass.chain`); :func:`stokes_image` runs them on a raw image, for an
-integer mosaic fused into one compiled pass (:func:`polins.compass.kernels.stokes_pass`,
+integer mosaic fused into one compiled pass (:func:`polins.compass.stokes_kernels.stokes_pass`,
 bit-identical). The other public functions take and return the library's
 trailing-component layout.
 """
@@ -424,7 +424,7 @@ def stokes_image(
     checked with :func:`polins.compass.pixels.check_raw`, on ``pixels`` (docs/model.md §7).
 
     An unsigned-integer mosaic is processed in float32 by one compiled pass
-    (:func:`polins.compass.kernels.stokes_pass`: the same numbers), which reads the mosaic
+    (:func:`polins.compass.stokes_kernels.stokes_pass`: the same numbers), which reads the mosaic
     once instead of writing and re-reading the channels and the rows (docs/measurement.md
     §10); a float mosaic in float64 by the numpy row kernels. ``channels`` also returns
     the channels ``(4, n)`` [DN].

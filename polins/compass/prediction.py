@@ -10,7 +10,7 @@ lens constants these predictions are evaluated on.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,8 +34,6 @@ class PixelData:
     ----------
     s0, s1, s2 : (n,)
         Stokes rows [DN].
-    c : (n,)
-        ``S0^2 - |L|^2`` [DN^2].
     forward : (3, 2n) or None
         Packed forward rows [q1 | q2].
     rays : (3, n) or None
@@ -49,11 +47,23 @@ class PixelData:
     s0: NDArray
     s1: NDArray
     s2: NDArray
-    c: NDArray
     forward: NDArray | None
     rays: NDArray | None
     inv_sigma: NDArray | float
     mask: NDArray | None = None
+    derived: dict[str, NDArray] = field(default_factory=dict, repr=False, compare=False)
+    """Rows computed from the others on first use, shared by the copies with another mask."""
+
+    @property
+    def c(self) -> NDArray:
+        """``S0^2 - |L|^2`` ``(n,)`` [DN^2] (the joint ML's unpolarized intensity), computed
+        on first use."""
+        if "c" not in self.derived:
+            c = self.s0 * self.s0
+            c -= self.s1 * self.s1
+            c -= self.s2 * self.s2
+            self.derived["c"] = c
+        return self.derived["c"]
 
     @property
     def n(self) -> int:
@@ -82,10 +92,7 @@ def pixel_data(
     fwd = forward if (packed or forward is None) else pack_forward(forward, s0.dtype)
     if fwd is None and rays is None:
         raise ValueError("need the forward lens rows or (projection model) the rays")
-    c = s0 * s0
-    c -= s1 * s1
-    c -= s2 * s2
-    return PixelData(s0, s1, s2, c, fwd, rays, inv_sigma, mask)
+    return PixelData(s0, s1, s2, fwd, rays, inv_sigma, mask)
 
 
 def image_plane_evector(data: PixelData, sun_cols: NDArray) -> NDArray:

@@ -18,7 +18,7 @@ and for the eigen solution the first-order change of its smallest eigenvector wh
 sector's moment ``M_g`` is removed. The per-sector sums
 run over the pixels in index order as ``np.add.reduceat`` over runs of equal sector
 (sectors are contiguous in the image, so a row holds few runs); the eigen jackknife's in
-one compiled pass (:func:`polins.compass.kernels.eigen_run_sums`).
+one compiled pass (:func:`polins.compass.eigen_kernels.eigen_run_sums`).
 """
 
 from __future__ import annotations
@@ -184,11 +184,13 @@ def eigen_sandwich_sums(
 ) -> tuple[FloatArray, FloatArray]:
     """The middle ``sum_i (omega_i (e_i . s))^2 e_i e_i^T`` ``(3, 3)`` of the eigen
     solution's sandwich covariance (camera frame, docs/model.md §10.2) and the per-run
-    sums ``(m, 4)`` of :func:`eigen_jackknife_sums`, in one compiled pass over ``e (3, n)``
-    and ``omega (n,)`` with the camera-frame sun ``sun_c (3,)``."""
+    sums ``(m, 4)`` of :func:`eigen_jackknife_sums`, in two compiled passes over ``e (3, n)``
+    and ``omega (n,)`` with the camera-frame sun ``sun_c (3,)`` (the runs' in pixel order,
+    the middle's in vector lanes)."""
     middle, run_sums = np.empty((3, 3)), np.empty((runs.starts.size, 4))
-    compiled("sandwich_pass")(e, omega, np.asarray(sun_c, dtype=np.float64), runs.starts,
-                              middle, run_sums)  # fmt: skip
+    sun = np.asarray(sun_c, dtype=np.float64)
+    compiled("sandwich_pass")(e, omega, sun, runs.starts, run_sums)
+    compiled("middle_pass")(e, omega, sun, middle)
     return middle, run_sums
 
 

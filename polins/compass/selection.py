@@ -5,7 +5,7 @@ is valid (:func:`polins.compass.polarimetry.validity_rows`), outside the sun cir
 its polarized intensity *along the predicted direction* clears both a DoP and a noise
 threshold. That component's noise is independent of the residual's, so the cut selects no
 noise (a cut on |L| would, and bias epsilon near the sun). On the chain's arrays (one dtype)
-the rule runs as one compiled pass, :func:`polins.compass.kernels.select_pass`, with the
+the rule runs as one compiled pass, :func:`polins.compass.selection_kernels.select_pass`, with the
 numbers of the numpy expressions.
 """
 

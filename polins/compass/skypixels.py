@@ -58,8 +58,9 @@ class SkyPixels:
         The starting eigen solution (level frame).
     sun_l0 : (3,)
         The starting sun, level frame (its sign resolved with an ephemeris).
-    cells : (n,) int
-        The pixels' thin-cloud cells (:func:`polins.compass.clouds.sky_cells`).
+    cells, cells_sub : (n,), (n_sub,) int
+        The thin-cloud cells (:func:`polins.compass.clouds.sky_cells`) of all
+        field-of-view pixels and of the subsample.
     """
 
     valid: NDArray
@@ -72,6 +73,16 @@ class SkyPixels:
     eig0: EigenSolution
     sun_l0: NDArray
     cells: NDArray
+    cells_sub: NDArray
+
+
+@lru_cache(maxsize=16)
+def _cells_every(cam: CameraModel, stride: int) -> NDArray:
+    """The thin-cloud cells of every ``stride``-th field-of-view pixel (the subsample's),
+    cached per camera (read-only)."""
+    cells = np.ascontiguousarray(sky_cells(cam)[::stride])
+    cells.setflags(write=False)
+    return cells
 
 
 @lru_cache(maxsize=8)
@@ -170,10 +181,10 @@ def sky_pixels(
     if geo.sun_n is not None:
         sun_l0 = resolve_sun_sign(eig0.sun, geo.sun_n, geo.yaw_prior, opt.horizon_fallback)
 
-    cells = sky_cells(cam)
+    cells, cells_sub = sky_cells(cam), _cells_every(cam, img.stride)
     if opt.clouds == "auto":  # thin clouds: cells with a DoP deficit (§4)
         cloudy = cloudy_cells(rows_sub, sub.rays, geo.mat_cl @ sun_l0, CLOUD_DOP_RATIO,
-                              valid_sub, cells.take(sub.index))  # fmt: skip
+                              valid_sub, cells_sub)  # fmt: skip
         if cloudy.any():
             valid = valid & ~cloudy.take(cells)
             valid_sub = valid[sub.index]
@@ -190,4 +201,4 @@ def sky_pixels(
     data_full = pixel_data(est[0], est[1], est[2], cache.forward, _sqrt_at(img.inv_sigma_l2, None),
                            packed=True, rays=cache.lens_rays)  # fmt: skip
     return SkyPixels(valid, valid_sub, rows_sub, data_sub, data_full, select_sub, select_full,
-                     eig0, sun_l0, cells)  # fmt: skip
+                     eig0, sun_l0, cells, cells_sub)  # fmt: skip

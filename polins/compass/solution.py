@@ -25,10 +25,11 @@ from polins.compass.eigen import (
 )
 from polins.compass.heading import Geometry, resolve_sun_sign, yaw_variance_from_sun_covariance
 from polins.compass.image import ImageStokes
-from polins.compass.jointml import ml_evaluate, sun_covariance
+from polins.compass.jointml import sun_covariance
 from polins.compass.kernels import dot
 from polins.compass.lens import subsample
 from polins.compass.measurement import MeasureOptions
+from polins.compass.residual import ml_evaluate
 from polins.compass.sectors import (
     eigen_jackknife_sums,
     eigen_sandwich_sums,
@@ -143,7 +144,7 @@ def solve_compensated(
     data = (px.data_sub if img.stride > 1 else px.data_full, px.data_full)
     solved = compensated_solution(
         SolveSetup(zenith, geo.mat_cl, opt), data, theta, (px.select_sub, px.select_full),
-        (px.cells.take(sub.index), px.cells), (sector_runs(cam, img.stride), sector_runs(cam)),
+        (px.cells_sub, px.cells), (sector_runs(cam, img.stride), sector_runs(cam)),
         (sub.rays, cache.rays), dop_test,
     )  # fmt: skip
     if solved.fallback:

@@ -31,11 +31,12 @@ from scipy.ndimage import binary_erosion
 from polins.compass.branch import sun_angle_variances
 from polins.compass.heading import Geometry
 from polins.compass.image import ImageStokes
-from polins.compass.kernels import ZENITH_SUMS, compiled, dot_rows
+from polins.compass.kernels import compiled, dot_rows
 from polins.compass.measurement import MeasureOptions
 from polins.compass.pixels import PixelSet
 from polins.compass.skypixels import SkyPixels
 from polins.compass.solution import Solution
+from polins.compass.zenith_kernels import ZENITH_SUMS
 
 __all__ = [
     "CONE_MAX",
@@ -113,15 +114,12 @@ _MIRROR_BOUNDS = np.array(
 """(cos, sin) of the boundaries between the mirror-pair sectors [-]."""
 
 
-def _mirror_jackknife(contrib: NDArray, ray_l: NDArray, k: int, azimuth_sun: float) -> float:
-    """Delete-one-group jackknife variance [rad^2] of the azimuth of the sum of the first
-    ``k`` columns of ``contrib`` (2, n) over groups of pixels mirrored about the sun's vertical plane (by the angle between
-    the horizontal parts of their level rays ``ray_l`` (2, n) and the sun's azimuth): on
-    a symmetric sky every group's sum lies on that plane's doubled angle, so only
-    asymmetries move it."""
-    group_sums = np.zeros((3, MIRROR_SECTORS))
-    azimuth = np.array([np.cos(azimuth_sun), np.sin(azimuth_sun)])
-    compiled("mirror_sums")(contrib, ray_l, k, azimuth, _MIRROR_BOUNDS, group_sums)
+def _mirror_jackknife(group_sums: NDArray) -> float:
+    """Delete-one-group jackknife variance [rad^2] of the azimuth of the zenith cone's sum
+    from its per-group sums ``(3, G)`` (contribution (2), pixel count) over groups of
+    pixels mirrored about the sun's vertical plane (by the angle between the horizontal
+    parts of their level rays and the sun's azimuth): on a symmetric sky every group's sum
+    lies on that plane's doubled angle, so only asymmetries move it."""
     sums = group_sums[:2]  # (2, G)
     total = sums.sum(axis=1, keepdims=True)
     left = total - sums
@@ -157,14 +155,15 @@ def zenith_mean(
     mask : (n,) bool
         The pixels used.
     """
-    n = valid.size
     inv = img.inv_sigma_l2
-    inv_rows = inv if isinstance(inv, np.ndarray) else np.array([inv], dtype=img.dtype)
-    mask, sums = np.empty(n, bool), np.empty(ZENITH_SUMS)
-    contrib, ray_l = np.empty((2, n)), np.empty((2, n))
-    k = compiled("zenith_pass")(img.estimate, inv_rows, img.cache.basis, img.cache.rays, valid,
-                                np.ascontiguousarray(mat_lc, dtype=np.float64), float(cos_edge),
-                                mask, sums, contrib, ray_l)  # fmt: skip
+    inv_rows = inv if isinstance(inv, np.ndarray) else np.full((1, 1), inv, dtype=img.dtype)
+    basis = img.cache.basis[2] if img.cache.projection else img.cache.basis
+    mask, sums = np.empty(valid.size, bool), np.empty(ZENITH_SUMS)
+    contrib = np.empty((2, valid.size))
+    mat = np.ascontiguousarray(mat_lc, dtype=np.float64)
+    compiled("zenith_pass")(img.estimate, inv_rows, basis, img.cache.rays, valid, mat,
+                            float(cos_edge), mask, sums, contrib)  # fmt: skip
+    k = int(np.count_nonzero(mask))
     if k == 0:  # the zenith is outside the field, or no valid pixel is inside the cone
         return ZenithMean(float("nan"), float("nan"), float("nan"), 0.0, 0.0), mask
     m = sums[0:2]
@@ -177,7 +176,11 @@ def zenith_mean(
     g_delta = float(np.hypot(d_azimuth[0], d_azimuth[1]))
     g_mixing = float(np.hypot(d_azimuth[2], d_azimuth[3]))
     azimuth = 0.5 * float(np.arctan2(m[1], m[0])) + 0.5 * np.pi
-    var_jack = _mirror_jackknife(contrib, ray_l, k, azimuth)
+    group_sums = np.zeros((3, MIRROR_SECTORS))
+    compiled("mirror_pass")(contrib, img.cache.rays, mask, mat,
+                            np.array([np.cos(azimuth), np.sin(azimuth)]), _MIRROR_BOUNDS,
+                            group_sums)  # fmt: skip
+    var_jack = _mirror_jackknife(group_sums)
     return ZenithMean(azimuth, 0.25 * var_2phi, var_jack, g_delta, g_mixing), mask
 
 

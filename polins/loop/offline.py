@@ -28,7 +28,8 @@ from polins.fusion.result import FusionResult
 from polins.io.images import ImageIndex
 from polins.io.log import Log
 from polins.loop.options import LoopOptions
-from polins.loop.stream import NavigationStream, with_odometer
+from polins.loop.setup import with_odometer
+from polins.loop.stream import NavigationStream
 from polins.loop.tables import EVENT_COLUMNS
 
 MEASUREMENT_INPUTS = ("t", "yaw", "yaw_std", "sun_bx", "sun_by", "sun_bz", "sun_nx", "sun_ny",

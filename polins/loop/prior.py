@@ -5,6 +5,19 @@ propagated to ``t_i`` by the strapdown (:func:`polins.ins.strapdown.strapdown`) 
 raw IMU samples in between, corrected by the snapshot's sensor-error estimates as the filter
 corrects them; a :class:`PriorJob` carries what it needs to where the image is measured.
 The sun vector comes from the NREL SPA ephemeris on a coarse time grid (:class:`SunGrid`).
+
+The prior, exactly (identical in streaming and batch use): the filter keeps *snapshots* of
+its estimate at the first IMU sample of every ``snapshot_every_s`` grid cell
+(:class:`polins.loop.runner.FilterRunner`). The prior of an image at ``t_i`` is the latest
+snapshot taken at ``tau < t_i - prior_lag_s`` (or the first one, if none is that old),
+propagated to ``t_i`` by :func:`propagate_nominal` with the snapshot's sensor-error
+estimates. A snapshot at ``tau`` contains the updates of all images up to ``tau``, so
+images closer than ``prior_lag_s`` to each other do not depend on each other and are
+measured in parallel (a sliding window of up to ``max_in_flight`` images in a process pool,
+while the filter stays sequential); the prior is propagated where the image is measured
+(:class:`PriorJob`). The cost of the lag: the prior misses the last ``prior_lag_s`` of
+updates, which typically moves the tilt far less than its sigma (simulated UGV drives:
+median 0.001 deg with a MEMS IMU against a 0.16 deg roll sigma).
 """
 
 from __future__ import annotations
@@ -20,11 +33,11 @@ from scipy.spatial.transform import Rotation
 from polins.frames import euler_from_rot_nb
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, strapdown
+from polins.loop.samples import Sample
 from polins.site import Site
 from polins.sky.ephemeris import sun_position, sun_vector_n
 
 FloatArray = NDArray[np.float64]
-Sample = tuple[float, FloatArray, FloatArray]  # (t [s], gyro_b [rad/s], accel_b [m/s^2])
 TIME_TOL_S = 1e-6  # [s] a time this close to a sample is that sample (the filter's tolerance)
 
 

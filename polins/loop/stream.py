@@ -11,31 +11,21 @@ only resolves the 180 deg choice near the horizon), and the measurement's inflat
 (``add_imu``, ``add_image`` / ``add_measurement``, ``state``); :func:`polins.loop.run_log`
 feeds it a recorded log.
 
-The prior, exactly (identical in streaming and batch use)
----------------------------------------------------------
-The filter keeps *snapshots* of its estimate at the first IMU sample of every
-``snapshot_every_s`` grid cell. The prior of an image at ``t_i`` is the latest snapshot
-taken at ``tau < t_i - prior_lag_s`` (or the first one, if none is that old), propagated to
-``t_i`` by the strapdown with the snapshot's sensor-error estimates
-(:func:`polins.loop.prior.propagate_nominal`). A snapshot at ``tau`` contains the updates of
-all images up to ``tau``, so images closer than ``prior_lag_s`` to each other do not depend
-on each other and are measured in parallel (a sliding window of up to ``max_in_flight``
-images in a process pool, while the filter stays sequential); the prior is propagated where
-the image is measured (:class:`polins.loop.prior.PriorJob`). Each measurement updates the
-filter at its image time, so the filter holds back the IMU samples after the oldest image
-whose measurement is not known yet, and those of the last ``max_image_delay_s`` (an image
-may still come). ``add_imu`` collects the samples and, once every ``BLOCK_S`` of IMU time,
-screens the block, hands the measured images over (queued in the filter, applied at their
-times) and runs the samples the filter can take, in runs of at least ``RUN_S`` unless an
-image waits for its prior, through its fast path
-(:mod:`polins.fusion.eskf.propagate`), which gives the same estimates as
-``polins.fusion.run_fusion`` on the stream's measurement table (to 1e-8 rad). The filter's
-covariance steps end where its runs end, so how the samples split into runs (the blocks,
-the images measured by then) moves the estimates and the image priors by ~1e-10 rad and
-the sigmas by ~1e-5 relative; nothing else depends on timing or on the number of workers.
-The cost of the lag: the prior misses the last ``prior_lag_s`` of updates, which typically
-moves the tilt far less than its sigma (simulated UGV drives: median 0.001 deg with a MEMS
-IMU against a 0.16 deg roll sigma).
+Each image is measured with a prior from a filter snapshot (:mod:`polins.loop.prior`:
+which snapshot, why images closer than ``prior_lag_s`` are measured in parallel, what the
+lag costs). Each measurement updates the filter at its image time, so the filter holds back
+the IMU samples after the oldest image whose measurement is not known yet, and those of the
+last ``max_image_delay_s`` (an image may still come). ``add_imu`` collects the samples
+(:mod:`polins.loop.intake`) and, once every ``BLOCK_S`` of IMU time, screens the block,
+hands the measured images over (:mod:`polins.loop.images`; queued in the filter, applied at
+their times) and runs the samples the filter can take, in runs of at least ``RUN_S``
+unless an image waits for its prior, through its fast path
+(:mod:`polins.fusion.eskf.propagate`, :mod:`polins.loop.runner`), which gives the same
+estimates as ``polins.fusion.run_fusion`` on the stream's measurement table (to 1e-8 rad).
+The filter's covariance steps end where its runs end, so how the samples split into runs
+(the blocks, the images measured by then) moves the estimates and the image priors by
+~1e-10 rad and the sigmas by ~1e-5 relative; nothing else depends on timing or on the
+number of workers.
 
 Data faults are skipped and reported as events, the run goes on: the fault policy of every
 path (:mod:`polins.fusion.faults`, docs/faults.md). An IMU gap longer than ``max_gap_s``
@@ -61,9 +51,7 @@ strapdown is loaded when this module is imported
 
 from __future__ import annotations
 
-import bisect
 import dataclasses
-import itertools
 import math
 from collections import deque
 from collections.abc import Iterable, Sequence
@@ -80,47 +68,34 @@ from polins.frames import heading_deg_from_yaw
 from polins.fusion.config import (
     TIME_TOL_S,
     FuseConfig,
-    config_from_manifest,
     config_with_site,
     site_from_shorthand,
 )
 from polins.fusion.eskf.filter import ESKF
 from polins.fusion.faults import (
-    EventKind,
-    GyroHeadingCheck,
-    ImuScreen,
     ImuUnitsError,
-    UnitsWindow,
     default_max_gap_s,
     gap_item,
-    gap_reason,
 )
-from polins.fusion.inputs import PRIOR_COLUMNS, heading_proxy
-from polins.fusion.items import UpdateRecord, items_from_table, records_table
-from polins.fusion.parts import AUTO, ODOMETER_STD
+from polins.fusion.items import UpdateRecord, records_table
 from polins.fusion.vehicle import odometer_items
-from polins.ins.state import NavState
-from polins.io.log import model_ref
-from polins.io.manifest import MANIFEST_NAME, parse_manifest
+from polins.loop.images import ImageQueue, row_items
+from polins.loop.intake import ImuIntake
 from polins.loop.measurer import (
     EXECUTORS,
     ImageMeasurer,
     PendingImage,
     make_executor,
-    report_noise_model,
 )
 from polins.loop.options import LoopOptions
-from polins.loop.prior import PriorJob, Sample, SunGrid
-from polins.loop.runner import FilterRunner
+from polins.loop.prior import SunGrid
+from polins.loop.runner import FilterRunner, Snapshot
+from polins.loop.samples import Sample
+from polins.loop.setup import manifest_setup
 from polins.loop.state import StreamState
-from polins.loop.tables import EventBuffer, measurement_frame
-from polins.models import CameraModel, ImuModel, load_camera, load_imu
+from polins.loop.tables import EventBuffer
+from polins.models import CameraModel, ImuModel
 from polins.site import Site, utc_timestamp
-
-# the further columns of a measured row the filter uses: the sun fit's 2x2 covariance and
-# the sigma's parts a heading-bias state carries (docs/filter.md §5.7)
-SKY_COLUMNS = ("sun_elevation_b", "sun_elevation_b_std", "yaw_std_model", "yaw_std_noise",
-               "yaw_std_correlated")  # fmt: skip
 
 FloatArray = NDArray[np.float64]
 # IMU time [s] add_imu collects before it screens the samples and advances the loop: the
@@ -128,20 +103,6 @@ FloatArray = NDArray[np.float64]
 BLOCK_S = 0.25
 # shortest run of samples [s] the filter takes while no image waits for its prior
 RUN_S = 1.0
-
-
-def with_odometer(config: FuseConfig) -> FuseConfig:
-    """``config`` for a run with a wheel odometer: an ``"auto"`` ``odometer_std`` becomes
-    its value, as :meth:`FuseConfig.resolve` makes it (without resolving the other
-    ``"auto"`` choices, which the loop makes itself)."""
-    if config.aiding.odometer_std == AUTO:
-        return config.replace(odometer_std=ODOMETER_STD)
-    return config
-
-
-def _columns(row: dict[str, Any]) -> tuple[str, ...]:
-    """The column names of a measurement row, in order."""
-    return tuple(row)
 
 
 class NavigationStream:
@@ -232,25 +193,18 @@ class NavigationStream:
         self.sun_at = SunGrid(self.config.site, self.epoch_utc)
         self.sun_at(0.0)  # the ephemeris of the first minutes here, not at the first image
         self._runner: FilterRunner | None = None
-        self._buf: deque[Sample] = deque()  # accepted samples not yet filtered
-        self._hist: deque[Sample] = deque()  # filtered samples a prior may still need
-        self._images: deque[PendingImage] = deque()  # added, not yet handed to the filter
-        self._by_t: dict[float, dict[str, Any]] = {}  # handed over, awaiting the verdict
-        self._rows: deque[dict[str, Any]] = deque(maxlen=self.options.max_table_rows)
         self._updates: deque[UpdateRecord] = deque(maxlen=self.options.max_table_rows)
         self._events = EventBuffer(self.options.max_table_rows)
+        self._queue = ImageQueue(self._executor, self._submit_fn, self._events,
+                                 self.options.max_table_rows)  # fmt: skip
+        self._images = self._queue.pending  # added, not yet handed to the filter
         # the fault policy of every path (polins.fusion.faults, docs/faults.md)
-        full_scale = imu_model.full_scale()
-        self._screen = ImuScreen(full_scale, default_max_gap_s(self.config.gap_s, self.imu_dt))
-        self._gyro_max_sq, self._accel_max_sq = full_scale[0] ** 2, full_scale[1] ** 2
-        self._pending: list[tuple[float, ...]] = []  # added samples not yet screened
-        self._t_newest = -math.inf  # time of the newest sample that passed add_imu's screen
-        self._t_advanced = -math.inf  # newest sample time when the loop last advanced
-        self._units = UnitsWindow(self.config.initial.align_s, full_scale[0])
-        self._heading_check = GyroHeadingCheck()
-        self._last: Sample | None = None  # the newest accepted sample
+        self._intake = ImuIntake(imu_model.full_scale(),
+                                 default_max_gap_s(self.config.gap_s, self.imu_dt),
+                                 self.config.initial.align_s, BLOCK_S, self._events)  # fmt: skip
+        self._screen, self._units = self._intake.screen, self._intake.units
+        self._buf = self._intake.queue  # accepted samples not yet filtered
         self.n_images = 0  # images added (including skipped ones)
-        self._t_last_image = -math.inf
         self._head: ESKF | None = None
         self._head_valid = False
         self._closed = False
@@ -268,34 +222,17 @@ class NavigationStream:
         """The stream of the vehicle a log's manifest describes, configured as ``polins
         fuse`` configures that log (docs/streaming.md).
 
-        From the manifest (a folder means its ``manifest.toml``): the camera and IMU model
-        files, the site and ``epoch_utc`` of ``[log]``, and the filter configuration of
-        ``[vehicle]`` and ``[filter]`` (:meth:`polins.FuseConfig.from_log`'s
-        :func:`~polins.fusion.config.config_from_manifest`; a ``[vehicle] odometer`` gives
-        the odometer scale-factor state, fed by :meth:`add_odometry`). The log's data
-        files are not read; the stream takes SI units whatever ``[units]`` says of them.
-        The other parameters are the constructor's.
+        From the manifest (a folder means its ``manifest.toml``,
+        :func:`polins.loop.setup.manifest_setup`): the camera and IMU model files, the site
+        and ``epoch_utc`` of ``[log]``, and the filter configuration of ``[vehicle]`` and
+        ``[filter]`` (a ``[vehicle] odometer`` gives the odometer scale-factor state, fed by
+        :meth:`add_odometry`). The log's data files are not read; the stream takes SI units
+        whatever ``[units]`` says of them. The other parameters are the constructor's.
         """
-        path = Path(manifest_path)
-        path = path / MANIFEST_NAME if path.is_dir() else path
-        tables = parse_manifest(path)
-        log, vehicle = tables["log"], tables["vehicle"]
-        imu_model = load_imu(model_ref(path.parent, log["imu"]))
-        site = Site(log["lat_deg"], log["lon_deg"], log["alt_m"])
-        config = config_from_manifest(tables, imu_model, site, path)
-        if "odometer" in vehicle:
-            config = with_odometer(config)
-        return cls(
-            load_camera(model_ref(path.parent, log["camera"])),
-            imu_model,
-            site=site,
-            epoch_utc=log["epoch_utc"],
-            rot_nb0=rot_nb0,
-            options=options,
-            config=config,
-            executor=executor,
-            workers=workers,
-        )
+        setup = manifest_setup(manifest_path)
+        camera, imu_model = setup.pop("camera"), setup.pop("imu_model")
+        return cls(camera, imu_model, rot_nb0=rot_nb0, options=options, executor=executor,
+                   workers=workers, **setup)  # fmt: skip
 
     # ------------------------------------------------------------------ reporting
     @property
@@ -304,7 +241,7 @@ class NavigationStream:
         return None if self._runner is None else self._runner.filter
 
     @property
-    def _snaps(self) -> deque[NavState]:
+    def _snaps(self) -> deque[Snapshot]:
         """The filter's snapshots (the image priors start from them)."""
         assert self._runner is not None, "no snapshots before the first IMU sample"
         return self._runner.snaps
@@ -312,7 +249,7 @@ class NavigationStream:
     @property
     def t_latest(self) -> float:
         """Time of the newest accepted IMU sample [s] (-inf before the first)."""
-        return max(self._t_newest, self._screen.t_latest)
+        return max(self._intake.t_newest, self._screen.t_latest)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -330,9 +267,7 @@ class NavigationStream:
 
     def drain_measurements(self) -> pd.DataFrame:
         """Image rows whose filter verdict is known (``MEASUREMENT_COLUMNS``), and forget them."""
-        rows = list(self._rows)
-        self._rows.clear()
-        return measurement_frame(rows)
+        return self._queue.drain()
 
     def drain_updates(self) -> pd.DataFrame:
         """The filter's update log since the last call, every measurement kind (images,
@@ -360,39 +295,19 @@ class NavigationStream:
         taken in blocks of ``BLOCK_S`` of IMU time: the call that completes a block screens
         it and runs the filter (module docstring).
         """
-        t = float(t)
-        wx, wy, wz = gyro_b
-        fx, fy, fz = accel_b
-        row = (t, float(wx), float(wy), float(wz), float(fx), float(fy), float(fz))
-        # the screen of polins.fusion.faults on one sample (NaN fails every comparison)
-        if not (
-            t > self._t_newest
-            and row[1] ** 2 + row[2] ** 2 + row[3] ** 2 <= self._gyro_max_sq
-            and row[4] ** 2 + row[5] ** 2 + row[6] ** 2 <= self._accel_max_sq
-        ):
-            self._pending.append(row)  # dropped by the screen, with its event
+        accepted, due = self._intake.add(t, gyro_b, accel_b)
+        if due:
             self._ingest(run=True)
-            return False
-        if t > self._t_newest + self._screen.max_gap_s:  # a gap: known to the next call
-            self._pending.append(row)
-            self._t_newest = t
-            self._ingest(run=True)
-            return True
-        self._pending.append(row)
-        self._t_newest = t
-        if t >= self._t_advanced + BLOCK_S:
-            self._ingest(run=True)
-        return True
+        return accepted
 
     def _ingest(self, *, run: bool) -> None:
         """Screen the pending IMU samples into the buffer; with ``run``, advance the loop
         (dispatch images, hand measurements over, run the filter)."""
-        if self._pending:
-            block = np.array(self._pending, dtype=float)
-            self._pending.clear()
+        block = self._intake.pending_block()
+        if block is not None:
             self._accept(block[:, 0], block[:, 1:4], block[:, 4:7])
         if run:
-            self._t_advanced = self._t_newest
+            self._intake.t_advanced = self._intake.t_newest
             self._advance(block=False)
 
     def add_imu_many(
@@ -412,7 +327,7 @@ class NavigationStream:
         self._ingest(run=False)
         accepted = self._accept(t_a.copy(), w_a.copy(), f_a.copy())
         if accepted.any():
-            self._t_newest = self._t_advanced = self._screen.t_latest
+            self._intake.t_newest = self._intake.t_advanced = self._screen.t_latest
             self._advance(block=False)
         return accepted
 
@@ -420,9 +335,7 @@ class NavigationStream:
         """The IMU sample policy of :mod:`polins.fusion.faults` over a block (N,) [s],
         (N, 3) [rad/s, m/s^2]: the dropped samples and the gaps reported, the unit checks
         fed; the accepted samples join the buffer. Returns which were accepted."""
-        keep, events, gap_ends = self._screen.screen(t, w, f)
-        for ev in events:
-            self._events.add(ev.t, ev.kind, ev.detail)
+        keep, gap_ends = self._intake.screen_block(t, w, f)
         if not keep.any():
             return keep
         if self._runner is None:
@@ -430,18 +343,8 @@ class NavigationStream:
                                         self.rot_nb0,
                                         snapshot_every_s=self.options.snapshot_every_s,
                                         max_rows=self.options.max_table_rows)  # fmt: skip
-        self._units.add(t[keep], w[keep], f[keep])
-        self._heading_check.add_imu(t[keep], w[keep], f[keep])
-        kept = np.flatnonzero(keep)
-        bounds = [0, *np.searchsorted(kept, gap_ends).tolist(), len(kept)]
-        for j, (a, b) in enumerate(itertools.pairwise(bounds)):  # the runs between gaps
-            run = kept[a:b]
-            samples = list(zip(t[run].tolist(), w[run], f[run], strict=True))
-            if j > 0 and self._last is not None:  # the run starts after a gap
-                self._bridge(self._last, samples[0])
-            self._buf.extend(samples)
-            if samples:
-                self._last = samples[-1]
+        for before, after in self._intake.queue_block(t, w, f, keep, gap_ends):
+            self._bridge(before, after)
         return keep
 
     def _bridge(self, before: Sample, after: Sample) -> None:
@@ -472,8 +375,8 @@ class NavigationStream:
         self._images.append(PendingImage(index, t, raw, s_n))
         if self.filter is not None:
             self._dispatch_ready()  # the filter itself runs in add_imu
-        while self._busy() > self.max_in_flight:
-            self._wait_oldest()
+        while self._queue.busy() > self.max_in_flight:
+            self._queue.wait_oldest()
         return True
 
     def add_measurement(self, t: float, **columns: Any) -> bool:
@@ -508,33 +411,20 @@ class NavigationStream:
         self._head_valid = False
 
     def _usable_time(self, index: int, t: float, what: str) -> bool:
+        """Whether an image (or measurement) at ``t`` can be used
+        (:meth:`ImageQueue.admit`); else it is skipped with its reason."""
         f = self.filter
-        if not math.isfinite(t) or t <= self._t_last_image:
-            self._skip(index, t, "image-out-of-order",
-                       f"{what} time not after the previous one (t={self._t_last_image!r})")  # fmt: skip
-            return False
-        gap = self._screen.inside_gap(t)
-        if gap is not None:
-            self._skip(
-                index, t, EventKind.MEASUREMENT_IN_GAP, f"{what} skipped: {gap_reason(*gap)}"
-            )
-            return False
-        if f is None or t < self._units.t_first - self._tol:
-            self._skip(index, t, "image-outside-imu", f"{what} before the first IMU sample")
-            return False
-        align_s = self.config.initial.align_s
-        if self.rot_nb0 is None and t <= self._units.t_first + align_s + self._tol:
-            self._skip(index, t, "image-during-alignment",
-                       f"{what} inside the levelling window ({align_s} s)")  # fmt: skip
-            return False
-        delay = self.options.max_image_delay_s
-        if f.ready and t < max(f.t, self.t_latest - delay) - self._tol:
-            self._skip(index, t, "image-late",
-                       f"{what} more than max_image_delay_s={delay} s behind the newest IMU "
-                       f"sample (t={self.t_latest:.6f})")  # fmt: skip
-            return False
-        self._t_last_image = t
-        return True
+        levelling = self.rot_nb0 is None
+        return self._queue.admit(
+            index, t, what, gap=self._screen.inside_gap(t),
+            t_first=None if f is None else self._units.t_first - self._tol,
+            t_level_end=self._units.t_first + self.config.initial.align_s + self._tol
+            if levelling else -math.inf,
+            align_s=self.config.initial.align_s,
+            t_late=max(f.t, self.t_latest - self.options.max_image_delay_s) - self._tol
+            if f is not None and f.ready else -math.inf,
+            delay=self.options.max_image_delay_s, t_latest=self.t_latest,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ outputs
     def state(self) -> StreamState:
@@ -549,10 +439,10 @@ class NavigationStream:
             self._head = self.filter.copy()
             self._head_valid = True
         head = self._head
-        held = [s for s in self._buf if s[0] > head.t + self._tol] if head.started else self._buf
-        if held:  # the held-back samples, through the filter's fast path
-            t, gyro, accel = zip(*held, strict=True)
-            head.propagate_many(np.array(t), np.array(gyro), np.array(accel))
+        buf = self._buf
+        k = int(np.searchsorted(buf.t, head.t + self._tol, side="right")) if head.started else 0
+        if k < len(buf):  # the held-back samples, through the filter's fast path
+            head.propagate_many(buf.t[k:], buf.gyro_b[k:], buf.accel_b[k:])
         head.records.clear()  # bounded memory: the head's log is not used
         return StreamState(nav=head.state(), aligning=False, images_pending=pending)
 
@@ -562,13 +452,7 @@ class NavigationStream:
         self._advance(block=True, final=True)
         if self._runner is not None:
             self._runner.finish()
-        for img in list(self._images):  # after the last IMU sample
-            self._skip(img.index, img.t, "image-outside-imu", "image after the last IMU sample")
-        self._images.clear()
-        for row in self._by_t.values():  # handed over, never applied
-            row.update(accepted=False, update_reason="after the last IMU sample")
-            self._rows.append(row)
-        self._by_t.clear()
+        self._queue.close()
 
     def close(self) -> None:
         """Flush, then stop the workers."""
@@ -591,34 +475,6 @@ class NavigationStream:
             self._closed = True
 
     # ------------------------------------------------------------------ internals
-    def _skip(self, index: int, t: float, kind: str, detail: str) -> None:
-        self._events.add(t, kind, detail)
-        self._rows.append({"t": t, "image": index, "ok": False, "reason": f"{kind}: {detail}",
-                           "accepted": False, "update_reason": "skipped"})  # fmt: skip
-
-    def _skip_in_gaps(self) -> bool:
-        """Skip the images (and external measurements) strictly inside an IMU gap, as
-        every path does (docs/faults.md); True if one was."""
-        if not self._screen.gaps:
-            return False
-        inside = [(img, self._screen.inside_gap(img.t)) for img in self._images]
-        skipped = [(img, gap) for img, gap in inside if gap is not None]
-        for img, gap in skipped:
-            self._images.remove(img)
-            what = "image" if img.row is None else "measurement"
-            self._skip(img.index, img.t, EventKind.MEASUREMENT_IN_GAP,
-                       f"{what} skipped: {gap_reason(*gap)}")  # fmt: skip
-        return bool(skipped)
-
-    def _busy(self) -> int:
-        return sum(1 for img in self._images if img.future is not None and not img.resolved)
-
-    def _wait_oldest(self) -> None:
-        for img in self._images:
-            if img.future is not None and not img.resolved:
-                img.future.result()
-                return
-
     def _snapshot_limit(self, img: PendingImage) -> float:
         return img.t - self.options.prior_lag_s - self._tol
 
@@ -629,32 +485,16 @@ class NavigationStream:
         if not f.ready or not self._snaps or self._screen.t_latest < img.t - self._tol:
             return False
         # no later snapshot can be older than the limit once the next sample is past it
-        return not self._buf or self._buf[0][0] >= self._snapshot_limit(img)
+        return not self._buf or self._buf.t[0] >= self._snapshot_limit(img)
 
     def _dispatch(self, img: PendingImage) -> None:
         assert self._runner is not None
-        limit = self._snapshot_limit(img)
-        snap = self._snaps[0]
-        for s in self._snaps:
-            if s.t < limit:
-                snap = s
-            else:
-                break
-        k = next((i for i, s in enumerate(self._hist) if s[0] >= snap.t - self._tol), 0)
-        samples = list(itertools.islice(self._hist, max(k - 1, 0), None))
-        for sample in self._buf:  # up to the first sample at or after the image
-            samples.append(sample)
-            if sample[0] >= img.t:
-                break
-        # the prior is propagated where the image is measured (off the caller's thread)
-        prior = PriorJob.of(snap, samples, img.t, self._runner.filter.mech)
-        img.future = self._executor.submit(self._submit_fn, img.item, img.sun_n, prior)
-        img.item = None  # the raw image is the worker's now
+        prior = self._runner.prior_job(img.t, self._snapshot_limit(img), self._buf)
+        self._queue.submit(img, prior)
 
     def _hand_over(self, images: list[PendingImage]) -> None:
         """Give images' measurements to the filter (before it passes their times), in
-        time order: their rows as one measurement table (``items_from_table``, the rules of
-        ``polins.fuse``; rows with the same columns at once)."""
+        time order (:func:`~polins.loop.images.row_items`)."""
         f = self.filter
         assert f is not None
         rows: list[dict[str, Any]] = []
@@ -669,67 +509,29 @@ class NavigationStream:
             self._images.extendleft(reversed(images[done:]))
             raise
         finally:  # the rows before it are handed over all the same
-            for _, group in itertools.groupby(rows, key=_columns):
-                block = list(group)
-                items = items_from_table({k: [row[k] for row in block] for k in block[0]},
-                                         use_sun=f.config.gating.use_sun,
-                                         heading_bias=f.config.heading_bias)  # fmt: skip
+            for items in row_items(rows, f.config):
                 self._collect(f.add_items(items))
             f.records.clear()  # bounded memory: verdicts are kept in the measurement rows
 
     def _row_of(self, img: PendingImage) -> dict[str, float] | None:
         """The measurement-table row of a measured image for the filter (None when it was
-        not measured); its row of the measurement log waits for the filter's verdict."""
-        if img.row is None:
-            assert img.future is not None
-            img.row = dict(img.future.result())
-        row = img.row
-        row.update(t=img.t, image=img.index)
-        for c, v in zip("xyz", img.sun_n, strict=True):
-            row[f"sun_n{c}"] = float(v)
-        if row.get("event"):
-            self._events.add(img.t, row["event"], row["reason"])
-        report_noise_model(row, self._events, img.t)
-        if not row.get("ok"):
-            row.update(accepted=False, update_reason="not measured")
-            self._rows.append(row)
-            return None
-        self._heading_check.add_headings(img.t, heading_proxy(row))  # ImuUnitsError: deg/s
-        cols: dict[str, float] = {"t": img.t}
-        if "yaw" in row:
-            cols.update(yaw=row["yaw"], yaw_std=float(self.config.yaw_sigma(row["yaw_std"])))
-        if "sun_bx" in row:
-            cols.update({f"sun_b{c}": row[f"sun_b{c}"] for c in "xyz"})
-            cols["sun_std"] = float(self.config.sun_sigma(row["sun_std"]))
-        else:
-            cols.update(sun_bx=math.nan, sun_by=math.nan, sun_bz=math.nan)
-        cols.update({f"sun_n{c}": row[f"sun_n{c}"] for c in "xyz"})
-        if all(np.isfinite(row.get(c, np.nan)) for c in PRIOR_COLUMNS):
-            cols.update({c: row[c] for c in PRIOR_COLUMNS})
-        cols.update({c: float(row[c]) for c in SKY_COLUMNS if c in row})
-        self._by_t[img.t] = row
-        self._head_valid = False  # the head may have passed the measurement's time
+        not measured): :meth:`ImageQueue.filter_row`."""
+        cols = self._queue.filter_row(img, self.config, self._intake.heading_check)
+        if cols is not None:
+            self._head_valid = False  # the head may have passed the measurement's time
         return cols
 
     def _collect(self, records: Iterable[UpdateRecord]) -> None:
         for rec in records:
             self._head_valid = False
             self._updates.append(rec)
-            row = self._by_t.pop(rec.t, None) if rec.name in ("yaw", "sun") else None
-            if row is None:
-                continue
-            row.update(accepted=bool(rec.accepted), update_reason=rec.reason,
-                       nis=rec.nis, nis_dof=rec.dim)  # fmt: skip
-            if rec.name == "yaw" and rec.innovation:  # measured minus predicted yaw [rad]
-                row["innovation"] = float(rec.innovation[0])
-            self._rows.append(row)
+            self._queue.verdict(rec)
 
     def _filter_run(self, n: int) -> None:
         """Filter the first ``n`` buffered IMU samples (module docstring)."""
         assert self._runner is not None
-        samples = [self._buf.popleft() for _ in range(n)]
-        self._hist.extend(samples)
-        records, changed = self._runner.run(samples)
+        t, gyro, accel = self._buf.take(n)
+        records, changed = self._runner.run(t, gyro, accel)
         if changed:
             self._head_valid = False
             self._collect(records)
@@ -746,37 +548,35 @@ class NavigationStream:
             t_wait = self._units.t_first + self.config.initial.align_s + tol
         else:
             t_wait = max(self._screen.t_latest - self.options.max_image_delay_s,
-                         self._t_last_image)  # fmt: skip
-        times = [sample[0] for sample in self._buf]  # increasing
-        return max(1, min(bisect.bisect_left(times, t_image), bisect.bisect_right(times, t_wait)))
+                         self._queue.t_last)  # fmt: skip
+        times = self._buf.t  # increasing
+        before = min(np.searchsorted(times, t_image, side="left"),
+                     np.searchsorted(times, t_wait, side="right"))  # fmt: skip
+        return max(1, int(before))
 
     def _trim(self) -> None:
         """Forget snapshots and IMU history that no future prior can need."""
         f = self.filter
         assert f is not None
         waiting = [img.t for img in self._images if not img.dispatched]
-        t_ref = min(waiting) if waiting else max(self._t_last_image, f.t)
-        limit = t_ref - self.options.prior_lag_s - self._tol
-        while len(self._snaps) > 1 and self._snaps[1].t < limit:
-            self._snaps.popleft()
-        oldest = min((img.t for img in self._images), default=self._t_last_image)
+        t_ref = min(waiting) if waiting else max(self._queue.t_last, f.t)
+        assert self._runner is not None
+        self._runner.trim(t_ref - self.options.prior_lag_s - self._tol)
+        oldest = min((img.t for img in self._images), default=self._queue.t_last)
         self._screen.gaps = [g for g in self._screen.gaps if g[1] > oldest]
-        keep_from = min(self._snaps[0].t if self._snaps else math.inf, f.t)
-        while len(self._hist) > 1 and self._hist[1][0] <= keep_from:
-            self._hist.popleft()
 
     def _advance(self, *, block: bool, final: bool = False) -> None:
         """Dispatch images whose prior is known, hand results over, filter IMU samples."""
         if self.filter is None:
             return
         while True:
-            progressed = self._skip_in_gaps()
+            progressed = self._queue.skip_in_gaps(self._screen)
             progressed = self._dispatch_ready() or progressed
             progressed = self._drain(block=block, final=final) or progressed
             if not progressed:
                 if block and any(img.future is not None and not img.resolved
                                  for img in self._images):  # fmt: skip
-                    self._wait_oldest()
+                    self._queue.wait_oldest()
                     continue
                 return
 
@@ -814,22 +614,22 @@ class NavigationStream:
             progressed = self._hand_over_ready(block) or progressed
             if not self._buf:
                 return progressed
-            t_next = self._buf[0][0]
+            t_next = float(self._buf.t[0])
             if self._images and self._images[0].t <= t_next + tol:
                 img = self._images[0]
                 if img.dispatched or f.ready:
                     return progressed  # its prior or its measurement is not known yet
                 self._images.popleft()  # no prior can ever come
-                self._skip(img.index, img.t, "image-during-alignment",
+                self._queue.skip(img.index, img.t, "image-during-alignment",
                            "no attitude yet (self-alignment still levelling)")  # fmt: skip
                 progressed = True
                 continue
-            late = t_next > self._screen.t_latest - delay and t_next > self._t_last_image
+            late = t_next > self._screen.t_latest - delay and t_next > self._queue.t_last
             if not final and f.ready and late:
                 return progressed  # an image up to max_image_delay_s late may still come
             n = self._runnable(final)
             if not (final or not f.ready or self._prior_wanted()) and (
-                self._buf[n - 1][0] - t_next < RUN_S
+                self._buf.t[n - 1] - t_next < RUN_S
             ):
                 return progressed  # a longer run later: the run's overhead spread wider
             self._filter_run(n)
@@ -840,4 +640,4 @@ class NavigationStream:
         return any(not img.dispatched for img in self._images)
 
 
-__all__ = ["NavigationStream", "StreamState", "with_odometer"]
+__all__ = ["NavigationStream", "StreamState"]

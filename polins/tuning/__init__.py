@@ -9,14 +9,10 @@ from polins.tuning.imu_model import (
     model_random_walk,
 )
 from polins.tuning.innovations import InnovationStats, innovation_stats, stats_table
-from polins.tuning.likelihood import (
-    PARAMETERS,
-    TuneResult,
-    negative_log_likelihood,
-    tune,
-    with_values,
-)
+from polins.tuning.likelihood import negative_log_likelihood, tune
+from polins.tuning.parameters import PARAMETERS, with_values
 from polins.tuning.plot import plot_allan
+from polins.tuning.result import TuneResult
 
 __all__ = [
     "GRADE_TYPICAL",

@@ -29,7 +29,7 @@ likelihood would jump. Each search holds the detector's model
 estimate, until the estimate's rest epochs are those it was fitted with (at most
 :data:`DETECTOR_ROUNDS` searches): the tuned file then detects the epochs it was tuned on.
 
-Parameters (:data:`PARAMETERS`): the white-noise and random-walk densities of the IMU model
+Parameters (:data:`polins.tuning.parameters.PARAMETERS`): the white-noise and random-walk densities of the IMU model
 (SI, :class:`polins.models.ImuModel` fields) and the measurement-noise filter options:
 ``yaw_floor_deg`` / ``sun_floor_deg``, a floor [deg] added in quadrature to every
 ``yaw_std`` / ``sun_std`` of the measurements, ``yaw_std_scale`` / ``sun_std_scale``, a
@@ -39,10 +39,8 @@ pseudo-measurements and odometer, ``nhc_std``, ``standstill_std``, ``odometer_st
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -50,81 +48,17 @@ import pandas as pd
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
-from polins.errors import UserInputError
 from polins.fusion import FuseConfig, FusionResult, ImplausibleRunError, run_fusion
 from polins.fusion.vehicle import vehicle_items
-from polins.models import ImuModel
-from polins.tuning.innovations import InnovationStats, innovation_arrays, innovation_stats
+from polins.tuning.innovations import innovation_arrays, innovation_stats
+from polins.tuning.parameters import check_params, start_values, with_values
+from polins.tuning.result import TuneResult
 
 FloatArray = NDArray[np.float64]
 
-PARAMETERS: dict[str, str] = {
-    "gyro_arw": "gyro angle random walk [rad/sqrt(s)]",
-    "gyro_bias_rw": "gyro bias random walk [rad/s/sqrt(s)]",
-    "accel_vrw": "accelerometer velocity random walk [m/s/sqrt(s)]",
-    "accel_bias_rw": "accelerometer bias random walk [m/s^2/sqrt(s)]",
-    "yaw_floor_deg": "floor added in quadrature to every yaw_std [deg]",
-    "sun_floor_deg": "floor added in quadrature to every sun_std [deg]",
-    "yaw_std_scale": "factor on every yaw_std [-]",
-    "sun_std_scale": "factor on every sun_std [-]",
-    "nhc_std": "non-holonomic constraint 1-sigma [m/s] (the vehicle's slip and mounting)",
-    "standstill_std": "zero-velocity 1-sigma at standstill [m/s] (vibration, rocking)",
-    "odometer_std": "wheel-odometer speed 1-sigma [m/s]",
-}
-_IMU_PARAMS = ("gyro_arw", "gyro_bias_rw", "accel_vrw", "accel_bias_rw")
-# the measurement-noise options and the kind of update each acts on
-_OPTION_KIND = {"yaw_floor_deg": "yaw", "yaw_std_scale": "yaw", "sun_floor_deg": "sun",
-                "sun_std_scale": "sun", "nhc_std": "nhc", "standstill_std": "zupt",
-                "odometer_std": "odo"}  # fmt: skip
-_FLOOR_START_DEG = 0.05  # a floor's start when none is given and the log asks for none
 N_SCORE_BLOCKS = 20  # time blocks of the robust (sandwich) information's score sums
 DETECTOR_ROUNDS = 4  # most searches, each with the standstill detector held at the last estimate
 REST_KINDS = ("zupt", "zaru")  # the updates at the standstill detector's rest epochs
-
-
-def check_params(params: Sequence[str]) -> tuple[str, ...]:
-    """``params`` as a tuple, each a key of :data:`PARAMETERS` (else ``UserInputError``)."""
-    unknown = [p for p in params if p not in PARAMETERS]
-    if unknown or not params:
-        raise UserInputError(
-            f"unknown noise parameter(s) {unknown or '(none given)'}: expected some of "
-            f"{', '.join(PARAMETERS)}"
-        )
-    if len(set(params)) != len(params):
-        raise UserInputError(f"noise parameters given twice: {list(params)}")
-    return tuple(params)
-
-
-def default_params(config: FuseConfig, *, odometry: bool = False) -> tuple[str, ...]:
-    """The parameters ``polins tune`` fits by default: the gyro's white noise, the yaw
-    scale and the NHC and odometer sigmas when on. Tuning the IMU without the
-    pseudo-measurement sigmas lets it absorb their mismatch (docs/tuning.md, "What a log
-    can identify"). The zero-velocity sigma is tuned only when asked (``standstill_std``):
-    on a log whose rests are exact (a simulation) it runs to its search bound."""
-    run = config.resolve(odometry=odometry)
-    sigmas = {"nhc_std": run.nhc_sigma, "odometer_std": run.odometer_sigma}
-    return ("gyro_arw", "yaw_std_scale", *(p for p, v in sigmas.items() if v is not None))
-
-
-def with_values(
-    config: FuseConfig, measurements: pd.DataFrame, values: Mapping[str, float]
-) -> tuple[FuseConfig, pd.DataFrame]:
-    """The configuration with the noise ``values`` (:data:`PARAMETERS`); the table unchanged.
-
-    IMU terms replace the model's (``dataclasses.replace`` of the frozen ``ImuModel``); the
-    measurement-noise terms are the filter's own options (``yaw_std_scale``,
-    ``yaw_floor_deg``, ``sun_std_scale``, ``sun_floor_deg``, :class:`FuseConfig`), so the
-    tuned values act in ``polins fuse`` (``--set``, a manifest's ``[filter]``) as in the
-    tuning. The measurements are returned as given.
-    """
-    imu_values: dict[str, Any] = {k: float(v) for k, v in values.items() if k in _IMU_PARAMS}
-    if imu_values:
-        model = dataclasses.replace(config.imu, **imu_values)
-        config = config.replace(imu_model=model)
-    noise = {k: float(v) for k, v in values.items() if k not in _IMU_PARAMS}
-    if noise:
-        config = config.replace(**noise)
-    return config, measurements
 
 
 def update_terms(updates: pd.DataFrame) -> pd.DataFrame:
@@ -193,212 +127,6 @@ def sandwich_sigma(H: FloatArray, J: FloatArray) -> FloatArray:
         return _fisher_sigma(H)
     Hinv = (V / w) @ V.T
     return np.sqrt(np.clip(np.diag(Hinv @ J @ Hinv), 0.0, None))
-
-
-@dataclass(frozen=True, eq=False)
-class TuneResult:
-    """What :func:`tune` returns.
-
-    Attributes
-    ----------
-    params : tuple of str
-        The tuned parameters (:data:`PARAMETERS`).
-    initial, estimate, values : dict of str to float
-        Start values; the maximum-likelihood estimates (of every parameter, identifiable or
-        not); the values of the tuned run (the estimate if identifiable or on its bound,
-        else the start).
-    cr_sigma_log : dict of str to float
-        Cramér-Rao sigma of each parameter's natural logarithm (inf: no information): the
-        precision under the filter's model.
-    robust_sigma_log : dict of str to float
-        The sandwich sigma of the same (:func:`sandwich_sigma`), honest when the model is
-        wrong or the innovations are not white; at least the Cramér-Rao sigma.
-    identifiable : dict of str to bool
-        ``robust_sigma_log <= max_log_sigma`` and not on the search bound.
-    at_bound : dict of str to int
-        -1 / +1: the estimate is on the search's lower / upper bound (the log asks for a
-        smaller / larger value); 0: inside.
-    nll_before, nll_after : float
-        Negative log-likelihood (ungated) at the start and at ``values``, both with the
-        standstill detector held at the tuned values (the rest epochs of the tuned file).
-    stats_before, stats_after : dict of str to InnovationStats
-        Innovation statistics per kind with the start and the tuned values (gated as
-        ``config``).
-    config : FuseConfig
-        The tuned configuration (its IMU model carries the tuned densities).
-    measurements : DataFrame
-        The measurements table (the tuned noise options act through ``config``).
-    before, after : FusionResult
-        The two runs the statistics come from.
-    n_evaluations : int
-        Filter runs spent on the likelihood.
-    """
-
-    params: tuple[str, ...]
-    initial: dict[str, float]
-    estimate: dict[str, float]
-    values: dict[str, float]
-    cr_sigma_log: dict[str, float]
-    robust_sigma_log: dict[str, float]
-    identifiable: dict[str, bool]
-    at_bound: dict[str, int]
-    nll_before: float
-    nll_after: float
-    stats_before: dict[str, InnovationStats]
-    stats_after: dict[str, InnovationStats]
-    config: FuseConfig
-    measurements: pd.DataFrame
-    before: FusionResult
-    after: FusionResult
-    n_evaluations: int
-
-    def moved(self, p: str, n_sigma: float = 3.0) -> bool:
-        """Whether an identified IMU term left its start by more than ``n_sigma`` robust
-        sigmas: the innovations ask for another value than the model file's."""
-        if p not in _IMU_PARAMS or not self.identifiable[p]:
-            return False
-        step = abs(math.log(self.values[p] / self.initial[p]))
-        return step > n_sigma * self.robust_sigma_log[p]
-
-    def notes(self) -> list[str]:
-        """What an identified value means when it moved far from the model file's."""
-        tuned_kinds = {_OPTION_KIND[p] for p in self.params if p in _OPTION_KIND}
-        if "gyro_arw" in self.params:
-            tuned_kinds.add("zaru")  # the zero-rate sigma is the gyro's white noise
-        untuned = [kind for kind, st in self.stats_before.items()
-                   if not st.consistent and kind not in tuned_kinds]  # fmt: skip
-        out = []
-        for p in self.params:
-            if not self.moved(p):
-                continue
-            ratio = self.values[p] / self.initial[p]
-            note = (
-                f"{p} moved x{ratio:.3g} from the start, beyond its interval: the interval is "
-                "the log's precision, not the sensor's truth. Either the start (the model "
-                "file) is wrong (compare with polins imu-model on a static record), or the "
-                "filter lacks an error source (vibration, an unfused aiding, mounting, scale "
-                "factors) or holds a sigma far from the log's, that this term now absorbs: the "
-                "tuned value is then an effective one for this vehicle"
-            )
-            if untuned:
-                note += (f"; the {', '.join(untuned)} updates are inconsistent and their sigmas "
-                         "were not tuned: tune them with it (polins tune --params auto)")  # fmt: skip
-            out.append(note)
-        return out
-
-    def fuse_options(self) -> dict[str, float]:
-        """The tuned measurement-noise values, as ``polins fuse --set`` / ``[filter]`` options."""
-        return {p: self.values[p] for p in self.params if p not in _IMU_PARAMS}
-
-    def tuned_model(self, options: Mapping[str, Any] | None = None, **fields: Any) -> ImuModel:
-        """The tuned file's model: the tuned IMU terms, and a ``filter_options`` table of
-        ``options`` (the other options the tuned filter ran with) and the tuned noise
-        options; ``fields`` replace others (``name``, ``description``). Every
-        configuration built with it runs the tuned filter (``polins fuse --imu``)."""
-        table = {**dict(self.config.imu.filter_options), **(options or {}),
-                 **self.fuse_options()}  # fmt: skip
-        return dataclasses.replace(self.config.imu, filter_options=tuple(table.items()), **fields)
-
-    def _identified_word(self, p: str) -> str:
-        """The report's identifiability column of ``p``."""
-        if not self.identifiable[p]:
-            return "no: " + self._not_identified(p)
-        return "yes, an effective value (note)" if self.moved(p) else "yes"
-
-    def _not_identified(self, p: str) -> str:
-        """Why a parameter is not identified, and the value it takes."""
-        if self.at_bound[p]:
-            side = "smaller" if self.at_bound[p] < 0 else "larger"
-            return f"on the search bound, the log asks for a {side} value"
-        return "kept at start"
-
-    @property
-    def unidentifiable(self) -> list[str]:
-        """The parameters the log cannot identify (kept at their start values)."""
-        return [p for p in self.params if not self.identifiable[p]]
-
-    def comment_lines(self) -> list[str]:
-        """The tuning as comment lines of a tuned IMU model file (``polins tune --out``)."""
-        lines = ["tuned by maximum likelihood of the filter's innovations (polins.tuning.tune):"]
-        for p in self.params:
-            state = (f"identified, x/÷ {math.exp(self.robust_sigma_log[p]):.3g}"
-                     if self.identifiable[p] else self._not_identified(p))  # fmt: skip
-            where = (
-                "" if p in _IMU_PARAMS else f"; [filter] option of the {_OPTION_KIND[p]} updates"
-            )
-            lines.append(f"  {p} = {self.values[p]:.6g} (start {self.initial[p]:.6g}; {state}"
-                         f"{where})")  # fmt: skip
-        lines += [f"  note: {n}" for n in self.notes()]
-        for kind, st in self.stats_after.items():
-            lines.append(f"  {kind}: mean NIS {st.nis_mean:.3g} in {st.nis_band[0]:.3g} .. "
-                         f"{st.nis_band[1]:.3g} ({st.verdict})")  # fmt: skip
-        return lines
-
-    def report(self) -> str:
-        """A few lines: per parameter start -> tuned (CR sigma), then NIS before/after."""
-        lines = ["parameter        start        tuned        x/÷ CR   robust  identifiable"]
-        for p in self.params:
-            cr, robust = (_factor(s[p]) for s in (self.cr_sigma_log, self.robust_sigma_log))
-            lines.append(
-                f"{p:<16} {self.initial[p]:<12.4g} {self.values[p]:<12.4g} {cr:<8} "
-                f"{robust:<7} {self._identified_word(p)}"
-            )
-        lines += [f"note: {n}" for n in self.notes()]
-        lines.append(f"negative log-likelihood {self.nll_before:.1f} -> {self.nll_after:.1f}")
-        for kind, after in self.stats_after.items():
-            b = self.stats_before.get(kind)
-            start = f"{b.nis_mean:.3g} ({b.verdict})" if b else "-"
-            lines.append(
-                f"{kind} NIS mean {start} -> {after.nis_mean:.3g} ({after.verdict}); "
-                f"band {after.nis_band[0]:.3g} .. {after.nis_band[1]:.3g} from "
-                f"{after.n_eff:.0f} independent of {after.n}; lag-1 autocorr "
-                f"{after.autocorr[0] if after.autocorr.size else math.nan:.3f} "
-                f"(white within ±{after.autocorr_band:.3f})"
-            )
-            if after.cause:
-                lines.append(f"  likely cause: {after.cause}")
-        return "\n".join(lines)
-
-
-def _factor(sigma_log: float) -> str:
-    """A log-space sigma as its factor ``x/÷ exp(sigma)``."""
-    return f"{math.exp(sigma_log):.3g}" if sigma_log < math.log(1e3) else "> 1000"
-
-
-def _option_start(config: FuseConfig, p: str) -> float:
-    """The start of a measurement-noise option: its value in use (a floor of 0 starts at
-    0.05 deg); an update kind that is off has nothing to tune."""
-    if p in ("nhc_std", "standstill_std", "odometer_std"):
-        sigma = {"nhc_std": config.nhc_sigma, "standstill_std": config.standstill_sigma,
-                 "odometer_std": config.odometer_sigma}[p]  # fmt: skip
-        if sigma is None:
-            raise UserInputError(
-                f"{p} is off in this configuration (the vehicle kind, the option or no "
-                f"odometry): the {_OPTION_KIND[p]} updates it would tune are not fused"
-            )
-        return float(sigma)
-    return float(getattr(config.noise, p)) or _FLOOR_START_DEG
-
-
-def _start_values(
-    config: FuseConfig, params: tuple[str, ...], initial: Mapping[str, float]
-) -> dict[str, float]:
-    """Start values: ``initial``, else the IMU model's or the configuration's (a floor of 0,
-    which the logarithmic search cannot start from, starts at 0.05 deg)."""
-    start: dict[str, float] = {}
-    for p in params:
-        value = initial.get(p)
-        if value is None and p in _IMU_PARAMS:
-            value = float(getattr(config.imu, p))
-        elif value is None:
-            value = _option_start(config, p)
-        if not (math.isfinite(value) and value > 0):
-            raise UserInputError(
-                f"the start value of {p} must be > 0 (the search runs over its logarithm), "
-                f"got {value}"
-            )
-        start[p] = float(value)
-    return start
 
 
 def _fisher_sigma(H: FloatArray) -> FloatArray:
@@ -502,7 +230,7 @@ def tune(
     """
     params = check_params(params)
     cfg = config or FuseConfig()
-    start = _start_values(cfg.resolve(odometry=odometry is not None), params, initial or {})
+    start = start_values(cfg.resolve(odometry=odometry is not None), params, initial or {})
     lik = _Likelihood(imu, measurements, cfg, rot_nb0, odometry, start)
 
     def nll(theta: FloatArray, names: tuple[str, ...], fixed: Mapping[str, float]) -> float:
@@ -649,15 +377,13 @@ class _Likelihood:
 
 
 __all__ = [
-    "PARAMETERS",
-    "TuneResult",
+    "DETECTOR_ROUNDS",
+    "N_SCORE_BLOCKS",
+    "REST_KINDS",
     "central_hessian",
-    "check_params",
-    "default_params",
     "negative_log_likelihood",
     "sandwich_sigma",
     "score_information",
     "tune",
     "update_terms",
-    "with_values",
 ]

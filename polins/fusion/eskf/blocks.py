@@ -248,8 +248,15 @@ class Layout:
         self._kernel_dst = np.concatenate(dst) if dst else np.zeros(0, dtype=int)
         self._own = tuple(b for b in self.blocks if callable(b.jacobian))
         self._offset = tuple(b for b in self._own if b.offset)
-        self._plain = self.n == 15 and not self._own and np.array_equal(self._kernel_dst,
-                                                                         self._kernel_src)  # fmt: skip
+        # the shared model's columns in place (the first k states): copied as one slice
+        k = self._kernel_src.size
+        same = np.array_equal(self._kernel_src, np.arange(k)) and np.array_equal(
+            self._kernel_dst, np.arange(k)
+        )
+        self._prefix = k if same else -1
+        self._plain = self.n == 15 and not self._own and same
+        self._own_cols = tuple((self.index[b.name], b.jacobian) for b in self._own)
+        self._offset_cols = tuple((self.index[b.name], b.name) for b in self._offset)
 
     def __getitem__(self, name: str) -> slice:
         return self.index[name]
@@ -262,6 +269,17 @@ class Layout:
             for row_name, block in b.columns(step).items():
                 F[:, self.index[row_name], col] = block
         return F
+
+    def correct(
+        self, gyro_b: ArrayLike, accel_b: ArrayLike, errors: Mapping[str, FloatArray]
+    ) -> tuple[FloatArray, FloatArray]:
+        """IMU samples corrected with the sensor-error estimates ``errors`` (the blocks'
+        ``correct`` in block order: ``(w - bg) / (1 + sg)``, ``(f - ba) / (1 + sa)``)."""
+        w, f = np.asarray(gyro_b, dtype=float), np.asarray(accel_b, dtype=float)
+        for b in self.sensor:
+            if b.correct is not None:
+                w, f = b.correct(w, f, errors[b.name])
+        return w, f
 
     def noise_density(self, model: ImuModel) -> FloatArray:
         """Diagonal of the continuous process-noise density ``Qc``, ``(n,)``."""
@@ -302,11 +320,11 @@ class Layout:
         blocks (angles wrapped)."""
         lin = item_model(item, mat_nb, vel_n, tilt_coupling, errors)
         H = self.jacobian(item, lin)
-        if not self._offset:
+        if not self._offset_cols:
             return Linearized(lin.residual, H, lin.R, lin.name)
         res = lin.residual.copy()
-        for b in self._offset:
-            res -= H[:, self.index[b.name]] @ errors[b.name]
+        for cols, name in self._offset_cols:
+            res -= H[:, cols] @ errors[name]
         return Linearized(wrap_residual(res, lin.name), H, lin.R, lin.name)
 
     def jacobian(self, item: MeasurementItem, lin: Linearized) -> FloatArray:
@@ -314,10 +332,22 @@ class Layout:
         if self._plain:  # the shared model's own layout
             return lin.H
         H = np.zeros((lin.H.shape[0], self.n))
-        H[:, self._kernel_dst] = lin.H[:, self._kernel_src]
-        for b in self._own:
-            H[:, self.index[b.name]] = b.jacobian(item, lin)  # type: ignore[misc,operator]
+        k = self._prefix
+        if k >= 0:
+            H[:, :k] = lin.H[:, :k]
+        else:
+            H[:, self._kernel_dst] = lin.H[:, self._kernel_src]
+        for cols, jacobian in self._own_cols:
+            H[:, cols] = jacobian(item, lin)  # type: ignore[misc,operator]
         return H
+
+
+def scale_divisors(errors: Mapping[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
+    """``1 / (1 + s)`` of the gyro and accelerometer scale-factor estimates in ``errors``
+    (ones without them)."""
+    if "sg" in errors:
+        return 1.0 / (1.0 + errors["sg"]), 1.0 / (1.0 + errors["sa"])
+    return np.ones(3), np.ones(3)
 
 
 def inject_nav(

@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from polins.frames import skew
 from polins.ins.earth import OMEGA_IE, normal_gravity_gradient, radii_of_curvature
-from polins.ins.strapdown import Mechanization, nav_rates_n
+from polins.ins.strapdown import Mechanization, nav_rates_n, rotation_vectors
 
 FloatArray = NDArray[np.float64]
 
@@ -47,6 +47,49 @@ class StepSums:
     mat_force: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))  # sum C diag(f) dt
     rate_sq: float = 0.0  # sum |omega_b|^2 dt [rad^2/s]
     start: tuple[FloatArray, float, float] = (np.zeros(3), 0.0, 0.0)  # vel, lat, alt
+
+    def add(
+        self,
+        start: tuple[FloatArray, float, float],
+        mat_h: FloatArray,
+        dv_force_n: FloatArray,
+        gyro_b: tuple[FloatArray, FloatArray],
+        accel_b: tuple[FloatArray, FloatArray],
+        dt: float,
+        *,
+        scale_factors: bool,
+        rate_noise: bool,
+    ) -> None:
+        """One IMU interval of ``dt`` [s]: its mid-interval attitude ``mat_h``, its
+        velocity increment ``dv_force_n`` [m/s] and the corrected samples at its ends
+        ``gyro_b`` [rad/s], ``accel_b`` [m/s^2]; ``start`` (velocity, latitude, height at
+        the interval's start) is kept for the step's first interval. ``scale_factors``:
+        the scale-factor sums; ``rate_noise``: the rotation-proportional noise's."""
+        (wc0, wc1), (fc0, fc1) = gyro_b, accel_b
+        if self.n == 0:
+            self.start = start
+        if scale_factors:
+            phi, _ = rotation_vectors(wc0, wc1, dt)
+            self.mat_omega += mat_h * phi
+            self.mat_force += mat_h * (0.5 * (fc0 + fc1) * dt)
+        self.n += 1
+        self.dt += dt
+        if rate_noise:
+            self.rate_sq += float(np.sum((0.5 * (wc0 + wc1)) ** 2)) * dt
+        self.mat += mat_h * dt
+        self.dv += dv_force_n
+
+    def nominal(
+        self, mech: Mechanization, divisors: tuple[FloatArray, FloatArray], scale_factors: bool
+    ) -> StepNominal:
+        """The :class:`StepNominal` of the step so far (one step)."""
+        vel, lat, alt = self.start
+        return step_nominal(
+            np.array([self.dt]), self.mat[None], self.dv[None], vel[None], np.array([lat]),
+            np.array([alt]), mech, divisors,
+            self.mat_omega[None] if scale_factors else None,
+            self.mat_force[None] if scale_factors else None, np.array([self.rate_sq]),
+        )  # fmt: skip
 
 
 @dataclass(eq=False)

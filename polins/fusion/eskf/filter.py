@@ -4,7 +4,8 @@
 geodetic position), the sensor-error estimates by block name and the error state ``x``
 with its covariance ``P`` (blocks of :mod:`polins.fusion.eskf.blocks`). The reported
 estimate is always ``nominal (+) x``. The prediction is ``x = Phi x``, ``P = Phi P Phi^T + Q``
-(filterpy's ``predict``), the update filterpy's (Joseph form: :func:`kalman_update`); innovations are gated with a chi-square test
+(filterpy's ``predict``), the update filterpy's (Joseph form:
+:func:`~polins.fusion.eskf.update.kalman_update`); innovations are gated with a chi-square test
 (:func:`~polins.fusion.items.gate_limit`, each rejection logged with its reason) and the
 normalised innovation squared (NIS) of every update is recorded.
 
@@ -42,7 +43,6 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
-from filterpy.kalman import update as kf_update
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
@@ -58,9 +58,10 @@ from polins.fusion.config import (
 )
 from polins.fusion.eskf.acquisition import Acquisition, hold_heading
 from polins.fusion.eskf.alignment import level
-from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav
-from polins.fusion.eskf.dynamics import StepNominal, StepSums, discretize, step_nominal
-from polins.fusion.eskf.propagate import advance
+from polins.fusion.eskf.blocks import Block, Layout, error_blocks, inject_nav, scale_divisors
+from polins.fusion.eskf.dynamics import StepNominal, StepSums, discretize
+from polins.fusion.eskf.propagate import advance, checked_run
+from polins.fusion.eskf.update import innovation, kalman_update
 from polins.fusion.faults import FusionEvent, skip_in_gaps
 from polins.fusion.items import (
     HEADING_KINDS,
@@ -73,40 +74,10 @@ from polins.fusion.measurement import Linearized
 from polins.fusion.sky_states import ModelPart
 from polins.fusion.vehicle import VehicleAiding, yaw_consider_update
 from polins.ins.state import NavState
-from polins.ins.strapdown import Mechanization, rotation_vectors, strapdown_increment
+from polins.ins.strapdown import Mechanization, strapdown_increment
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger("polins.fusion")
-
-
-def _innovation(
-    lin: Linearized, x: FloatArray, P: FloatArray
-) -> tuple[float, tuple[float, ...], tuple[float, ...]]:
-    """The NIS, the innovation and its covariance (row-major) for the update log."""
-    H = lin.H
-    if lin.residual.shape[0] == 1:  # scalar innovation: dot products
-        h = H[0]
-        y1 = float(lin.residual[0]) - float(h @ x)
-        s1 = float(h @ (P @ h)) + float(lin.R[0, 0])
-        return y1 * y1 / s1, (y1,), (s1,)
-    y = lin.residual - H @ x
-    Sm = H @ (P @ H.T) + lin.R
-    nis = float(y @ np.linalg.solve(Sm, y))
-    return nis, tuple(y.tolist()), tuple(Sm.ravel().tolist())
-
-
-def kalman_update(
-    kf: KalmanFilter, x: FloatArray, P: FloatArray, lin: Linearized
-) -> tuple[FloatArray, FloatArray]:
-    """The Kalman update of ``(x, P)`` by ``lin`` in filterpy's Joseph form: a scalar
-    measurement through ``KalmanFilter.update_sequential`` (the gain without a matrix
-    inverse; ``kf`` of the state's size lends its arrays), a vector one through
-    ``filterpy.kalman.update``. Both give the same numbers for a scalar."""
-    if lin.residual.shape[0] != 1:
-        return kf_update(x, P, lin.residual, lin.R, lin.H)
-    kf.x, kf.P = x[:, None].copy(), P  # filterpy's column state; updated in place
-    kf.update_sequential(0, lin.residual, lin.R, lin.H)
-    return kf.x[:, 0], kf.P
 
 
 class ESKF:
@@ -293,20 +264,8 @@ class ESKF:
         gyro_b, accel_b : (N, 3) array_like
             Raw body rates [rad/s] and specific forces [m/s^2].
         """
-        t_a = np.asarray(t, dtype=float)
-        W = np.asarray(gyro_b, dtype=float)
-        A = np.asarray(accel_b, dtype=float)
-        N = t_a.shape[0] if t_a.ndim == 1 else -1
-        if N < 0 or W.shape != (N, 3) or A.shape != (N, 3):
-            raise ValueError(
-                f"propagate_many needs t (N,), gyro_b and accel_b (N, 3); got shapes "
-                f"{t_a.shape}, {W.shape}, {A.shape}"
-            )
-        if not (np.isfinite(t_a).all() and np.isfinite(W).all() and np.isfinite(A).all()):
-            raise ValueError("gyro_b and accel_b must be finite 3-vectors [rad/s], [m/s^2]")
-        if N > 1 and not np.all(np.diff(t_a) > 0):
-            k = int(np.flatnonzero(np.diff(t_a) <= 0)[0])
-            raise ValueError(f"IMU time {t_a[k + 1]} is not after the previous sample {t_a[k]}")
+        t_a, W, A = checked_run(t, gyro_b, accel_b)
+        N = t_a.shape[0]
         n_before = len(self.records)
         k = 0
         while k < N and not (self.ready and self.started):  # levelling, first sample
@@ -416,22 +375,6 @@ class ESKF:
         self.t, self.mat_nb, self.vel_n = float(t), mat_nb, vel_n
         self.lat, self.lon, self.alt_m = float(lat), float(lon), float(alt_m)
 
-    def corrected(self, gyro_b: ArrayLike, accel_b: ArrayLike) -> tuple[FloatArray, FloatArray]:
-        """IMU samples corrected with the sensor-error estimates (the blocks' ``correct``:
-        ``(w - bg) / (1 + sg)``, ``(f - ba) / (1 + sa)``)."""
-        w, f = np.asarray(gyro_b, dtype=float), np.asarray(accel_b, dtype=float)
-        for b in self.layout.sensor:
-            if b.correct is not None:
-                w, f = b.correct(w, f, self.errors[b.name])
-        return w, f
-
-    def divisors(self) -> tuple[FloatArray, FloatArray]:
-        """``1 / (1 + s)`` of the gyro and accelerometer scale-factor estimates."""
-        e = self.errors
-        if "sg" in e:
-            return 1.0 / (1.0 + e["sg"]), 1.0 / (1.0 + e["sa"])
-        return np.ones(3), np.ones(3)
-
     def step_matrices(self, step: StepNominal) -> tuple[FloatArray, FloatArray]:
         """``(Phi, Q)`` ``(n, n)`` of one covariance step."""
         qc = self.layout.step_noise(self.qc, self.model, step)
@@ -516,7 +459,7 @@ class ESKF:
 
     def _gate_and_update(self, item: MeasurementItem, lin: Linearized) -> UpdateRecord:
         """Chi-square gate on the NIS; the Kalman update if it passes, logged either way."""
-        nis, nu, S = _innovation(lin, self.x, self.P)
+        nis, nu, S = innovation(lin, self.x, self.P)
         dim = lin.residual.shape[0]
         limit = gate_limit(self.config.gate_probability, dim)
         if nis > limit:
@@ -644,38 +587,22 @@ class ESKF:
     def _step(self, t1: float, w1: FloatArray, f1: FloatArray) -> None:
         """Propagate the nominal state to ``t1``; accumulate the covariance step."""
         t0, w0, f0 = self._cur  # type: ignore[misc]
-        (wc0, wc1), (fc0, fc1) = self.corrected(np.array([w0, w1]), np.array([f0, f1]))
+        (wc0, wc1), (fc0, fc1) = self.layout.correct(
+            np.array([w0, w1]), np.array([f0, f1]), self.errors
+        )
         dt = t1 - t0
         mat1, v1, lat1, lon1, h1, mat_h, dv_force = strapdown_increment(
             self.mat_nb, self.vel_n, self.lat, self.lon, self.alt_m, wc0, wc1, fc0, fc1, dt,
             self.mech,
         )  # fmt: skip
-        s = self._sums
-        if s.n == 0:
-            s.start = (self.vel_n, self.lat, self.alt_m)
-        if "sg" in self.errors:
-            phi, _ = rotation_vectors(wc0, wc1, dt)
-            s.mat_omega += mat_h * phi
-            s.mat_force += mat_h * (0.5 * (fc0 + fc1) * dt)
-        s.n += 1
-        s.dt += dt
-        if self.model.gyro_misalignment:  # the rotation-proportional attitude noise
-            s.rate_sq += float(np.sum((0.5 * (wc0 + wc1)) ** 2)) * dt
-        s.mat += mat_h * dt
-        s.dv += dv_force
+        self._sums.add((self.vel_n, self.lat, self.alt_m), mat_h, dv_force, (wc0, wc1),
+                       (fc0, fc1), dt, scale_factors="sg" in self.errors,
+                       rate_noise=bool(self.model.gyro_misalignment))  # fmt: skip
         self.set_nominal(t1, mat1, v1, lat1, lon1, h1)
         self._cur = (t1, w1, f1)
-        if s.n >= self.cov_every:
+        if self._sums.n >= self.cov_every:
             self.flush()
 
     def _step_nominal(self) -> StepNominal:
         """The :class:`StepNominal` of the step in progress."""
-        s = self._sums
-        vel, lat, alt = s.start
-        sf = "sg" in self.errors
-        return step_nominal(
-            np.array([s.dt]), s.mat[None], s.dv[None], vel[None], np.array([lat]),
-            np.array([alt]), self.mech, self.divisors(),
-            s.mat_omega[None] if sf else None, s.mat_force[None] if sf else None,
-            np.array([s.rate_sq]),
-        )  # fmt: skip
+        return self._sums.nominal(self.mech, scale_divisors(self.errors), "sg" in self.errors)

@@ -26,11 +26,11 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.fusion.config import TIME_TOL_S, FuseConfig
-from polins.fusion.eskf.blocks import Layout, inject_nav
+from polins.fusion.eskf.blocks import Layout, inject_nav, scale_divisors
 from polins.fusion.eskf.dynamics import StepNominal, discretize, step_nominal
 from polins.fusion.items import MeasurementItem, UpdateRecord
 from polins.fusion.vehicle import VehicleAiding
@@ -44,6 +44,8 @@ IntArray = NDArray[np.int_]
 MAX_SEGMENT = 4096  # longest run of samples propagated at once (memory bound)
 MIN_SEGMENT = 256  # shortest planned run (after a reset by the attitude-error threshold)
 _CHUNK = 64  # covariance steps discretised at once
+_NODE_PARTS = ("x_pre", "x_post", "var_pre", "var_post", "att_pre", "att_post", "dx", "linked",
+               "P_pre", "P_post", "Phi")  # fmt: skip
 
 
 class Filter(Protocol):
@@ -79,15 +81,33 @@ class Filter(Protocol):
     @property
     def started(self) -> bool: ...
     def nominal(self) -> tuple[float, FloatArray, FloatArray, float, float, float]: ...
-    def corrected(
-        self, gyro_b: FloatArray, accel_b: FloatArray
-    ) -> tuple[FloatArray, FloatArray]: ...
-    def divisors(self) -> tuple[FloatArray, FloatArray]: ...
     def predict(self, Phi: FloatArray, Q: FloatArray) -> None: ...
     def apply(self, item: MeasurementItem) -> UpdateRecord | None: ...
     def reject(self, item: MeasurementItem, reason: str) -> UpdateRecord: ...
     def take_items(self, t_end: float) -> list[MeasurementItem]: ...
     def finish_run(self, t: float, gyro_b: FloatArray, accel_b: FloatArray, count: int) -> None: ...
+
+
+def checked_run(
+    t: ArrayLike, gyro_b: ArrayLike, accel_b: ArrayLike
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A run of IMU samples as arrays ``(N,)`` [s], ``(N, 3)`` [rad/s], ``(N, 3)`` [m/s^2];
+    ``ValueError`` (one line) for other shapes, non-finite values or times not increasing."""
+    t_a = np.asarray(t, dtype=float)
+    W = np.asarray(gyro_b, dtype=float)
+    A = np.asarray(accel_b, dtype=float)
+    N = t_a.shape[0] if t_a.ndim == 1 else -1
+    if N < 0 or W.shape != (N, 3) or A.shape != (N, 3):
+        raise ValueError(
+            f"propagate_many needs t (N,), gyro_b and accel_b (N, 3); got shapes "
+            f"{t_a.shape}, {W.shape}, {A.shape}"
+        )
+    if not (np.isfinite(t_a).all() and np.isfinite(W).all() and np.isfinite(A).all()):
+        raise ValueError("gyro_b and accel_b must be finite 3-vectors [rad/s], [m/s^2]")
+    if N > 1 and not np.all(np.diff(t_a) > 0):
+        k = int(np.flatnonzero(np.diff(t_a) <= 0)[0])
+        raise ValueError(f"IMU time {t_a[k + 1]} is not after the previous sample {t_a[k]}")
+    return t_a, W, A
 
 
 def load_kernels() -> None:
@@ -142,27 +162,49 @@ class Rows:
 
 
 class _Log:
-    """Collects nodes and rows during :func:`advance`."""
+    """Collects nodes and rows during :func:`advance`.
+
+    A node keeps references to the filter's arrays (each step's prediction makes new
+    ones); at the end of each segment (:meth:`close_segment`) the segment's covariances
+    are reduced at once to their diagonals and attitude blocks, unless ``full``: a node
+    then holds ~1 KB instead of ~8 KB (22 states), an hour's 36 000 nodes 31 MB.
+    """
 
     def __init__(self, filt: Filter, full: bool) -> None:
         self.full = full
-        # per node: x_pre, x_post, P_pre, P_post, dx, linked, Phi; without ``full`` the
-        # covariances as (diagonal, attitude block) only: a node per covariance step
-        # holds ~1 KB instead of ~8 KB (22 states), an hour's 36 000 nodes 31 MB
-        self.nodes: list[tuple[Any, ...]] = []
+        self.n = filt.n
+        self.open: list[tuple[Any, ...]] = []  # the segment's nodes, not yet reduced
+        self.count = 0  # nodes so far
+        self.parts: dict[str, list[NDArray[Any]]] = {k: [] for k in _NODE_PARTS}
         self.rows: dict[str, list[NDArray[Any]]] = {k: [] for k in Rows.__dataclass_fields__}
         self.row_errors: dict[str, list[FloatArray]] = {k: [] for k in filt.errors}
-        self.node(filt, filt.x, filt.P, np.eye(filt.n), False)
+        self.node(filt, filt.x, filt.P, None, False)
 
-    def node(self, filt: Filter, x_pre: FloatArray, P_pre: FloatArray, Phi: FloatArray,
-             linked: bool) -> None:  # fmt: skip
-        kept: tuple[Any, Any] = (P_pre, filt.P)
-        if not self.full:  # (diagonal, attitude block)
-            kept = ((np.diagonal(P_pre).copy(), P_pre[0:3, 0:3].copy()),
-                    (np.diagonal(filt.P).copy(), filt.P[0:3, 0:3].copy()))  # fmt: skip
-        self.nodes.append((x_pre, filt.x, *kept, filt.correction, linked,
-                           Phi if self.full else None))  # fmt: skip
-        filt.correction = np.zeros(filt.n)
+    def node(self, filt: Filter, x_pre: FloatArray, P_pre: FloatArray,
+             Phi: FloatArray | None, linked: bool) -> None:  # fmt: skip
+        """The node at the filter's time (after its updates): the prior ``x_pre, P_pre``."""
+        self.open.append((x_pre, filt.x, P_pre, filt.P, filt.correction, linked, Phi))
+        self.count += 1
+        filt.correction = np.zeros(self.n)
+
+    def close_segment(self) -> None:
+        """Reduce the open nodes (class docstring)."""
+        if not self.open:
+            return
+        x_pre, x_post, P_pre, P_post, dx, linked, Phi = zip(*self.open, strict=True)
+        self.open = []
+        Pa, Pb = np.stack(P_pre), np.stack(P_post)
+        parts = {"x_pre": np.stack(x_pre), "x_post": np.stack(x_post), "dx": np.stack(dx),
+                 "linked": np.array(linked, dtype=bool),
+                 "var_pre": np.diagonal(Pa, axis1=1, axis2=2).copy(),
+                 "var_post": np.diagonal(Pb, axis1=1, axis2=2).copy(),
+                 "att_pre": Pa[:, 0:3, 0:3].copy(), "att_post": Pb[:, 0:3, 0:3].copy()}  # fmt: skip
+        if self.full:
+            eye = np.eye(self.n)
+            parts.update(P_pre=Pa, P_post=Pb,
+                         Phi=np.stack([eye if p is None else p for p in Phi]))  # fmt: skip
+        for key, value in parts.items():
+            self.parts[key].append(value)
 
     def add_rows(self, t: FloatArray, nominal: tuple[FloatArray, ...], errors: dict[str, FloatArray],
                  node: IntArray, w: FloatArray, aligned: NDArray[np.bool_]) -> None:  # fmt: skip
@@ -177,20 +219,8 @@ class _Log:
             self.row_errors[k].append(np.broadcast_to(v, (t.shape[0], v.shape[0])))
 
     def result(self) -> tuple[Nodes, Rows]:
-        x_pre, x_post, P_pre, P_post, dx, linked, Phi = zip(*self.nodes, strict=True)
-        if self.full:
-            Pa, Pb = np.stack(P_pre), np.stack(P_post)
-            var_a, var_b = np.diagonal(Pa, axis1=1, axis2=2), np.diagonal(Pb, axis1=1, axis2=2)
-            att_a, att_b = Pa[:, 0:3, 0:3], Pb[:, 0:3, 0:3]
-        else:
-            var_a, var_b = np.stack([p[0] for p in P_pre]), np.stack([p[0] for p in P_post])
-            att_a, att_b = np.stack([p[1] for p in P_pre]), np.stack([p[1] for p in P_post])
-        nodes = Nodes(
-            x_pre=np.stack(x_pre), x_post=np.stack(x_post), var_pre=var_a, var_post=var_b,
-            att_pre=att_a, att_post=att_b, dx=np.stack(dx), linked=np.array(linked),
-            P_pre=Pa if self.full else None, P_post=Pb if self.full else None,
-            Phi=np.stack(Phi) if self.full else None,
-        )  # fmt: skip
+        self.close_segment()
+        nodes = Nodes(**{k: np.concatenate(v) for k, v in self.parts.items() if v})
         rows = {k: np.concatenate(v) for k, v in self.rows.items() if k != "errors"}
         errors = {k: np.concatenate(v) for k, v in self.row_errors.items()}
         return nodes, Rows(errors=errors, **rows)
@@ -309,7 +339,7 @@ def advance(
         nominal = filt.nominal()
         rec.add_rows(
             np.array([nominal[0]]), tuple(np.asarray(v)[None] for v in nominal[1:]),
-            filt.errors, np.array([len(rec.nodes) - 1]), np.zeros(1),
+            filt.errors, np.array([rec.count - 1]), np.zeros(1),
             np.array([filt.yaw_aligned]),
         )  # fmt: skip
     return rec.result()
@@ -341,7 +371,7 @@ def _segment(
 ) -> int:
     """Steps of one segment from merged sample ``s``; returns where the next one starts."""
     e = int(ends[-1])
-    wc, fc = filt.corrected(W[s : e + 1], A[s : e + 1])
+    wc, fc = filt.layout.correct(W[s : e + 1], A[s : e + 1], filt.errors)
     t0, mat0, vel0, lat0, lon0, alt0 = filt.nominal()
     start = NavState(t0, Rotation.from_matrix(mat0, assume_valid=True), vel0, lat0, lon0, alt0)
     track = strapdown(start, T[s : e + 1], wc, fc, filt.mech)
@@ -364,13 +394,13 @@ def _segment(
     step = step_nominal(
         sums[:, 0], sums[:, 1:10].reshape(S, 3, 3), sums[:, 10:13], track.vel_n[a],
         track.lat[a], track.alt_m[a],
-        filt.mech, filt.divisors(),
+        filt.mech, scale_divisors(filt.errors),
         sums[:, 14:23].reshape(S, 3, 3) if sf else None,
         sums[:, 23:32].reshape(S, 3, 3) if sf else None,
         sums[:, 13],
     )  # fmt: skip
     errors = {k: v.copy() for k, v in filt.errors.items()}
-    n_nodes = len(rec.nodes) if rec is not None else 0
+    n_nodes = rec.count if rec is not None else 0
     resets, done = filt.n_resets, S
     step_aligned = []
     t_l, lat_l, lon_l, alt_l = (v.tolist() for v in (T[s : e + 1], track.lat, track.lon,
@@ -388,11 +418,14 @@ def _segment(
         for it in epochs.get(s + i, ()):
             filt.apply(it)
         if rec is not None:
-            rec.node(filt, x_pre, P_pre, Phi[j % _CHUNK], epoch == filt.yaw_epoch)
+            rec.node(
+                filt, x_pre, P_pre, Phi[j % _CHUNK] if rec.full else None, epoch == filt.yaw_epoch
+            )
         if filt.n_resets != resets:
             done = j + 1
             break
     if rec is not None:
+        rec.close_segment()
         stop = s + int(b[done - 1])
         p = np.flatnonzero(out[s:stop]) + s
         if p.size:

@@ -6,7 +6,8 @@ the ESKF (``att, vel, pos, bg, ba``) from the same inputs and
 :class:`~polins.fusion.config.FuseConfig`, as a nonlinear least-squares problem over
 keyframe states, and returns the same solution table
 (:func:`polins.ins.state.solution_table`). Modules: :mod:`~polins.fusion.graph.factors`,
-:mod:`~polins.fusion.graph.problem`, :mod:`~polins.fusion.graph.solvers`,
+:mod:`~polins.fusion.graph.problem`, :mod:`~polins.fusion.graph.solvers` (batch),
+:mod:`~polins.fusion.graph.incremental`, :mod:`~polins.fusion.graph.batched`,
 :mod:`~polins.fusion.graph.start`, :mod:`~polins.fusion.graph.output`.
 
 Graph
@@ -67,7 +68,7 @@ a constant), a prior with its turn-on sigma, a random-walk ``BetweenFactor`` bet
 keyframes, and a ``CustomFactor`` wherever ``CombinedImuFactor`` or a measurement factor
 lacks it (an IMU error such as a scale factor: a factor on ``X, V, B`` and the block that
 corrects the preintegrated increments to first order in the block, as GTSAM does for the
-bias); :class:`~polins.fusion.graph.problem.Estimates` gets its array and its slice of
+bias); :class:`~polins.fusion.graph.estimates.Estimates` gets its array and its slice of
 the covariance, and :func:`~polins.fusion.graph.output.nav_state` its entry in
 ``errors`` and ``sigma``. The measurement-side blocks (``so``, ``site_rot_n``,
 ``sun_azimuth_n`` / ``sun_azimuth_rate``, ``heading_bias``) are
@@ -128,6 +129,7 @@ from polins.fusion.graph.factors import (
     zero_velocity_factor,
 )
 from polins.fusion.graph.imu import ImuSegments, imu_segments
+from polins.fusion.graph.incremental import solve_incremental
 from polins.fusion.graph.output import interpolate, keyframe_output
 from polins.fusion.graph.problem import Problem, keyframe_times
 from polins.fusion.graph.solvers import (
@@ -135,7 +137,6 @@ from polins.fusion.graph.solvers import (
     marginal_covariance_qr,
     marginal_covariances,
     solve_batch,
-    solve_incremental,
 )
 from polins.fusion.graph.start import filter_values
 from polins.fusion.inputs import Prepared, output_mask

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from polins.fusion.graph.batched import NonHolonomicBatch, YawBatch
 from polins.fusion.measurement import (
     ATT,
     BA,
@@ -160,6 +161,7 @@ def yaw_factor(
     *,
     sun_n: ArrayLike | None = None,
     rot_nb_prior: Rotation | ArrayLike | None = None,
+    batch: YawBatch | None = None,
 ) -> gtsam.CustomFactor:
     """Yaw factor on ``X(k)`` with the ESKF's model (:func:`~polins.fusion.measurement.yaw_kernel`).
 
@@ -169,6 +171,8 @@ def yaw_factor(
     ``h(x)`` is the yaw ``polins.measure`` computes with that prior from the sun seen at
     attitude ``x``: it depends on the tilt of ``x``. A graph re-linearizes away from the
     prior, so the tilt coupling needs the prior (the ESKF may default it to its own state).
+    ``batch``: evaluated with the other yaw factors of the same kind (with or without the
+    tilt coupling; :mod:`polins.fusion.graph.batched`).
     """
     if not (np.isfinite(yaw) and np.isfinite(yaw_std) and yaw_std > 0):
         raise ValueError(f"yaw and yaw_std must be finite, yaw_std > 0; got {yaw}, {yaw_std}")
@@ -180,8 +184,17 @@ def yaw_factor(
         raise ValueError("the tilt-coupled yaw factor needs both sun_n and rot_nb_prior")
     prior = None if rot_nb_prior is None else as_mat_nb(rot_nb_prior)
     z = float(yaw)
+    slot = -1
+    if batch is not None:
+        if batch.tilt != (sun is not None):
+            raise ValueError("a yaw factor's batch must match its tilt coupling")
+        slot = batch.add([key], z) if sun is None else batch.add([key], z, sun, prior)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
+        if batch is not None:
+            hit = batch.lookup(slot, values, jacobians)
+            if hit is not None:
+                return hit
         mat_nb = values.atPose3(this.keys()[0]).rotation().matrix()
         lin = yaw_kernel(mat_nb, z, var, sun, prior)
         if jacobians is not None:
@@ -239,6 +252,7 @@ def non_holonomic_factor(
     std: float,
     mat_vb: FloatArray | None = None,
     lever_vel_b: FloatArray | None = None,
+    batch: NonHolonomicBatch | None = None,
 ) -> gtsam.CustomFactor:
     """Non-holonomic factor: zero lateral and vertical velocity of the vehicle's reference
     point in the vehicle frame [m/s] (``CustomFactor``; ``mat_vb`` the IMU mounting,
@@ -246,11 +260,20 @@ def non_holonomic_factor(
 
     Residual and Jacobian of :func:`polins.fusion.measurement.non_holonomic`; the attitude
     columns are mapped to GTSAM's body-right tangent (:func:`body_jacobian`), the velocity
-    columns are used as they are (``Vector3`` tangent = ENU velocity change).
+    columns are used as they are (``Vector3`` tangent = ENU velocity change). ``batch``:
+    evaluated with the other non-holonomic factors (:mod:`polins.fusion.graph.batched`).
     """
     var = np.full(2, float(std) ** 2)
+    slot = -1
+    if batch is not None:
+        slot = batch.add([pose_key, vel_key], np.eye(3) if mat_vb is None else mat_vb,
+                         np.zeros(3) if lever_vel_b is None else lever_vel_b)  # fmt: skip
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
+        if batch is not None:
+            hit = batch.lookup(slot, values, jacobians)
+            if hit is not None:
+                return hit
         pkey, vkey = this.keys()
         mat_nb = values.atPose3(pkey).rotation().matrix()
         lin = non_holonomic_kernel(mat_nb, values.atVector(vkey), var, mat_vb, lever_vel_b)

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from polins.frames import skew
+from polins.fusion.graph.batched import ScaleImuBatch
 
 FloatArray = NDArray[np.float64]
 
@@ -161,7 +162,11 @@ COLUMNS = ((0, 6), (6, 9), (9, 15), (15, 18), (18, 24), (24, 30))
 
 
 def scale_factor_imu_factor(
-    imu_factor: gtsam.CombinedImuFactor, jac: FloatArray, sg_key: int, sa_key: int
+    imu_factor: gtsam.CombinedImuFactor,
+    jac: FloatArray,
+    sg_key: int,
+    sa_key: int,
+    batch: ScaleImuBatch | None = None,
 ) -> gtsam.CustomFactor:
     """A ``CombinedImuFactor`` that also depends on the scale factors ``sg, sa`` (keys
     ``sg_key``, ``sa_key``, ``Vector3``).
@@ -173,7 +178,8 @@ def scale_factor_imu_factor(
     Forster's form; position and velocity in the frame of keyframe ``i``), exact at a
     zero residual; the 6 bias rows do not depend on ``s``. Jacobians: the wrapped
     factor's (via ``linearize``) and ``W G J_s`` for ``sg, sa``. First order in ``s``:
-    the neglected terms are ``O(s^2)`` and ``O(s r)`` (``r`` the residual).
+    the neglected terms are ``O(s^2)`` and ``O(s r)`` (``r`` the residual). ``batch``:
+    evaluated with the other IMU factors of the graph (:mod:`polins.fusion.graph.batched`).
     """
     keys = [*imu_factor.keys(), sg_key, sa_key]
     model: Any = imu_factor.noiseModel()  # a Gaussian: the preintegration covariance
@@ -182,8 +188,13 @@ def scale_factor_imu_factor(
     h_rot = sqrt_info[:, 0:3] @ jac[0:3]  # the rotation rows: G = I
     w_pv = sqrt_info[:, 3:9]
     jac_pv = jac[3:9].reshape(2, 3, 6)
+    slot = -1 if batch is None else batch.add(keys, imu_factor, h_rot, w_pv, jac_pv)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
+        if batch is not None:
+            hit = batch.lookup(slot, values, jacobians)
+            if hit is not None:
+                return hit
         mat_i = values.atPose3(keys[0]).rotation().matrix()
         mat_j = values.atPose3(keys[2]).rotation().matrix()
         mat_ji = mat_j.T @ mat_i

@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from polins.fusion.graph.problem import Estimates, Problem
+from polins.fusion.graph.estimates import Estimates
+from polins.fusion.graph.problem import Problem
 from polins.fusion.measurement import ATT, BA, BG, N_ERROR, POS, VEL
 from polins.ins.state import NavState
 

@@ -2,8 +2,8 @@
 
 :class:`Problem` holds what the solvers (:mod:`polins.fusion.graph.solvers`) need: the
 keyframe times, the preintegration parameters, the measurement factors per keyframe, the
-priors of the first state; :class:`Estimates` holds the keyframe results in polins
-conventions (navigation-frame errors, the ESKF's block order).
+priors of the first state (the keyframe results:
+:class:`~polins.fusion.graph.estimates.Estimates`).
 """
 
 from __future__ import annotations
@@ -28,13 +28,17 @@ from polins.fusion.config import (
     FuseConfig,
 )
 from polins.fusion.faults import FusionEvent
+from polins.fusion.graph.batched import (
+    FactorBatch,
+    NonHolonomicBatch,
+    ScaleImuBatch,
+    YawBatch,
+)
 from polins.fusion.graph.factors import (
-    bias_from_polins,
     gyro_noise_density,
     levelling_factor,
     non_holonomic_factor,
     pose_cov_body_from_nav,
-    pose_cov_nav_from_body,
     preintegration_params,
     sun_factor,
     yaw_factor,
@@ -51,7 +55,6 @@ from polins.fusion.graph.imu import (
 )
 from polins.fusion.graph.states import GraphStates
 from polins.fusion.items import HEADING_KINDS, MeasurementItem, UpdateRecord
-from polins.fusion.measurement import N_ERROR
 from polins.fusion.priors import EARTH_RATE_TURN_S
 from polins.fusion.vehicle import vehicle_items
 from polins.ins.alignment import level_from_accel
@@ -65,10 +68,6 @@ from polins.ins.earth import (
 from polins.site import Site
 
 FloatArray = NDArray[np.float64]
-
-# The ESKF's error order (att, vel, pos, bg, ba) from GTSAM's blocks (pose_n: att, pos;
-# velocity; bias: ba, bg), an index into block_diag(pose, velocity, bias).
-ESKF_FROM_GTSAM = np.r_[0:3, 6:9, 3:6, 12:15, 9:12]
 
 HELD = "held for the yaw acquisition"  # the ESKF's wording (polins.fusion.eskf.acquisition)
 
@@ -160,7 +159,7 @@ class Problem:
         n_given = len(zupts)
         zupts += [it for it in ground if it.kind == "zupt"]
         nhcs = [it for it in ground if it.kind == "nhc"]
-        zarus = [it for it in ground if it.kind == "zaru"]
+        zarus = [it for it in ground if it.kind in ("zaru", "level")]  # at rest, levelling
         # Times within TIME_TOL_S of an IMU sample are moved onto it (as the ESKF does).
         t_aid = snap_times([it.t for it in aiding], t_imu, TIME_TOL_S).tolist()
         t_zupt = snap_times([it.t for it in zupts], t_imu, TIME_TOL_S).tolist()
@@ -180,6 +179,8 @@ class Problem:
         self.scale_jac = (increment_jacobians(seg.gyro, seg.accel, seg.dt, seg.bounds)
                           if config.use_scale_factors else None)  # fmt: skip
         self.states = GraphStates(config, self.t_key, aiding)  # odometer scale, sky variables
+        # the Python factors evaluated by type in the batch solver (graph/batched.py)
+        self.nhc_batch, self.yaw_batches = NonHolonomicBatch(), (YawBatch(False), YawBatch(True))
         aiding = [self.states.prepare(it) for it in aiding]
 
         self.meas: list[MeasFactor] = []
@@ -227,7 +228,8 @@ class Problem:
             if k is not None and self.states.sees(it):  # the mounting variable
                 aux[k].append(self.states.factor(it, k, X(k), V(k), False))
             elif k is not None:
-                aux[k].append(non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b))
+                aux[k].append(non_holonomic_factor(X(k), V(k), it.std, it.mat_vb, it.lever_vel_b,
+                                                   self.nhc_batch))  # fmt: skip
         return aux
 
     def _place_zupts(self, zupts: list[MeasurementItem], t_zupt: list[float], n_given: int) -> None:
@@ -250,7 +252,11 @@ class Problem:
             zarus = [it for it in zarus if it.t >= first]
         for it in zarus:
             key = self.key_of(it.t)
-            if key is not None and it.gyro_b is not None:
+            if key is not None and it.force_b is not None:  # levelling (docs/filter.md §12)
+                self.detected.add(len(self.meas))
+                factor = levelling_factor(X(key), B(key), it.force_b, it.std)
+                self.meas.append(MeasFactor(key, it, factor))
+            elif key is not None and it.gyro_b is not None:
                 self.detected.add(len(self.meas))
                 factor = zero_rate_factor(X(key), B(key), it.gyro_b, it.std, it.rate_n)
                 self.meas.append(MeasFactor(key, it, factor))
@@ -319,8 +325,9 @@ class Problem:
         if it.kind == "sun":
             return sun_factor(key, it.sun_n, it.sun_b, it.std)  # type: ignore[arg-type]
         if not self.tilt_coupling:
-            return yaw_factor(key, it.yaw, it.std)
-        return yaw_factor(key, it.yaw, it.std, sun_n=it.sun_n, rot_nb_prior=it.mat_nb_prior)
+            return yaw_factor(key, it.yaw, it.std, batch=self.yaw_batches[0])
+        return yaw_factor(key, it.yaw, it.std, sun_n=it.sun_n, rot_nb_prior=it.mat_nb_prior,
+                          batch=self.yaw_batches[1])  # fmt: skip
 
     def _first_state(
         self, t_imu: FloatArray, accel: FloatArray, rot_nb0: Rotation | None
@@ -499,15 +506,24 @@ class Problem:
         return pim
 
     def imu_factor(
-        self, k: int, pim: gtsam.PreintegratedCombinedMeasurements, scale: bool = True
+        self,
+        k: int,
+        pim: gtsam.PreintegratedCombinedMeasurements,
+        scale: bool = True,
+        batch: ScaleImuBatch | None = None,
     ) -> Any:
         """``CombinedImuFactor`` between keyframes ``k`` and ``k + 1``; with scale factors
         (and ``scale``) wrapped to depend on them
-        (:func:`~polins.fusion.graph.imu.scale_factor_imu_factor`)."""
+        (:func:`~polins.fusion.graph.imu.scale_factor_imu_factor`, evaluated in ``batch``)."""
         factor = gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
         if self.scale_jac is None or not scale:
             return factor
-        return scale_factor_imu_factor(factor, self.scale_jac[k], *scale_keys(k))
+        return scale_factor_imu_factor(factor, self.scale_jac[k], *scale_keys(k), batch)
+
+    def batches(self) -> list[FactorBatch]:
+        """The batches of the factors built here (the IMU factors' are the graph's)."""
+        odometer = self.states.odometer_batch
+        return [self.nhc_batch, *self.yaw_batches, *([odometer] if odometer else [])]
 
     def scale_factors_at(self, k: int) -> list[gtsam.NonlinearFactor]:
         """The scale factors' priors (``k = 0``) or their link from keyframe ``k - 1``
@@ -527,86 +543,3 @@ class Problem:
             for key in scale_keys(k):
                 values.insert(key, np.zeros(3))
         return values
-
-    def factors_at(self, k: int, rejected: set[int]) -> list[gtsam.NonlinearFactor]:
-        """Measurement and pseudo-measurement factors of keyframe ``k``."""
-        out = list(self.aux[k])
-        out += [self.meas[i].factor for i in self.meas_at[k] if i not in rejected]
-        return out
-
-
-@dataclass
-class Estimates:
-    """Keyframe estimates in polins conventions, filled by the solvers.
-
-    ``cov`` is in the ESKF's error-state order (navigation-frame attitude error); a new
-    error block gets its own array here and its slice of ``cov`` (package docstring). The
-    sensor-error variables of :class:`~polins.fusion.graph.states.GraphStates` are ``extra``
-    and the rows and columns of ``cov`` after the first 15.
-    """
-
-    mat_nb: FloatArray  # (K, 3, 3)
-    vel_n: FloatArray  # (K, 3)
-    pos_n: FloatArray  # (K, 3) local ENU [m]
-    bias: FloatArray  # (K, 6): bg, ba
-    cov: FloatArray  # (K, 15, 15)
-    yaw_known: NDArray[np.bool_]  # (K,) a yaw/sun factor was in the graph when reported
-    extra: FloatArray  # (K, n) GraphStates' variables
-    scale: FloatArray  # (K, 6) scale factors sg, sa [-] (NaN without them)
-    scale_cov: FloatArray  # (K, 6, 6) their covariance
-
-    @classmethod
-    def empty(cls, k: int, n_extra: int = 0) -> Estimates:
-        """Estimates of ``k`` keyframes (and ``n_extra`` GraphStates values), all NaN."""
-
-        def nan(*shape: int) -> FloatArray:
-            return np.full((k, *shape), np.nan)
-
-        n = N_ERROR + n_extra
-        return cls(nan(3, 3), nan(3), nan(3), nan(6), nan(n, n), np.zeros(k, bool), nan(n_extra),
-                   nan(6), nan(6, 6))  # fmt: skip
-
-    def store(
-        self,
-        k: int,
-        pose: gtsam.Pose3,
-        vel: FloatArray,
-        bias: gtsam.imuBias.ConstantBias,
-        cov_pose_b: FloatArray,
-        cov_vel: FloatArray,
-        cov_bias: FloatArray,
-        yaw_known: bool,
-        extra: tuple[FloatArray, FloatArray] | None = None,
-    ) -> None:
-        """Keyframe ``k`` from GTSAM values and marginal covariances (block diagonal in
-        pose / velocity / bias; GTSAM's bias tangent is accelerometer, then gyro); ``extra``
-        the GraphStates' values and covariance (:meth:`GraphStates.read`)."""
-        mat_nb = pose.rotation().matrix()
-        self.mat_nb[k] = mat_nb
-        self.pos_n[k] = pose.translation()
-        self.vel_n[k] = vel
-        self.bias[k] = np.concatenate([bias.gyroscope(), bias.accelerometer()])
-        cov = np.zeros((N_ERROR, N_ERROR))  # GTSAM's blocks: pose, velocity, bias
-        cov[:6, :6] = pose_cov_nav_from_body(mat_nb, cov_pose_b)
-        cov[6:9, 6:9] = cov_vel
-        cov[9:, 9:] = cov_bias
-        self.cov[k] = 0.0
-        self.cov[k, :N_ERROR, :N_ERROR] = cov[np.ix_(ESKF_FROM_GTSAM, ESKF_FROM_GTSAM)]
-        self.yaw_known[k] = yaw_known
-        if extra is not None:
-            self.extra[k] = extra[0]
-            self.cov[k, N_ERROR:, N_ERROR:] = extra[1]
-
-    def store_scale(self, k: int, value: Any, marginal: Any) -> None:
-        """The scale factors at keyframe ``k`` from a solver's ``value(key)`` and
-        ``marginal(key)`` (``sg`` and ``sa`` independent blocks)."""
-        key_g, key_a = scale_keys(k)
-        self.scale[k] = np.concatenate([value(key_g), value(key_a)])
-        self.scale_cov[k] = 0.0
-        self.scale_cov[k, :3, :3] = marginal(key_g)
-        self.scale_cov[k, 3:, 3:] = marginal(key_a)
-
-    def values(self, k: int) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias]:
-        """Keyframe ``k`` as GTSAM values."""
-        state = gtsam.NavState(gtsam.Rot3(self.mat_nb[k]), self.pos_n[k], self.vel_n[k])
-        return state, bias_from_polins(self.bias[k])

@@ -1,26 +1,30 @@
-"""Graph solvers: batch Gauss-Newton / LM with QR and post-fit gating, ISAM2, fixed-lag smoother.
+"""The batch graph solver: Gauss-Newton / LM with QR over the whole log, QR marginals, post-fit gating.
 
-Each solver takes a :class:`~polins.fusion.graph.problem.Problem`, appends one
+:func:`solve_batch` takes a :class:`~polins.fusion.graph.problem.Problem`, appends one
 :class:`~polins.fusion.items.UpdateRecord` per yaw/sun/zero-velocity factor to ``records`` and its
 diagnostics to ``info``, and returns the keyframe
-:class:`~polins.fusion.graph.problem.Estimates`.
+:class:`~polins.fusion.graph.estimates.Estimates`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 from numpy.typing import NDArray
+from scipy.linalg.lapack import dtrtri
 
 from polins.fusion.config import MAX_GATE_ROUNDS, MAX_ITERATIONS
-from polins.fusion.graph.factors import pose_cov_nav_from_body
-from polins.fusion.graph.problem import Estimates, Problem
-from polins.fusion.items import HEADING_KINDS, UpdateRecord, gate_limit
-from polins.fusion.measurement import ATT, N_ERROR, VEL
+from polins.fusion.graph.batched import FactorBatch, ScaleImuBatch
+from polins.fusion.graph.batched import linearize as batched_linearize
+from polins.fusion.graph.estimates import Estimates
+from polins.fusion.graph.incremental import solve_incremental
+from polins.fusion.graph.problem import Problem
+from polins.fusion.items import UpdateRecord, gate_limit
 
 FloatArray = NDArray[np.float64]
 
@@ -39,9 +43,11 @@ def gauss_newton_qr(
     *,
     max_iterations: int = 20,
     rel_tol: float = 1e-6,
-) -> tuple[gtsam.Values, int, gtsam.GaussianFactorGraph]:
-    """Gauss-Newton with sparse multifrontal QR until the cost changes by < ``rel_tol``;
-    returns the values, the iterations and the graph linearized at the values.
+    linearize: Callable[[gtsam.Values], gtsam.GaussianFactorGraph] | None = None,
+) -> tuple[gtsam.Values, int, gtsam.GaussianBayesTree, float]:
+    """Gauss-Newton with sparse multifrontal QR until the step's predicted decrease of the
+    cost is < ``rel_tol`` of the cost; returns the values after that step, the iterations,
+    the Bayes tree of the last linearization and the cost the linearization predicts.
 
     Why not GTSAM's Levenberg-Marquardt or Cholesky: without position (and, with yaw-only
     aiding, velocity) measurements the position and velocity marginals grow to km and tens
@@ -50,30 +56,32 @@ def gauss_newton_qr(
     reports an "indeterminate system") and LM's ``lambda I`` damping dominates the weakly
     observed directions, so LM creeps for a hundred iterations. QR on the Jacobian meets
     only the square root of that condition number, and the problem is nearly linear (the
-    nonlinearity is the attitude), so undamped Gauss-Newton converges in 3-10 iterations.
-    The first step from dead reckoning may raise the cost; convergence is judged on the
-    change of the cost, not on a decrease. (The loop is written out: it is ~10x faster
-    than ``gtsam.GaussNewtonOptimizer.iterate`` from Python on these graphs.) The cost at
-    each iterate is that of the graph linearized there at a zero step (equal for Gaussian
-    noise models): the Python factors are evaluated once per iteration, and the last
-    linearization serves the marginals. Raises :class:`DivergedError` on a non-finite cost.
+    nonlinearity is the attitude), so undamped Gauss-Newton converges in 2-5 iterations.
+    The first step from dead reckoning may raise the cost: convergence is judged on the
+    decrease the linearization predicts for its step (``|r|^2 - |r - A delta|^2``), which
+    for a nearly linear problem is the next step's change of the cost. So the last
+    elimination both ends the iterations and gives the marginals (its step, far below a
+    sigma, is applied; the marginals at the point before it differ by a second-order
+    amount). (The loop is written out: it is ~10x faster than
+    ``gtsam.GaussNewtonOptimizer.iterate`` from Python on these graphs.) ``linearize``
+    replaces ``graph.linearize`` (the vectorized factors,
+    :func:`polins.fusion.graph.batched.linearize`). Raises :class:`DivergedError` on a non-finite cost.
     """
     ordering = graph.orderingCOLAMD()
-    previous = graph.error(values)
-    linear = graph.linearize(values)
     for iteration in range(1, max_iterations + 1):
-        delta = linear.eliminateMultifrontal(ordering, gtsam.EliminateQR).optimize()
-        values = values.retract(delta)
-        linear = graph.linearize(values)
+        linear = graph.linearize(values) if linearize is None else linearize(values)
+        bayes_tree = linear.eliminateMultifrontal(ordering, gtsam.EliminateQR)
+        delta = bayes_tree.optimize()
         zero = gtsam.VectorValues(delta)
         zero.setZero()
-        error = linear.error(zero)
-        if not np.isfinite(error):
+        error, predicted = linear.error(zero), linear.error(delta)
+        del linear
+        if not (np.isfinite(error) and np.isfinite(predicted)):
             raise DivergedError("Gauss-Newton diverged (non-finite cost)")
-        if iteration > 1 and abs(previous - error) <= rel_tol * max(error, 1.0):
-            return values, iteration, linear
-        previous = error
-    return values, max_iterations, linear
+        values = values.retract(delta)
+        if error - predicted <= rel_tol * max(error, 1.0):
+            return values, iteration, bayes_tree, predicted
+    return values, max_iterations, bayes_tree, predicted
 
 
 def levenberg_marquardt_qr(
@@ -82,11 +90,12 @@ def levenberg_marquardt_qr(
     *,
     max_iterations: int = 100,
     rel_tol: float = 1e-6,
-) -> tuple[gtsam.Values, int, gtsam.GaussianFactorGraph]:
+) -> tuple[gtsam.Values, int, gtsam.GaussianBayesTree, float]:
     """GTSAM's Levenberg-Marquardt with multifrontal QR (``optimizer="levenberg-marquardt"``,
     and the fallback if Gauss-Newton fails). Robust far from the solution, but its
     ``lambda I`` damping slows it down in the weakly observed directions (see
-    :func:`gauss_newton_qr`): expect tens of iterations."""
+    :func:`gauss_newton_qr`): expect tens of iterations. Returns the values, the
+    iterations, the QR Bayes tree linearized at the values and the cost."""
     params = gtsam.LevenbergMarquardtParams()
     params.setLinearSolverType("MULTIFRONTAL_QR")
     params.setMaxIterations(max_iterations)
@@ -96,7 +105,9 @@ def levenberg_marquardt_qr(
     params.setlambdaLowerBound(1e-15)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     result = optimizer.optimize()
-    return result, int(optimizer.iterations()), graph.linearize(result)
+    linear = graph.linearize(result)
+    bayes_tree = linear.eliminateMultifrontal(graph.orderingCOLAMD(), gtsam.EliminateQR)
+    return result, int(optimizer.iterations()), bayes_tree, float(graph.error(result))
 
 
 def marginal_covariance_qr(bayes_tree: gtsam.GaussianBayesTree, key: int) -> FloatArray:
@@ -132,41 +143,50 @@ def marginal_covariances(
         clique, parent_cov, parent_at = stack.pop()
         cond = clique.conditional()
         r = np.array(cond.R(), dtype=float, copy=True)
+        n_r = r.shape[0]
         keys = list(cond.keys())
         at, offset, n_front = {}, 0, 0
         for key in keys:
             at[key] = offset
             offset += dims[key]
-            n_front += offset <= r.shape[0]
-        r_inv = np.linalg.inv(r)  # (upper triangular, small)
+            n_front += offset <= n_r
+        r_inv, fail = dtrtri(r, lower=0)  # (upper triangular, small)
+        if fail:
+            raise np.linalg.LinAlgError(f"singular conditional in the Bayes tree ({fail})")
         cov = np.empty((offset, offset))
-        cov[: r.shape[0], : r.shape[0]] = r_inv @ r_inv.T
-        if offset > r.shape[0]:
+        cov[:n_r, :n_r] = r_inv @ r_inv.T
+        if offset > n_r:
             assert parent_cov is not None and parent_at is not None
-            sep = np.concatenate([parent_at[k] + np.arange(dims[k]) for k in keys[n_front:]])
-            p_ss = parent_cov[np.ix_(sep, sep)]
-            a = r_inv @ np.array(cond.S(), dtype=float, copy=True)
+            sep = [i for k in keys[n_front:] for i in range(parent_at[k], parent_at[k] + dims[k])]
+            p_ss = parent_cov.take(sep, 0).take(sep, 1)
+            a = r_inv @ cond.S()
             p_fs = -a @ p_ss
-            cov[: r.shape[0], : r.shape[0]] += a @ p_ss @ a.T
-            cov[: r.shape[0], r.shape[0] :] = p_fs
-            cov[r.shape[0] :, : r.shape[0]] = p_fs.T
-            cov[r.shape[0] :, r.shape[0] :] = p_ss
+            cov[:n_r, :n_r] -= p_fs @ a.T
+            cov[:n_r, n_r:] = p_fs
+            cov[n_r:, :n_r] = p_fs.T
+            cov[n_r:, n_r:] = p_ss
         for key in keys[:n_front]:
-            sl = slice(at[key], at[key] + dims[key])
-            out[key] = cov[sl, sl].copy()
+            lo = at[key]
+            out[key] = cov[lo : lo + dims[key], lo : lo + dims[key]].copy()
         stack.extend((clique[j], cov, at) for j in range(clique.nrChildren()))
     return out
 
 
 def optimize(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, prob: Problem
-) -> tuple[gtsam.Values, int, gtsam.GaussianFactorGraph]:
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    prob: Problem,
+    linearize: Callable[[gtsam.Values], gtsam.GaussianFactorGraph] | None = None,
+) -> tuple[gtsam.Values, int, gtsam.GaussianBayesTree, float]:
     """The batch optimizer of ``prob.config``; Levenberg-Marquardt if Gauss-Newton fails.
-    Returns the values, the iterations and the graph linearized at the values."""
+    Returns the values, the iterations, the QR Bayes tree of the last linearization and
+    the cost (:func:`gauss_newton_qr`)."""
     c = prob.config
     if c.graph.optimizer == "gauss-newton":
         try:
-            return gauss_newton_qr(graph, values, max_iterations=MAX_ITERATIONS)
+            return gauss_newton_qr(
+                graph, values, max_iterations=MAX_ITERATIONS, linearize=linearize
+            )
         except RuntimeError as exc:
             # DivergedError, or GTSAM's IndeterminantLinearSystemException (a RuntimeError
             # in Python, "Indeterminant linear system detected ..."): fall back to damping.
@@ -175,12 +195,34 @@ def optimize(
     return levenberg_marquardt_qr(graph, values, max_iterations=5 * MAX_ITERATIONS)
 
 
+@dataclass(eq=False)
+class BatchGraph:
+    """The whole-log graph of the batch solver (:func:`batch_graph`): the graph, its
+    initial values, the batches of its Python factors (:mod:`polins.fusion.graph.batched`)
+    and the index in the graph of each measurement factor (index into ``Problem.meas``)."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    batches: list[FactorBatch]
+    where: dict[int, int]
+
+    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        """The graph linearized at ``values``, its Python factors evaluated by type."""
+        return batched_linearize(self.graph, values, self.batches)
+
+    def remove(self, gated: Iterable[int]) -> None:
+        """Take the measurement factors ``gated`` (indices into ``Problem.meas``) out."""
+        for i in gated:
+            self.graph.remove(self.where.pop(i))
+
+
 def batch_graph(
     prob: Problem, rejected: set[int], linearization: gtsam.Values | None
-) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-    """Whole-log graph with initial values (dead reckoning, or ``linearization``, whose
-    velocity, position and bias also set the transport rate and the bias of the
-    preintegration)."""
+) -> BatchGraph:
+    """Whole-log graph without the ``rejected`` measurement factors, with initial values
+    (dead reckoning, or ``linearization``, whose velocity, position and bias also set the
+    transport rate and the bias of the preintegration)."""
+    imu_batch = ScaleImuBatch()
     graph = gtsam.NonlinearFactorGraph()
     for f in prob.priors:
         graph.add(f)
@@ -191,16 +233,21 @@ def batch_graph(
     values.insert(B(0), bias)
     values.insert(prob.scale_values(0))
     values.insert(prob.states.initial(0, prob.states.guess))
+    where: dict[int, int] = {}
     for k in range(len(prob.t_key)):
-        for f in prob.factors_at(k, rejected) + prob.scale_factors_at(k):
+        for f in prob.aux[k] + prob.scale_factors_at(k):
             graph.add(f)
+        for i in prob.meas_at[k]:
+            if i not in rejected:
+                where[i] = graph.size()
+                graph.add(prob.meas[i].factor)
         if k == len(prob.t_key) - 1:
             break
         if linearization is not None:
             state = gtsam.NavState(linearization.atPose3(X(k)), linearization.atVector(V(k)))
             bias = linearization.atConstantBias(B(k))
         pim = prob.preintegrate(k, bias, prob.imu_correction(state))
-        graph.add(prob.imu_factor(k, pim))
+        graph.add(prob.imu_factor(k, pim, batch=imu_batch))
         if linearization is None:
             state = pim.predict(state, bias)
             values.insert(X(k + 1), state.pose())
@@ -208,7 +255,35 @@ def batch_graph(
             values.insert(B(k + 1), bias)
             values.insert(prob.states.initial(k + 1, prob.states.guess))
             values.insert(prob.scale_values(k + 1))
-    return graph, (values if linearization is None else linearization)
+    values = values if linearization is None else linearization
+    return BatchGraph(graph, values, [*prob.batches(), imu_batch], where)
+
+
+def keyframe_estimates(
+    prob: Problem, result: gtsam.Values, bayes_tree: gtsam.GaussianBayesTree
+) -> Estimates:
+    """The keyframes' values and marginals (:func:`marginal_covariances`) of a solve."""
+    est = Estimates.empty(len(prob.t_key), prob.states.n)
+    marginal = marginal_covariances(bayes_tree, result.dims()).__getitem__
+    # the scale factors are constants: one marginal (the last keyframe's) for all
+    last = prob.scale_values(len(prob.t_key) - 1).keys()
+    scale_cov = [marginal(key) for key in last]
+    for k in range(len(prob.t_key)):
+        est.store(
+            k,
+            result.atPose3(X(k)),
+            result.atVector(V(k)),
+            result.atConstantBias(B(k)),
+            marginal(X(k)),
+            marginal(V(k)),
+            marginal(B(k)),
+            prob.yaw_given or prob.n_headings > 0,
+            prob.states.read(k, result.atVector, marginal),
+        )
+        if prob.scale_jac is not None:
+            cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
+            est.store_scale(k, result.atVector, cov_of.__getitem__)
+    return est
 
 
 def solve_batch(
@@ -227,10 +302,11 @@ def solve_batch(
     undo. ``causal`` gives that pass's verdicts (index into ``prob.meas`` -> NIS, reason;
     :func:`polins.fusion.graph.fuse_graph` takes them from the ESKF's run); without it an
     ISAM2 pass (:func:`solve_incremental`) gates them. ``progress`` is told each stage.
-    ``start``: initial values of every key, also the first linearization point of the
+    ``start``: initial values of every key, also the linearization point of the
     preintegration (:func:`polins.fusion.graph.start.filter_values`); without them, dead
-    reckoning, and with the Earth rate the first solve is repeated once, re-preintegrated
-    with the transport rate and bias of the first.
+    reckoning, and with the Earth rate a first solve from there gives the linearization
+    point of the preintegration. Each gate round re-solves the same graph without the
+    gated factors, from the last result.
     """
     rejected: dict[int, tuple[float, str]] = {}
     if prob.detected and causal is None:
@@ -240,55 +316,31 @@ def solve_batch(
     if prob.detected and causal:
         rejected = {i: (nis, f"causal {why}") for i, (nis, why) in causal.items()
                     if i in prob.detected}  # fmt: skip
-    result: gtsam.Values | None = None
     iterations: list[int] = []
+    built = batch_graph(prob, set(rejected), start)
+    if prob.earth_rate and start is None:
+        if progress is not None:
+            progress("solve 1 from dead reckoning")
+        first, it, _tree, _error = optimize(built.graph, built.values, prob, built.linearize)
+        iterations.append(it)
+        built = batch_graph(prob, set(rejected), first)
+    result = built.values
     for gate_round in range(1 + MAX_GATE_ROUNDS):
-        # A re-solve (after gating, or the repeat from dead reckoning with the Earth rate)
-        # starts from the last result and is preintegrated there.
-        repeat = prob.earth_rate and result is None and start is None
-        for _ in range(2 if repeat else 1):
-            if progress is not None:
-                progress(f"gate round {gate_round + 1}, solve {len(iterations) + 1}")
-            lin = result if result is not None else start
-            graph, values = batch_graph(prob, set(rejected), lin)
-            result, it, linear = optimize(graph, values, prob)
-            iterations.append(it)
-        assert result is not None
+        if progress is not None:
+            progress(f"gate round {gate_round + 1}, solve {len(iterations) + 1}")
+        result, it, bayes_tree, error = optimize(built.graph, result, prob, built.linearize)
+        iterations.append(it)
         if progress is not None:
             progress(f"gate round {gate_round + 1}, marginals")
-        bayes_tree = linear.eliminateMultifrontal(graph.orderingCOLAMD(), gtsam.EliminateQR)
-        zero = bayes_tree.optimize()  # (a zero step: the cost at the result is linear's)
-        zero.setZero()
-        error, n_factors = linear.error(zero), graph.size()
-        del linear, graph  # (held only by the next round's solve: memory)
-        est = Estimates.empty(len(prob.t_key), prob.states.n)
-        dims = {key: zero.dim(key) for key in result.keys()}
-        marginal = marginal_covariances(bayes_tree, dims).__getitem__
-        # the scale factors are constants: one marginal (the last keyframe's) for all
-        last = prob.scale_values(len(prob.t_key) - 1).keys()
-        scale_cov = [marginal(key) for key in last]
-        for k in range(len(prob.t_key)):
-            est.store(
-                k,
-                result.atPose3(X(k)),
-                result.atVector(V(k)),
-                result.atConstantBias(B(k)),
-                marginal(X(k)),
-                marginal(V(k)),
-                marginal(B(k)),
-                prob.yaw_given or prob.n_headings > 0,
-                prob.states.read(k, result.atVector, marginal),
-            )
-            if prob.scale_jac is not None:
-                cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
-                est.store_scale(k, result.atVector, cov_of.__getitem__)
-        del bayes_tree, marginal
+        est = keyframe_estimates(prob, result, bayes_tree)
+        del bayes_tree  # (memory)
         new = post_fit_gate(prob, est, rejected, records, final=gate_round == MAX_GATE_ROUNDS)
         if not new:
             break
         rejected.update(new)
-    assert result is not None
-    info.update(iterations=iterations, error=error, n_factors=n_factors, rejected=sorted(rejected))
+        built.remove(new)
+    info.update(iterations=iterations, error=error, n_factors=built.graph.nrFactors(),
+                rejected=sorted(rejected))  # fmt: skip
     return est
 
 
@@ -343,237 +395,3 @@ def local_worst(t: FloatArray, nis: FloatArray, span_s: float) -> FloatArray:
     lo = np.searchsorted(t, t - span_s, side="left")
     hi = np.searchsorted(t, t + span_s, side="right")
     return np.array([nis[a:b].max() for a, b in zip(lo, hi, strict=True)])
-
-
-def solve_incremental(
-    prob: Problem,
-    records: list[UpdateRecord],
-    info: dict[str, Any],
-    *,
-    solver: str | None = None,
-    rejected: dict[int, tuple[float, str]] | None = None,
-    scale: bool = True,
-    progress: Any = None,
-) -> Estimates:
-    """ISAM2 (causal estimates) or the incremental fixed-lag smoother (lagged estimates).
-
-    ``solver`` overrides ``prob.config.graph.solver``; ``rejected`` (if given) receives the
-    gated factors: index into ``prob.meas`` -> (NIS, reason); ``scale=False`` leaves the
-    scale-factor variables out; ``progress`` (a tqdm bar) counts the keyframes.
-    """
-    run = _IncrementalRun(
-        prob, records, solver or prob.config.graph.solver, rejected,
-        scale and prob.scale_jac is not None,
-    )  # fmt: skip
-    run.start()
-    if progress is not None:
-        progress.reset(total=len(prob.t_key) - 1)
-    for k in range(len(prob.t_key) - 1):
-        run.step(k)
-        if progress is not None:
-            progress.update(1)
-    for k in run.pending:
-        run.record(k)
-    info.update(n_keyframes=len(prob.t_key))
-    return run.est
-
-
-def _isam2_params(prob: Problem, solver: str) -> gtsam.ISAM2Params:
-    """ISAM2 parameters of an incremental solve: QR, per-variable relinearization
-    thresholds, and for the fixed-lag smoother all deltas kept current."""
-    isam_params = gtsam.ISAM2Params()
-    isam_params.setFactorization("QR")
-    # Relinearize on attitude and velocity changes only: the IMU factors are linear in
-    # position, whose (unobserved) values keep moving; relinearizing on them re-eliminates
-    # most of the tree at every check. The velocity enters through the attitude
-    # (R^T (v_j - v_i - g dt)): on the hand-held BROAD trial 15, whose unaided velocity
-    # drifts by m/s, a velocity never relinearized left the tilt at rest after the motion
-    # 1 deg off with a 0.14 deg sigma (pitch RMS(err/sigma) 2.97; 0.43 with the 1 m/s threshold); a
-    # finer threshold relinearizes a UGV's drifting along-track velocity at every check.
-    thresholds = gtsam.ISAM2ThresholdMap()
-    thresholds.insert(("x", np.array([1e-2, 1e-2, 1e-2, 1e6, 1e6, 1e6])))
-    thresholds.insert(("v", np.full(3, 1.0)))
-    thresholds.insert(("b", np.full(6, 1e6)))
-    # the IMU factors and the links are linear in the scale factors
-    thresholds.insert(("g", np.full(3, 1e6)))
-    thresholds.insert(("a", np.full(3, 1e6)))
-    for letter, threshold in prob.states.thresholds():
-        thresholds.insert((letter, threshold))
-    isam_params.setRelinearizeThreshold(thresholds)
-    isam_params.relinearizeSkip = 10
-    if solver == "fixed_lag":
-        # GTSAM's default "wildfire" threshold (1e-3) leaves the deltas of older variables
-        # stale by up to 1e-3 rad, a sizeable fraction of a sigma, and the fixed-lag
-        # smoother reports them late: update them all (cheap in a bounded window). ISAM2
-        # reports the newest keyframe, whose delta is always current.
-        isam_params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(0.0))
-    return isam_params
-
-
-class _IncrementalRun:
-    """One incremental solve (:func:`solve_incremental`): its engine, the estimates
-    reported so far and the gate's state; keyframe by keyframe."""
-
-    def __init__(
-        self,
-        prob: Problem,
-        records: list[UpdateRecord],
-        solver: str,
-        rejected: dict[int, tuple[float, str]] | None,
-        scale: bool,
-    ) -> None:
-        self.prob, self.records, self.solver = prob, records, solver
-        self.rejected, self.scale = rejected, scale
-        params = _isam2_params(prob, solver)
-        self.engine: Any = (
-            gtsam.ISAM2(params)
-            if solver == "isam2"
-            else gtsam.IncrementalFixedLagSmoother(prob.config.graph.lag_s, params)
-        )
-        self.est = Estimates.empty(len(prob.t_key), prob.states.n)
-        self.seen_aiding = False
-        self.pending: list[int] = []  # fixed lag: keyframes not reported yet
-
-    def record(self, k: int) -> None:
-        """Store the engine's estimates and marginals of keyframe ``k``."""
-        prob, engine = self.prob, self.engine
-        self.est.store(
-            k,
-            engine.calculateEstimatePose3(X(k)),
-            engine.calculateEstimateVector(V(k)),
-            engine.calculateEstimateConstantBias(B(k)),
-            engine.marginalCovariance(X(k)),
-            engine.marginalCovariance(V(k)),
-            engine.marginalCovariance(B(k)),
-            self.seen_aiding or prob.yaw_given,
-            prob.states.read(k, engine.calculateEstimateVector, engine.marginalCovariance),
-        )
-        if self.scale:
-            self.est.store_scale(k, engine.calculateEstimateVector, engine.marginalCovariance)
-
-    def gated(
-        self,
-        k: int,
-        state: gtsam.NavState,
-        cov_prev: FloatArray,
-        extra: FloatArray,
-        bias: gtsam.imuBias.ConstantBias,
-    ) -> list[gtsam.NonlinearFactor]:
-        """Measurement factors at keyframe k that pass the chi-square gate (``bias``: the
-        bias estimate, for the zero-rate factors)."""
-        prob, records = self.prob, self.records
-        out = []
-        mat = state.attitude().matrix()
-        for i in prob.meas_at[k]:
-            mf = prob.meas[i]
-            heading = mf.item.kind in HEADING_KINDS
-            lin = prob.states.model(mf.item, mat, state.velocity(), prob.tilt_coupling, extra,
-                                    bias.gyroscope())  # fmt: skip
-            if not np.isfinite(cov_prev).all():
-                nis = np.nan  # first keyframe
-            else:
-                s = lin.H @ cov_prev @ lin.H.T + lin.R
-                nis = float(lin.residual @ np.linalg.solve(s, lin.residual))
-            limit = gate_limit(prob.config.gate_probability, lin.dim)
-            if (self.seen_aiding or not heading) and nis > limit:
-                reason = f"NIS {nis:.3g} > gate {limit:.3g} (chi2, {lin.dim} dof)"
-                records.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
-                if self.rejected is not None:
-                    self.rejected[i] = (nis, reason)
-                continue
-            # The first heading (yaw/sun) is not gated: it aligns the yaw.
-            records.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, True, ""))
-            out.append(mf.factor)
-            self.seen_aiding = self.seen_aiding or heading
-        return out
-
-    def update(self, k: int, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
-        """Add keyframe ``k``'s factors and values; ISAM2 reports it at once, the fixed-lag
-        smoother the keyframes about to leave its window."""
-        prob, engine, pending = self.prob, self.engine, self.pending
-        if self.solver == "isam2":
-            engine.update(graph, values)
-            self.record(k)
-            return
-        t_k = float(prob.t_key[k])
-        while pending and prob.t_key[pending[0]] < t_k - prob.config.graph.lag_s:
-            self.record(pending.pop(0))  # last chance before it is marginalized
-        stamps = {X(k): t_k, V(k): t_k, B(k): t_k, **prob.states.timestamps(k, t_k)}
-        if self.scale:
-            stamps.update(dict.fromkeys(prob.scale_values(k).keys(), t_k))
-        engine.update(graph, values, stamps)
-        pending.append(k)
-
-    def start(self) -> None:
-        """The first keyframe: the priors, its constraints and its gated measurements."""
-        prob = self.prob
-        graph = gtsam.NonlinearFactorGraph()
-        n_cov = N_ERROR + prob.states.n
-        guess = prob.states.guess
-        first = self.gated(0, prob.state0, np.full((n_cov, n_cov), np.nan), guess, prob.bias0)
-        for f in prob.priors + list(prob.aux[0]) + first:
-            graph.add(f)
-        values = gtsam.Values()
-        values.insert(X(0), prob.state0.pose())
-        values.insert(V(0), prob.state0.velocity())
-        values.insert(B(0), prob.bias0)
-        if self.scale:
-            values.insert(prob.scale_values(0))
-            for f in prob.scale_factors_at(0):
-                graph.add(f)
-        values.insert(prob.states.initial(0, guess))
-        self.update(0, graph, values)
-
-    def current(
-        self, k: int
-    ) -> tuple[gtsam.NavState, gtsam.imuBias.ConstantBias, FloatArray, FloatArray]:
-        """Keyframe ``k``'s state, bias, error covariance and variables' estimates."""
-        prob, engine = self.prob, self.engine
-        if self.solver == "isam2":
-            state, bias = self.est.values(k)
-            return state, bias, self.est.cov[k], self.est.extra[k]
-        state = gtsam.NavState(
-            engine.calculateEstimatePose3(X(k)), engine.calculateEstimateVector(V(k))
-        )
-        bias = engine.calculateEstimateConstantBias(B(k))
-        cov_prev = fixed_lag_cov(engine, k, state, prob)
-        extra = prob.states.read(k, engine.calculateEstimateVector)[0]
-        return state, bias, cov_prev, extra
-
-    def step(self, k: int) -> None:
-        """Keyframe ``k + 1``: the IMU factor from ``k``, its constraints and its gated
-        measurements, at the IMU prediction."""
-        prob = self.prob
-        state, bias, cov_prev, extra = self.current(k)
-        extra = prob.states.predict(extra, k)
-        pim = prob.preintegrate(k, bias, prob.imu_correction(state))
-        pred = pim.predict(state, bias)
-        graph = gtsam.NonlinearFactorGraph()
-        graph.add(prob.imu_factor(k, pim, self.scale))
-        for f in list(prob.aux[k + 1]) + self.gated(k + 1, pred, cov_prev, extra, bias):
-            graph.add(f)
-        values = gtsam.Values()
-        values.insert(X(k + 1), pred.pose())
-        values.insert(V(k + 1), pred.velocity())
-        values.insert(B(k + 1), bias)
-        values.insert(prob.states.initial(k + 1, extra))
-        if self.scale:
-            values.insert(prob.scale_values(k + 1))
-            for f in prob.scale_factors_at(k + 1):
-                graph.add(f)
-        self.update(k + 1, graph, values)
-
-
-def fixed_lag_cov(engine: Any, k: int, state: gtsam.NavState, prob: Problem) -> FloatArray:
-    """Attitude and velocity blocks of the current marginal of keyframe ``k`` (for the
-    gate), ESKF order, and those of ``prob.states``' variables."""
-    n = prob.states.n
-    cov = np.zeros((N_ERROR + n, N_ERROR + n))
-    if n:
-        cov[N_ERROR:, N_ERROR:] = prob.states.read(
-            k, engine.calculateEstimateVector, engine.marginalCovariance
-        )[1]
-    pose = pose_cov_nav_from_body(state.attitude().matrix(), engine.marginalCovariance(X(k)))
-    cov[ATT, ATT] = pose[:3, :3]
-    cov[VEL, VEL] = engine.marginalCovariance(V(k))
-    return cov

@@ -43,6 +43,7 @@ from gtsam.symbol_shorthand import V, X
 from numpy.typing import NDArray
 
 from polins.fusion.config import ODOMETER_SCALE_STD, SUN_AZIMUTH_RATE_STD, FuseConfig
+from polins.fusion.graph.batched import OdometerBatch
 from polins.fusion.graph.factors import body_jacobian
 from polins.fusion.graph.imu import CONSTANT_S
 from polins.fusion.items import (
@@ -187,7 +188,7 @@ class GraphStates:
     Their estimates form one vector ``extra`` (the ESKF's block order: ``so``,
     ``mount_pitch``, ``mount_yaw``, ``lever_b``, ``site_rot_n``, ``sun_azimuth_n``,
     ``sun_azimuth_rate``, ``heading_bias``) that follows
-    the 15 navigation and bias errors in :class:`~polins.fusion.graph.problem.Estimates`.
+    the 15 navigation and bias errors in :class:`~polins.fusion.graph.estimates.Estimates`.
 
     Parameters
     ----------
@@ -232,6 +233,9 @@ class GraphStates:
             start += 1
         self.n = start
         self.guess = np.zeros(self.n)  # the initial values of the first keyframe
+        # the odometer factors, evaluated together when the scale is their only variable
+        only_scale = ODOMETER_SCALE in variables and set(self.index) <= {"so", "heading_bias"}
+        self.odometer_batch = OdometerBatch() if only_scale else None
 
     def start(self, meas: Sequence[Any], mat_nb0: FloatArray) -> None:
         """Set the first keyframe's values (:attr:`guess`): the sun's ENU azimuth seen in the
@@ -478,7 +482,8 @@ class GraphStates:
         """The factor of ``item`` at keyframe ``k`` (:func:`item_factor` over the variables
         that the item's kind sees)."""
         used = {v: self.key(v, k) for v in self.variables if item.kind in v.kinds}
-        return item_factor(self, item, pose_key, vel_key, used, tilt)
+        batch = self.odometer_batch if item.kind == "odo" and vel_key is not None else None
+        return item_factor(self, item, pose_key, vel_key, used, tilt, batch)
 
 
 def item_factor(
@@ -488,6 +493,7 @@ def item_factor(
     vel_key: int | None,
     used: Mapping[Variable, int],
     tilt_coupling: bool,
+    batch: OdometerBatch | None = None,
 ) -> gtsam.CustomFactor:
     """A measurement factor on the shared model with the variables ``used`` (variable ->
     key): ``GraphStates.model`` whitened by its own ``R`` (``R = L L^T``; error ``L^-1 (h -
@@ -495,12 +501,25 @@ def item_factor(
     on the state (the sun's 2x2 covariance in the basis of the prediction, an odometer
     speed divided by ``1 + k``) is exact. Attitude columns are mapped to GTSAM's body tangent
     (:func:`~polins.fusion.graph.factors.body_jacobian`); velocity and the variables'
-    columns are used as they are (``Vector`` tangents)."""
+    columns are used as they are (``Vector`` tangents). ``batch``: an odometer factor
+    whose only variable is the odometer scale, evaluated with the others
+    (:mod:`polins.fusion.graph.batched`)."""
     keys = [pose_key] + ([] if vel_key is None else [vel_key]) + list(used.values())
     cols = [states.slices[v] for v in used]
     dim = 2 if item.kind in ("sun", "nhc") else 1
+    slot = -1
+    if batch is not None:
+        if item.kind != "odo" or list(used) != [ODOMETER_SCALE]:
+            raise ValueError("the odometer batch takes odometer factors on X, V and so only")
+        slot = batch.add(keys, item.speed, item.std,
+                         np.eye(3) if item.mat_vb is None else item.mat_vb,
+                         np.zeros(3) if item.lever_vel_b is None else item.lever_vel_b)  # fmt: skip
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: Any) -> FloatArray:
+        if batch is not None:
+            hit = batch.lookup(slot, values, jacobians)
+            if hit is not None:
+                return hit
         mat_nb = values.atPose3(pose_key).rotation().matrix()
         vel = None if vel_key is None else values.atVector(vel_key)
         extra = states.guess.copy()
