@@ -1,7 +1,9 @@
 """Attitude consistency of the ESKF without velocity aiding, with the simulated effects switched.
 
 A vehicle without a ``[vehicle]`` table (a drone, a hand-held rig, a robot without odometry)
-gets no non-holonomic, zero-velocity or odometer updates: only the camera's headings. The
+gets no non-holonomic, zero-velocity or odometer updates: the camera's headings, the
+zero-rate updates at its stops and the accelerometer's levelling once a second
+(docs/filter.md §12). The
 drives are those of ``polins simulate --scenario ugv`` (the same random streams for a seed:
 trajectory, mounting, road vibration, IMU errors), and the headings are drawn in closed
 loop as the camera loop makes them: ``polins.measure`` levels the sun it sees with the
@@ -16,7 +18,7 @@ vibration), ``nogyrobias`` (no gyro turn-on bias), ``nogyroarw`` (no gyro white 
 ``noaccel`` (no accelerometer errors).
 
 ``--broad`` runs the BROAD trials without zero-velocity rows instead (ESKF, graph and the
-``ahrs`` package's EKF when installed; docs/filter.md §12.3). ``--replay graph,smooth`` also fuses each drive's recorded headings (with their priors and
+``ahrs`` package's EKF when installed; docs/filter.md §12.4). ``--replay graph,smooth`` also fuses each drive's recorded headings (with their priors and
 ``sun_n``) with the graph backend (batch solver) and the ESKF with the RTS smoother.
 
 Run: ``nice python benchmarks/bench_free_vehicle.py [--seeds 0-7] [--duration 200]

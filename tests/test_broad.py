@@ -93,7 +93,7 @@ def test_broad_without_the_misalignment_noise_is_overconfident():
 
 # tilt RMS errors [deg] (pitch, roll) of the ahrs package's EKF (gyro and accelerometer,
 # the truth as its first attitude) on the same trials and scoring
-# (benchmarks/bench_free_vehicle.py --broad; docs/filter.md §12.3)
+# (benchmarks/bench_free_vehicle.py --broad; docs/filter.md §12.4)
 AHRS_TILT_DEG = {"02": (0.187, 0.478), "15": (3.141, 3.021)}
 
 
@@ -101,9 +101,9 @@ AHRS_TILT_DEG = {"02": (0.187, 0.478), "15": (3.141, 3.021)}
 def test_broad_without_zero_velocity_updates(trial):
     """Headings only (no zero-velocity rows): the standstill detector's zero-rate updates
     at the rests find the turn-on gyro biases (0.1-0.5 deg/s), the levelling once a second
-    the tilt; yaw / pitch / roll RMS(err/sigma) 1.10 / 0.88 / 1.14 (trial 02) and
-    1.12 / 0.91 / 0.82 (trial 15), errors 0.21 / 0.20 / 0.30 and 0.24 / 0.87 / 0.92 deg
-    (docs/filter.md §12.3). The tilt error (pitch and roll together) is below the ``ahrs``
+    the tilt; yaw / pitch / roll RMS(err/sigma) 1.10 / 0.92 / 0.94 (trial 02) and
+    1.12 / 0.90 / 0.79 (trial 15), errors 0.21 / 0.23 / 0.32 and 0.24 / 0.85 / 0.89 deg
+    (docs/filter.md §12.4). The tilt error (pitch and roll together) is below the ``ahrs``
     EKF's on the same data."""
     imu, meas, truth, rot0 = broad_trial(trial)
     heading = meas[meas["yaw"].notna()][["t", "yaw", "yaw_std"]]

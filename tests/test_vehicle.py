@@ -234,9 +234,14 @@ def test_graph_uses_the_vehicle_pseudo_measurements():
     free = drive.fuse(backend="graph")
     ground_scores = attitude_scores(drive.traj, graph.solution)
     free_scores = attitude_scores(drive.traj, free.solution)
-    # the free vehicle has the zero-rate updates at the stops (docs/filter.md §12): pitch
-    # 0.22 deg against 0.71 without them; the ground vehicle's NHC does better
-    assert ground_scores["pitch"][0] < 0.85 * free_scores["pitch"][0], (ground_scores, free_scores)
+    # the free vehicle has the zero-rate updates at the stops and the levelling (docs/filter.md
+    # §12): its tilt is as good (pitch 0.17 deg, the ground vehicle's 0.16); the ground
+    # vehicle's NHC and zero-velocity factors observe the velocity, which the free one's
+    # do not
+    assert ground_scores["pitch"][0] < 1.2 * free_scores["pitch"][0], (ground_scores, free_scores)
+    sigma = {k: float(np.hypot(*r.solution[["ve_std", "vn_std"]].iloc[-1])) for k, r in
+             (("ground", graph), ("free", free))}  # fmt: skip
+    assert sigma["ground"] < 0.6 * sigma["free"], sigma  # 0.087 against 0.178 m/s
     assert graph.info["n_keyframes"] > free.info["n_keyframes"]
     # the graph's odometer: tests/test_graph_states.py
 

@@ -316,19 +316,19 @@ class VehicleAiding:
         its change (:class:`ForceTracker`; ``w``, ``f`` hold ``old`` samples before ``t``)."""
         if self.level_var is None:
             return []
-        end = epochs + old + 1
-        epochs, end = epochs[end >= self.every], end[end >= self.every]
-        cw = np.concatenate([np.zeros((1, 3)), np.cumsum(w, axis=0)])
-        cf = np.concatenate([np.zeros((1, 3)), np.cumsum(f, axis=0)])
-        mean_w = (cw[end] - cw[end - self.every]) / self.every
-        mean_f = (cf[end] - cf[end - self.every]) / self.every
+        every, floor = self.every, math.sqrt(self.level_var)
         at_rest = set(rest.tolist())
-        last = ((index0 + epochs) // self.every) % self.level_every == 0
         out = []
-        for i, wi, fi, li in zip(epochs.tolist(), mean_w, mean_f, last.tolist(), strict=True):
-            found = self.tracker.add(wi, fi, i in at_rest, li)
+        for i in epochs.tolist():  # mostly one epoch a call (the stream)
+            end = i + old + 1
+            if end < every:
+                continue
+            last = ((index0 + i) // every) % self.level_every == 0
+            found = self.tracker.add(w[end - every : end].sum(axis=0) / every,
+                                     f[end - every : end].sum(axis=0) / every,
+                                     i in at_rest, last)  # fmt: skip
             if found is not None:
-                std = max(math.sqrt(self.level_var), found[1])
+                std = max(floor, found[1])
                 out.append((i, MeasurementItem(float(t[i]), "level", std, force_b=found[0])))
         return out
 
@@ -362,24 +362,54 @@ class VehicleAiding:
         return scaled_odometer(item, errors)
 
 
+def consider_update(
+    x: FloatArray,
+    P: FloatArray,
+    residual: FloatArray,
+    R: FloatArray,
+    H: FloatArray,
+    held: list[int],
+) -> tuple[FloatArray, FloatArray]:
+    """A Kalman update that leaves the states ``held`` alone (Schmidt-Kalman filter: their
+    rows of the gain are zero, the Joseph form keeps the covariance right for that gain)."""
+    PHt = P @ H.T
+    K = np.linalg.solve(H @ PHt + R, PHt.T).T
+    K[held] = 0.0
+    x = x + K @ (residual - H @ x)
+    IKH = np.eye(P.shape[0]) - K @ H
+    return x, IKH @ P @ IKH.T + K @ R @ K.T
+
+
+def consider_states(name: str, yaw_aligned: bool, index: Mapping[str, slice]) -> list[int]:
+    """The states an update of model ``name`` leaves alone (:func:`consider_update`; the
+    error-state layout's ``index`` by block name): the yaw (state 2) before it is acquired
+    (:func:`yaw_consider_update`); for a levelling the gyro's bias and scale factors.
+
+    A levelling's error is the body's acceleration, correlated over many seconds where it
+    changes slowly (a road's grade, a gentle speed change): the tilt drifts it would show
+    between two levellings would pass for a gyro bias, which the stops' zero-rate updates
+    and the headings observe instead (docs/filter.md §12.2)."""
+    held = [] if yaw_aligned else [2]
+    if name == "level":
+        held += [
+            i for b in ("bg", "sg") if b in index for i in range(index[b].start, index[b].stop)
+        ]
+    return held
+
+
 def yaw_consider_update(
     x: FloatArray, P: FloatArray, residual: FloatArray, R: FloatArray, H: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """A Kalman update that leaves the yaw error (state 2) alone: the ESKF's update of the
     velocity pseudo-measurements before the yaw is acquired.
 
-    The yaw is then a *consider* state (Schmidt-Kalman filter): its row of the gain is
-    zero, the Joseph form keeps the covariance right for that gain. With a yaw sigma of
-    1 rad the linear model would otherwise turn small tilt-yaw correlations (the Earth
-    rate's gyrocompassing, the NHC's yaw dependence) into large yaw corrections, and the
-    headings would no longer agree for the acquisition (docs/filter.md).
+    The yaw is then a *consider* state (Schmidt-Kalman filter, :func:`consider_update`).
+    With a yaw sigma of 1 rad the linear model would otherwise turn small tilt-yaw
+    correlations (the Earth rate's gyrocompassing, the NHC's yaw dependence) into large
+    yaw corrections, and the headings would no longer agree for the acquisition
+    (docs/filter.md).
     """
-    PHt = P @ H.T
-    K = np.linalg.solve(H @ PHt + R, PHt.T).T
-    K[2] = 0.0
-    x = x + K @ (residual - H @ x)
-    IKH = np.eye(P.shape[0]) - K @ H
-    return x, IKH @ P @ IKH.T + K @ R @ K.T
+    return consider_update(x, P, residual, R, H, [2])
 
 
 def vehicle_items(
@@ -437,8 +467,14 @@ def with_standstill(measurements: pd.DataFrame | None, t: ArrayLike, std: float)
 
 
 __all__ = [
+    "LEVEL_INTERVAL_S",
+    "LEVEL_WINDOW_S",
     "STANDSTILL_PROB",
+    "ForceTracker",
     "VehicleAiding",
+    "consider_states",
+    "consider_update",
+    "level_variance",
     "mat_vb_from_mount",
     "odometer_items",
     "scaled_odometer",

@@ -72,7 +72,7 @@ from polins.fusion.items import (
 )
 from polins.fusion.measurement import Linearized
 from polins.fusion.sky_states import ModelPart
-from polins.fusion.vehicle import VehicleAiding, yaw_consider_update
+from polins.fusion.vehicle import VehicleAiding, consider_states, consider_update
 from polins.ins.state import NavState
 from polins.ins.strapdown import Mechanization, strapdown_increment
 
@@ -473,10 +473,11 @@ class ESKF:
         if item.kind in ("yaw", "sun") and self.acquisition.held:
             self.acquisition.clear()
         x_before = self.x
-        if self.yaw_aligned:
+        if self.yaw_aligned and lin.name != "level":
             self.x, self.P = kalman_update(self._kf, self.x, self.P, lin)
-        else:  # yaw unknown
-            self.x, self.P = yaw_consider_update(self.x, self.P, lin.residual, lin.R, lin.H)
+        else:  # yaw unknown, or a levelling: consider states (fusion/vehicle.py)
+            held = consider_states(lin.name, self.yaw_aligned, self.layout.index)
+            self.x, self.P = consider_update(self.x, self.P, lin.residual, lin.R, lin.H, held)
         self.correction += self.x - x_before
         return self._record(item, dim, nis, True, "", nu, S)
 

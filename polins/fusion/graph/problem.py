@@ -194,8 +194,9 @@ class Problem:
         self.state0, self.bias0, self.priors = self._first_state(t_imu, accel, rot_nb0)
         self.states.start(self.meas, self.state0.attitude().matrix())
         self.priors += self.states.priors()
-        for k in range(1, n_key):
-            self.aux[k] += self.states.between(k)
+        # the variables' links from keyframe k - 1 to k
+        self.links: list[list[gtsam.NonlinearFactor]] = [[]]
+        self.links += [self.states.between(k) for k in range(1, n_key)]
         self.n_headings = len(self.meas)  # the yaw / sun factors kept by the acquisition
         # Zero velocity: gated like the headings (the standstill detector also fires at
         # a constant speed; the ESKF's gate rejects those updates too).
@@ -534,6 +535,14 @@ class Problem:
         if k == 0:
             return scale_factor_priors(*std)
         return scale_factor_links(k, float(self.t_key[k] - self.t_key[k - 1]), *std)
+
+    def keys_at(self, k: int, constants: bool) -> list[int]:
+        """The keys of keyframe ``k`` (and, with ``constants``, of the run's constants)."""
+        keys = [X(k), V(k), B(k), *self.scale_values(k).keys()]
+        keys += [self.states.key(v, k) for v in self.states.variables if v.per_keyframe]
+        if constants:
+            keys += [self.states.key(v, 0) for v in self.states.variables if not v.per_keyframe]
+        return keys
 
     def scale_values(self, k: int) -> gtsam.Values:
         """Initial values of keyframe ``k``'s scale factors ``sg, sa`` (zero: the factors
