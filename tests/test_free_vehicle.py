@@ -5,8 +5,7 @@ same trajectory, mounting, road vibration and ``mems-typical`` errors for a seed
 ``[vehicle]`` table (no non-holonomic, zero-velocity or odometer updates). The headings are
 drawn in closed loop as the camera loop makes them: the sun's azimuth seen in the body,
 levelled with the filter's own attitude (the tilt-coupled model of docs/filter.md §5.2),
-0.011 deg at 5 Hz (docs/filter.md §12). The filter levels with the accelerometer once a
-second, with the sigma of the specific force's recent change (docs/filter.md §12.2).
+0.011 deg at 5 Hz (docs/filter.md §12).
 """
 
 from __future__ import annotations
@@ -22,7 +21,6 @@ from scipy.spatial.transform import Rotation
 
 from polins.fusion.api import run_fusion
 from polins.fusion.config import FuseConfig
-from polins.fusion.items import gate_limit
 from polins.fusion.measurement import yaw_kernel
 from polins.fusion.vehicle import vehicle_items
 from polins.models import load_imu
@@ -41,7 +39,7 @@ def run(seed: int, duration_s: float, vibration: bool = True, rows: list | None 
 
 @pytest.fixture(scope="module")
 def drives():
-    return {seed: run(seed, 200.0) for seed in (2, 4)}
+    return {seed: run(seed, 90.0) for seed in (2, 3)}
 
 
 def test_the_updates_at_rest_come_only_at_the_stops():
@@ -54,8 +52,7 @@ def test_the_updates_at_rest_come_only_at_the_stops():
     t = imu["t"].to_numpy()
     items = vehicle_items(cfg, t, imu[["gx", "gy", "gz"]].to_numpy(),
                           imu[["ax", "ay", "az"]].to_numpy())  # fmt: skip
-    assert {it.kind for it in items} == {"zaru", "level"}
-    items = [it for it in items if it.kind == "zaru"]
+    assert {it.kind for it in items} == {"zaru"}
     k = np.searchsorted(t, [it.t for it in items])
     assert len(items) > 100
     assert np.linalg.norm(traj.vel_n[k], axis=1).max() < 0.01
@@ -82,34 +79,10 @@ def test_the_gyro_bias_is_recovered_at_the_stops():
         assert std < 0.3 * MEMS.gyro_bias, (c, std)
 
 
-def test_the_levelling_sigma_covers_the_acceleration():
-    """Once a second the mean specific force, with the sigma of its recent horizontal
-    change: at the true attitude and accelerometer bias, the horizontal specific force
-    over that sigma has a mean square near 1 where the gate would take it (the vehicle's
-    acceleration, the road's vibration, the white noise), and the gate holds back the
-    onsets of the manoeuvres (a few percent)."""
-    traj, imu, _, _, errors = drive(2, 200.0, MEMS)
-    cfg = FuseConfig.from_options(imu_model=MEMS, **SITE)
-    t = imu["t"].to_numpy()
-    items = vehicle_items(cfg, t, imu[["gx", "gy", "gz"]].to_numpy(),
-                          imu[["ax", "ay", "az"]].to_numpy())  # fmt: skip
-    level = [it for it in items if it.kind == "level"]
-    assert len(level) == 200  # one a second
-    k = np.searchsorted(t, [it.t for it in level])
-    bias = errors[["bax", "bay", "baz"]].to_numpy()
-    z = np.array([traj.rot_nb[j].apply(it.force_b - bias[j])[:2] / it.std
-                  for j, it in zip(k, level, strict=True)])  # fmt: skip
-    taken = np.sum(z**2, axis=1) <= gate_limit(cfg.gate_probability, 2)
-    assert 0.95 <= np.mean(taken) < 1.0, np.mean(taken)
-    assert 0.6 <= np.mean(z[taken] ** 2) <= 1.4, np.mean(z[taken] ** 2)
-
-
-def test_the_headings_observe_one_direction_the_levelling_the_tilt(drives):
+def test_the_headings_observe_one_direction_of_the_attitude(drives):
     """A tilt-coupled heading sees the sun's azimuth in the body: the attitude error is
-    observed along H (at the heading noise). The two directions it does not see (about
-    the sun vector, about the horizontal axis across the sun's azimuth) are tilts the
-    levelling observes, to the vehicle's acceleration: larger errors and sigmas there,
-    bounded."""
+    observed along H (at the heading noise), not about the sun vector nor about the
+    horizontal axis across the sun's azimuth, which carry the error of a free vehicle."""
     for seed, (traj, sun_n, (index, mats, covs, _)) in drives.items():
         late = traj.t[index] > 30.0
         err = (
@@ -123,28 +96,30 @@ def test_the_headings_observe_one_direction_the_levelling_the_tilt(drives):
         across /= np.linalg.norm(across)
         hidden = np.hypot(dtheta @ sun_n, dtheta @ across)
         assert np.sqrt(np.mean(seen**2)) < 3.0 * HEADING_STD, seed
-        assert np.sqrt(np.mean(hidden**2)) > 3.0 * np.sqrt(np.mean(seen**2)), seed
-        # the filter knows it: its sigma along H is at the heading noise, across it more
+        assert np.sqrt(np.mean(hidden**2)) > 10.0 * np.sqrt(np.mean(seen**2)), seed
+        # the filter knows it: its sigma along H is at the heading noise, across it 10x more
         var_seen = np.einsum("ni,nij,nj->n", h, covs[late], h) / np.einsum("ni,ni->n", h, h)
         var_sun = np.einsum("i,nij,j->n", sun_n, covs[late], sun_n)
-        var_across = np.einsum("i,nij,j->n", across, covs[late], across)
-        assert np.all(np.sqrt(var_sun) > 2.0 * np.sqrt(var_seen)), seed
-        assert np.all(np.sqrt(var_across) > 2.0 * np.sqrt(var_seen)), seed
-        assert np.degrees(np.sqrt(var_across.max())) < 0.2, seed
+        assert np.all(np.sqrt(var_sun) > 10.0 * np.sqrt(var_seen)), seed
 
 
-def test_unaided_headings_and_attitude_are_consistent(drives):
+def test_unaided_headings_are_consistent_and_the_sigmas_scatter_over_drives(drives):
     """The headings' NIS mean is 1 within its band on each drive (many independent
-    innovations); each drive's attitude RMS(err/sigma) is within 0.6-1.5 on every angle,
-    its errors below 0.1 deg (docs/filter.md §12.3)."""
+    innovations); the attitude's RMS(err/sigma) of one drive is a statistic of few
+    degrees of freedom (a drive's hidden error is mostly a few random constants), 0.34-2.02
+    over the drives of docs/filter.md §12.3; pooled over these two, near 1."""
+    ratios = []
     for seed, (traj, _, out) in drives.items():
         nis = out[3]
         half = 1.96 * math.sqrt(2.0 / nis.size)
         assert abs(np.mean(nis) - 1.0) < half, (seed, np.mean(nis), nis.size)
         s = scores(traj, *out[:3])
+        ratios.append([s[a][1] for a in ANGLES])
         for angle in ANGLES:
-            assert 0.6 <= s[angle][1] <= 1.5, (seed, s)
-            assert s[angle][0] < 0.1, (seed, s)  # [deg]
+            assert 0.15 <= s[angle][1] <= 2.2, (seed, s)
+            assert s[angle][0] < 0.25, (seed, s)  # [deg]
+    pooled = np.sqrt(np.mean(np.square(ratios), axis=0))
+    assert np.all((pooled >= 0.5) & (pooled <= 1.5)), pooled
 
 
 def test_the_graph_is_consistent_without_velocity_aiding(drives):

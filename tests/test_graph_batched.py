@@ -5,6 +5,7 @@ row)."""
 
 import gtsam
 import numpy as np
+import pandas as pd
 from gtsam.symbol_shorthand import B, V, X
 from scipy.spatial.transform import Rotation
 
@@ -138,3 +139,49 @@ def test_batched_linearization_of_a_graph():
         for x, y in zip(lin_b.at(i).jacobian(), lin_o.at(i).jacobian(), strict=True):
             np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9)
     assert all(b.lookup(s, values, None) is None for b in batches for s in range(len(b.keys)))
+
+
+def test_windowed_batch_agrees_with_the_whole_log_batch(monkeypatch):
+    # a 150 s MEMS UGV drive in 60 s windows (overlap 30 s): the last window, whose prior
+    # carries everything before its join, reproduces the whole-log batch (to a tenth of a sigma: the past is linearized at the earlier windows' estimates); before it each
+    # window lacks the later drive's information on the constants (scale factors), so its
+    # sigmas are no smaller and its attitude agrees within them
+    import polins.fusion.graph.windows as W
+    from polins.frames import wrap_angle
+    from polins.fusion import FuseConfig, run_fusion
+    from polins.sim.imu import ideal_imu, imu_errors
+    from polins.sim.trajectory import ugv_drive
+
+    model = load_imu("mems-typical")
+    rng = np.random.default_rng(3)
+    traj = ugv_drive(duration_s=150.0, rng=rng)
+    imu, _ = imu_errors(ideal_imu(traj), model, rng)
+    truth = traj.truth_frame()
+    t = np.arange(0.2, 150.0, 0.2)
+    yaw = np.interp(t, truth["t"], np.unwrap(truth["yaw"]))
+    std = np.radians(0.3)
+    meas = pd.DataFrame(
+        {"t": t, "yaw": wrap_angle(yaw + rng.normal(0.0, std, t.size)), "yaw_std": std}
+    )
+    site = {"lat_deg": 45.6234, "lon_deg": 126.7264, "alt_m": 148.74}
+    config = FuseConfig.from_options(imu_model=model, vehicle="ground", output_rate_hz=2.0, **site)
+    whole = run_fusion(imu, meas, "graph", config=config)
+    monkeypatch.setattr(W, "WINDOW_S", 60.0)
+    monkeypatch.setattr(W, "OVERLAP_S", 30.0)
+    import polins.fusion.graph.solvers as S
+
+    monkeypatch.setattr(S, "OVERLAP_S", 30.0)
+    parts = run_fusion(imu, meas, "graph", config=config)
+    assert parts.info["windows"] == 4 and whole.info["windows"] == 1
+    a, b = whole.solution, parts.solution
+    last = a["t"].to_numpy() >= 90.0  # the last window's own keyframes
+    for c in ("roll", "pitch", "yaw"):
+        diff = wrap_angle(b[c].to_numpy() - a[c].to_numpy())
+        sig_a, sig_b = a[f"{c}_std"].to_numpy(), b[f"{c}_std"].to_numpy()
+        np.testing.assert_allclose(diff[last] / sig_a[last], 0.0, atol=0.1)
+        np.testing.assert_allclose(sig_b[last], sig_a[last], rtol=0.05)
+        assert np.all(sig_b >= 0.99 * sig_a), c
+        assert np.all(np.abs(diff) <= 3.0 * sig_b), c
+    same = whole.updates.reset_index(drop=True), parts.updates.reset_index(drop=True)
+    assert len(same[0]) == len(same[1])
+    np.testing.assert_array_equal(same[0]["t"], same[1]["t"])

@@ -23,7 +23,6 @@ from scipy.stats import chi2
 from polins.frames import euler_from_rot_nb, rot_nb_from_euler
 from polins.fusion.measurement import (
     Linearized,
-    level_kernel,
     mount_rotation,
     non_holonomic_kernel,
     odometer_kernel,
@@ -37,8 +36,8 @@ from polins.fusion.measurement import (
 
 FloatArray = NDArray[np.float64]
 
-_KIND_ORDER = {"gap": -1, "yaw": 0, "sun": 1, "sun_azimuth": 1, "zupt": 2, "zaru": 2, "level": 2,
-               "nhc": 3, "odo": 4}  # fmt: skip
+_KIND_ORDER = {"gap": -1, "yaw": 0, "sun": 1, "sun_azimuth": 1, "zupt": 2, "zaru": 2, "nhc": 3,
+               "odo": 4}  # fmt: skip
 HEADING_KINDS = ("yaw", "sun", "sun_azimuth")  # the measurements of the heading
 # A heading row's model part counts as correlated from image to image beyond this many
 # times its noise part (docs/filter.md §5.7): below it the jackknife may report pixel noise.
@@ -64,9 +63,7 @@ class MeasurementItem:
     ``kind`` is ``"yaw"``, ``"sun"``, ``"sun_azimuth"`` (no clock: ``yaw`` holds the sun's
     body azimuth ``sun_azimuth_b``, ``elevation_b`` its body elevation, NaN when unknown),
     ``"zupt"``, ``"zaru"`` (zero angular rate: ``gyro_b`` the mean measured rate over an
-    interval at rest, ``rate_n`` the ENU rate a body at rest senses), ``"level"`` (gravity
-    levelling: ``force_b`` the mean measured specific force over an interval, ``std`` its
-    horizontal 1-sigma, docs/filter.md §12), ``"nhc"``, ``"odo"``
+    interval at rest, ``rate_n`` the ENU rate a body at rest senses), ``"nhc"``, ``"odo"``
     (a wheel-odometer ``speed`` [m/s]), or ``"gap"`` (not a
     measurement: the IMU resumes after a gap, the filter adds ``inflation`` to the
     covariance of its navigation errors, docs/filter.md); ``valid`` is False for rows with NaN values or a
@@ -93,7 +90,6 @@ class MeasurementItem:
     gyro_b: FloatArray | None = None  # "nhc", "odo" with a lever-arm state: omega_b [rad/s];
     # "zaru": the mean measured rate at rest [rad/s]
     rate_n: FloatArray | None = None  # "zaru": ENU rate sensed at rest (Earth rate) [rad/s]
-    force_b: FloatArray | None = None  # "level": the mean measured specific force [m/s^2]
     model_std: float = 0.0  # heading kinds: the sigma's part correlated between images [rad]
 
     @property
@@ -113,8 +109,8 @@ def item_model(
     nominal attitude ``mat_nb`` and ENU velocity ``vel_n`` [m/s] (only zero-velocity and
     non-holonomic items use it); ``tilt_coupling`` as ``FuseConfig.tilt_coupling``;
     ``states`` the estimates of the sensor-error blocks by name (a ``"sun_azimuth"`` item
-    needs :data:`SUN_AZIMUTH_STATE`; a ``"zaru"`` item takes the gyro bias ``"bg"``, a
-    ``"level"`` item the accelerometer bias ``"ba"``, zero when absent; with :data:`MOUNT_STATES` the non-holonomic and
+    needs :data:`SUN_AZIMUTH_STATE`; a ``"zaru"`` item takes the gyro bias ``"bg"``, zero
+    when absent; with :data:`MOUNT_STATES` the non-holonomic and
     odometer items use the mounting turned by their estimate,
     :func:`~polins.fusion.measurement.mount_rotation`, with :data:`LEVER_STATE` the lever
     arm plus its estimate). The ESKF and the GTSAM graph both linearize their items here.
@@ -142,13 +138,8 @@ def _vehicle_model(
     vel_n: FloatArray | None,
     states: Mapping[str, FloatArray] | None,
 ) -> Linearized:
-    """:func:`item_model` of the vehicle's kinds (zero rate, levelling, zero velocity, NHC,
-    odometer)."""
+    """:func:`item_model` of the vehicle's kinds (zero rate, zero velocity, NHC, odometer)."""
     var = item.std * item.std
-    if item.kind == "level":
-        assert item.force_b is not None  # built by VehicleAiding
-        bias = states["ba"] if states is not None and "ba" in states else np.zeros(3)
-        return level_kernel(mat_nb, item.force_b, bias, np.full(2, var))
     if item.kind == "zaru":
         assert item.gyro_b is not None  # built by VehicleAiding
         bias = states["bg"] if states is not None and "bg" in states else np.zeros(3)

@@ -54,7 +54,6 @@ from polins.errors import UserInputError
 from polins.fusion.config import NHC_RATE_HZ, STANDSTILL_WINDOW_S, FuseConfig
 from polins.fusion.items import MeasurementItem
 from polins.ins.earth import OMEGA_IE, earth_rate_n
-from polins.ins.strapdown import rotvec_matrix
 from polins.models import ImuModel
 
 FloatArray = NDArray[np.float64]
@@ -133,74 +132,6 @@ def zero_rate_std(model: ImuModel, m: int, dt: float) -> float | None:
     return float(std) if std > 0.0 else None
 
 
-LEVEL_INTERVAL_S = 1.0  # [s] interval of the levelling's mean specific force
-LEVEL_WINDOW_S = 3.0  # [s] trailing window of the levelling's acceleration change
-
-
-def level_variance(model: ImuModel, duration_s: float) -> float | None:
-    """Variance [(m/s^2)^2] of each component of the mean specific force over
-    ``duration_s`` [s] from the accelerometer's white noise, ``VRW^2 / duration_s``; None
-    for a model without accelerometer white noise."""
-    var = model.accel_vrw**2 / duration_s
-    return float(var) if var > 0.0 else None
-
-
-class ForceTracker:
-    """The mean specific force of each levelling interval and its change over a trailing
-    window, in a frame the gyro carries (docs/filter.md §12.2).
-
-    Each epoch's mean specific force is turned into the frame of the first epoch with the
-    epoch's mean rate (less the mean rate of the last epoch at rest: the bias and the Earth
-    rate); gravity stays put in that frame, so what changes there is the body's
-    acceleration. Every ``per_interval`` epochs the interval's mean force, turned back into
-    the current body frame, and the largest distance between it and the means of the
-    intervals of the trailing window are handed out.
-    """
-
-    def __init__(self, epoch_s: float, per_interval: int, per_window: int) -> None:
-        self.epoch_s = epoch_s
-        self.per_interval = per_interval
-        self.per_window = per_window
-        self.mat = np.eye(3)  # the current body frame in the tracker's frame
-        self.bias_b = np.zeros(3)  # the mean rate of the last epoch at rest [rad/s]
-        self.sum = np.zeros(3)  # the interval's forces so far, in the tracker's frame
-        self.count = 0
-        self.means: list[FloatArray] = []  # the last intervals' means, in the tracker's frame
-
-    def add(
-        self, rate_b: FloatArray, force_b: FloatArray, at_rest: bool, last: bool
-    ) -> tuple[FloatArray, float] | None:
-        """Add an epoch (``rate_b`` [rad/s], ``force_b`` [m/s^2]: the means over its
-        samples); where it is the ``last`` of an interval with all its epochs, the
-        interval's mean force in the current body frame and its largest change [m/s^2]."""
-        if at_rest:
-            self.bias_b = rate_b
-        # the mean force is that of the epoch's middle: half a step, then the other half
-        x, y, z = ((rate_b - self.bias_b) * (0.5 * self.epoch_s)).tolist()
-        half = np.empty((3, 3))
-        rotvec_matrix(x, y, z, half)
-        self.mat = self.mat @ half
-        self.sum = self.sum + self.mat @ force_b
-        self.mat = self.mat @ half
-        self.count += 1
-        if not last:
-            return None
-        full, mean = self.count == self.per_interval, self.sum / max(self.count, 1)
-        self.sum, self.count = np.zeros(3), 0
-        if not full:
-            return None
-        change = 0.0
-        if self.means:  # the horizontal changes: across the window's mean force (gravity)
-            up = np.sum(self.means, axis=0) + mean
-            up /= np.linalg.norm(up)
-            diff = mean - np.array(self.means)
-            diff -= np.outer(diff @ up, up)
-            change = float(np.max(np.einsum("ij,ij->i", diff, diff)))
-        self.means = [*self.means[1 - self.per_window :], mean]
-        # two horizontal components, each the difference of two independent draws
-        return self.mat.T @ mean, math.sqrt(change / 4.0)
-
-
 def window_samples(window_s: float, dt: float) -> int:
     """Samples in a window of ``window_s`` [s] at the interval ``dt`` [s] (at least 2)."""
     return max(2, round(window_s / dt))
@@ -233,24 +164,14 @@ class VehicleAiding:
         self.lever_arm_b = lever if np.any(lever) else None
         self.lever_state = config.lever_sigma is not None  # the items carry omega_b
         self.detect = not self.static
-        # gravity levelling: a vehicle without velocity aiding (docs/filter.md §12)
-        aided = any(s is not None for s in (self.nhc_std, self.zupt_std, config.odometer_sigma))
-        self.level_var = None if aided else level_variance(config.imu, LEVEL_INTERVAL_S)
-        self.active = any(s is not None for s in (self.nhc_std, self.zupt_std, self.zaru_std,
-                                                  self.level_var))  # fmt: skip
-        self.level_every = max(1, round(LEVEL_INTERVAL_S * NHC_RATE_HZ))  # epochs
-        self.tracker = ForceTracker(
-            self.every * dt, self.level_every, max(1, round(LEVEL_WINDOW_S / LEVEL_INTERVAL_S))
-        )
+        self.active = any(s is not None for s in (self.nhc_std, self.zupt_std, self.zaru_std))
         self._keep = max(self.n, self.every) - 1  # samples kept between calls
         self._gyro = np.zeros((0, 3))  # the last `_keep` samples
         self._accel = np.zeros((0, 3))
 
     def copy(self) -> VehicleAiding:
-        """An independent copy (the detector's window, the levelling's tracker)."""
-        out = copy.copy(self)  # the window arrays are replaced, never changed in place
-        out.tracker = copy.copy(self.tracker)  # so are the tracker's
-        return out
+        """An independent copy (the detector's window)."""
+        return copy.copy(self)  # the window arrays are replaced, never changed in place
 
     def items(
         self, t: FloatArray, gyro_b: FloatArray, accel_b: FloatArray, index0: int
@@ -278,7 +199,6 @@ class VehicleAiding:
             for i in rest.tolist() if self.zupt_std is not None
         ]  # fmt: skip
         out += self._zero_rate(t, w, old, rest)
-        out += self._level(t, w, f, old, epochs, rest, index0)
         if self.nhc_std is not None:
             out += [(i, self.attach(MeasurementItem(float(t[i]), "nhc", self.nhc_std), gyro_b[i]))
                     for i in epochs.tolist()]  # fmt: skip
@@ -300,37 +220,6 @@ class VehicleAiding:
         return [(i, MeasurementItem(float(t[i]), "zaru", self.zaru_std, gyro_b=m,
                                     rate_n=self.rate_n))
                 for i, m in zip(rest.tolist(), mean, strict=True)]  # fmt: skip
-
-    def _level(
-        self,
-        t: FloatArray,
-        w: FloatArray,
-        f: FloatArray,
-        old: int,
-        epochs: NDArray[np.int_],
-        rest: NDArray[np.int_],
-        index0: int,
-    ) -> list[tuple[int, MeasurementItem]]:
-        """The levelling items at the ``epochs`` (positions in ``t``, the first sample
-        ``index0``) that end a levelling interval: its mean specific force with the sigma of
-        its change (:class:`ForceTracker`; ``w``, ``f`` hold ``old`` samples before ``t``)."""
-        if self.level_var is None:
-            return []
-        end = epochs + old + 1
-        epochs, end = epochs[end >= self.every], end[end >= self.every]
-        cw = np.concatenate([np.zeros((1, 3)), np.cumsum(w, axis=0)])
-        cf = np.concatenate([np.zeros((1, 3)), np.cumsum(f, axis=0)])
-        mean_w = (cw[end] - cw[end - self.every]) / self.every
-        mean_f = (cf[end] - cf[end - self.every]) / self.every
-        at_rest = set(rest.tolist())
-        last = ((index0 + epochs) // self.every) % self.level_every == 0
-        out = []
-        for i, wi, fi, li in zip(epochs.tolist(), mean_w, mean_f, last.tolist(), strict=True):
-            found = self.tracker.add(wi, fi, i in at_rest, li)
-            if found is not None:
-                std = max(math.sqrt(self.level_var), found[1])
-                out.append((i, MeasurementItem(float(t[i]), "level", std, force_b=found[0])))
-        return out
 
     def attach(self, item: MeasurementItem, gyro_b: FloatArray) -> MeasurementItem:
         """``item`` with the mounting and ``omega_b x lever_arm_b`` at the rate ``gyro_b``

@@ -8,6 +8,7 @@ keyframe states, and returns the same solution table
 (:func:`polins.ins.state.solution_table`). Modules: :mod:`~polins.fusion.graph.factors`,
 :mod:`~polins.fusion.graph.problem`, :mod:`~polins.fusion.graph.solvers` (batch),
 :mod:`~polins.fusion.graph.incremental`, :mod:`~polins.fusion.graph.batched`,
+:mod:`~polins.fusion.graph.windows`, :mod:`~polins.fusion.graph.estimates`,
 :mod:`~polins.fusion.graph.start`, :mod:`~polins.fusion.graph.output`.
 
 Graph
@@ -86,7 +87,10 @@ QR-eliminated Bayes tree, every variable's in one pass
 (:func:`~polins.fusion.graph.solvers.marginal_covariances`). Outliers are gated on the
 post-fit residuals (``r^T (R - H P H^T)^-1 r`` against the chi-square quantile
 ``gate_prob``), each round those at least half the largest exceedance within 30 s
-(``solvers.GATE_SPAN_S``), and the graph is re-solved without them.
+(``solvers.GATE_SPAN_S``), and the graph is re-solved without them. Its Python factors are
+evaluated by type in numpy before each linearization (:mod:`~polins.fusion.graph.batched`);
+a log longer than ``windows.WINDOW_S`` is solved in overlapping windows, each with the
+past as its prior (:mod:`~polins.fusion.graph.windows`).
 ``"isam2"``: incremental ``gtsam.ISAM2`` as used online: each keyframe is reported as
 estimated when it was added (causal, like the filter); gating on the predicted residual
 with the previous keyframe's covariance. ``"fixed_lag"``:

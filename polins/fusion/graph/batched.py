@@ -93,20 +93,36 @@ class FactorBatch:
         return tuple(np.array(column, dtype=float) for column in zip(*self.params, strict=True))
 
     def evaluate(
-        self, reader: ValueReader, params: tuple[Any, ...]
+        self, reader: ValueReader, params: tuple[Any, ...], keys: list[tuple[int, ...]]
     ) -> tuple[FloatArray, list[FloatArray], NDArray[np.bool_]]:
         """Errors ``(N, m)``, Jacobians (one ``(N, m, d_j)`` array per key) and the slots
-        whose model is defined, at the reader's values."""
+        whose model is defined, at the reader's values, of the slots with ``keys`` and
+        parameters ``params`` (:meth:`stack`'s, selected)."""
         raise NotImplementedError
 
     def prepare(self, reader: ValueReader) -> None:
-        """Evaluate every factor at the reader's values."""
+        """Evaluate every factor whose keys the reader's values hold (a window's: those of
+        its keyframes)."""
         self.clear()
         if not self.keys:
             return
         if self._stacked is None:
             self._stacked = self.stack()
-        err, jac, ok = self.evaluate(reader, self._stacked)
+        live = np.array([reader.values.exists(k[0]) for k in self.keys])
+        if live.all():
+            err, jac, ok = self.evaluate(reader, self._stacked, self.keys)
+        else:
+            keys = [k for k, on in zip(self.keys, live, strict=True) if on]
+            params = tuple(p if isinstance(p, gtsam.NonlinearFactorGraph) else p[live]
+                           for p in self._stacked)  # fmt: skip
+            part = self.evaluate(reader, params, keys)
+            err = np.zeros((len(self.keys), *part[0].shape[1:]))
+            err[live] = part[0]
+            jac = [np.zeros((len(self.keys), *j.shape[1:])) for j in part[1]]
+            for full, j in zip(jac, part[1], strict=True):
+                full[live] = j
+            ok = np.zeros(len(self.keys), bool)
+            ok[live] = part[2]
         self._err = np.ascontiguousarray(err)
         self._jac = [np.ascontiguousarray(j) for j in jac]
         self._ok = ok
@@ -171,15 +187,15 @@ class NonHolonomicBatch(FactorBatch):
     kinds = (POSE, VECTOR)
 
     def evaluate(
-        self, reader: ValueReader, params: tuple[Any, ...]
+        self, reader: ValueReader, params: tuple[Any, ...], keys: list[tuple[int, ...]]
     ) -> tuple[FloatArray, list[FloatArray], NDArray[np.bool_]]:
         mat_vb, lever = params
-        mat_nb = rotations(reader, self.keys, 0)
-        vel_n = vectors(reader, self.keys, 1)
+        mat_nb = rotations(reader, keys, 0)
+        vel_n = vectors(reader, keys, 1)
         vel_v, mat_vn = vehicle_velocity(mat_nb, vel_n, mat_vb, lever)
         h_att = (mat_vn @ skew(vel_n))[:, 1:3]
         jac = [body_columns(h_att, mat_nb), mat_vn[:, 1:3]]
-        return vel_v[:, 1:3], jac, np.ones(len(self.keys), bool)
+        return vel_v[:, 1:3], jac, np.ones(len(keys), bool)
 
 
 class OdometerBatch(FactorBatch):
@@ -191,12 +207,12 @@ class OdometerBatch(FactorBatch):
     kinds = (POSE, VECTOR, VECTOR)
 
     def evaluate(
-        self, reader: ValueReader, params: tuple[Any, ...]
+        self, reader: ValueReader, params: tuple[Any, ...], keys: list[tuple[int, ...]]
     ) -> tuple[FloatArray, list[FloatArray], NDArray[np.bool_]]:
         speed, std, mat_vb, lever = params
-        mat_nb = rotations(reader, self.keys, 0)
-        vel_n = vectors(reader, self.keys, 1)
-        div = 1.0 + vectors(reader, self.keys, 2)[:, 0]
+        mat_nb = rotations(reader, keys, 0)
+        vel_n = vectors(reader, keys, 1)
+        div = 1.0 + vectors(reader, keys, 2)[:, 0]
         speed, std = speed / div, std / div
         vel_v, mat_vn = vehicle_velocity(mat_nb, vel_n, mat_vb, lever)
         residual = speed - vel_v[:, 0]
@@ -204,7 +220,7 @@ class OdometerBatch(FactorBatch):
         h_att = (mat_vn @ skew(vel_n))[:, 0:1]
         h_so = ((speed - residual) / div)[:, None, None]
         jac = [white * body_columns(h_att, mat_nb), white * mat_vn[:, 0:1], white * h_so]
-        return (-residual / std)[:, None], jac, np.ones(len(self.keys), bool)
+        return (-residual / std)[:, None], jac, np.ones(len(keys), bool)
 
 
 class YawBatch(FactorBatch):
@@ -218,9 +234,9 @@ class YawBatch(FactorBatch):
         self.tilt = tilt
 
     def evaluate(
-        self, reader: ValueReader, params: tuple[Any, ...]
+        self, reader: ValueReader, params: tuple[Any, ...], keys: list[tuple[int, ...]]
     ) -> tuple[FloatArray, list[FloatArray], NDArray[np.bool_]]:
-        mat_nb = rotations(reader, self.keys, 0)
+        mat_nb = rotations(reader, keys, 0)
         if not self.tilt:
             (yaw,) = params
             ax, ay, az = mat_nb[:, 0, 0], mat_nb[:, 1, 0], mat_nb[:, 2, 0]
@@ -263,21 +279,21 @@ class ScaleImuBatch(FactorBatch):
         return graph, h_rot, w_pv, jac_pv
 
     def evaluate(
-        self, reader: ValueReader, params: tuple[Any, ...]
+        self, reader: ValueReader, params: tuple[Any, ...], keys: list[tuple[int, ...]]
     ) -> tuple[FloatArray, list[FloatArray], NDArray[np.bool_]]:
         graph, h_rot, w_pv, jac_pv = params
-        n = len(self.keys)
+        n = len(keys)
         linear = graph.linearize(reader.values)
         a_mat = np.empty((n, 15, 30))
         b_vec = np.empty((n, 15))
         for i in range(n):
             a_mat[i], b_vec[i] = linear.at(i).jacobian()
-        mat_i = rotations(reader, self.keys, 0)
-        mat_j = rotations(reader, self.keys, 2)
+        mat_i = rotations(reader, keys, 0)
+        mat_j = rotations(reader, keys, 2)
         mat_ji = np.swapaxes(mat_j, 1, 2) @ mat_i
         turned = (mat_ji[:, None] @ jac_pv).reshape(n, 6, 6)
         h_s = h_rot + w_pv @ turned
-        s = np.concatenate([vectors(reader, self.keys, 6), vectors(reader, self.keys, 7)], 1)
+        s = np.concatenate([vectors(reader, keys, 6), vectors(reader, keys, 7)], 1)
         u = np.einsum("npij,nj->npi", jac_pv, s)  # (N, 2, 3): J_p s, J_v s
         a_mat[:, :, 0:3] -= w_pv @ (mat_ji[:, None] @ skew(u)).reshape(n, 6, 3)
         u_j = np.einsum("npj,nkj->npk", u, mat_ji)  # u @ mat_ji.T

@@ -230,7 +230,8 @@ class _IncrementalRun:
         pred = pim.predict(state, bias)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(prob.imu_factor(k, pim, self.scale))
-        for f in list(prob.aux[k + 1]) + self.gated(k + 1, pred, cov_prev, extra, bias):
+        gated = self.gated(k + 1, pred, cov_prev, extra, bias)
+        for f in [*prob.aux[k + 1], *prob.links[k + 1], *gated]:
             graph.add(f)
         values = gtsam.Values()
         values.insert(X(k + 1), pred.pose())

@@ -159,7 +159,7 @@ class Problem:
         n_given = len(zupts)
         zupts += [it for it in ground if it.kind == "zupt"]
         nhcs = [it for it in ground if it.kind == "nhc"]
-        zarus = [it for it in ground if it.kind in ("zaru", "level")]  # at rest, levelling
+        zarus = [it for it in ground if it.kind == "zaru"]
         # Times within TIME_TOL_S of an IMU sample are moved onto it (as the ESKF does).
         t_aid = snap_times([it.t for it in aiding], t_imu, TIME_TOL_S).tolist()
         t_zupt = snap_times([it.t for it in zupts], t_imu, TIME_TOL_S).tolist()
@@ -194,8 +194,9 @@ class Problem:
         self.state0, self.bias0, self.priors = self._first_state(t_imu, accel, rot_nb0)
         self.states.start(self.meas, self.state0.attitude().matrix())
         self.priors += self.states.priors()
-        for k in range(1, n_key):
-            self.aux[k] += self.states.between(k)
+        # the variables' links from keyframe k - 1 to k
+        self.links: list[list[gtsam.NonlinearFactor]] = [[]]
+        self.links += [self.states.between(k) for k in range(1, n_key)]
         self.n_headings = len(self.meas)  # the yaw / sun factors kept by the acquisition
         # Zero velocity: gated like the headings (the standstill detector also fires at
         # a constant speed; the ESKF's gate rejects those updates too).
@@ -252,11 +253,7 @@ class Problem:
             zarus = [it for it in zarus if it.t >= first]
         for it in zarus:
             key = self.key_of(it.t)
-            if key is not None and it.force_b is not None:  # levelling (docs/filter.md §12)
-                self.detected.add(len(self.meas))
-                factor = levelling_factor(X(key), B(key), it.force_b, it.std)
-                self.meas.append(MeasFactor(key, it, factor))
-            elif key is not None and it.gyro_b is not None:
+            if key is not None and it.gyro_b is not None:
                 self.detected.add(len(self.meas))
                 factor = zero_rate_factor(X(key), B(key), it.gyro_b, it.std, it.rate_n)
                 self.meas.append(MeasFactor(key, it, factor))
@@ -534,6 +531,14 @@ class Problem:
         if k == 0:
             return scale_factor_priors(*std)
         return scale_factor_links(k, float(self.t_key[k] - self.t_key[k - 1]), *std)
+
+    def keys_at(self, k: int, constants: bool) -> list[int]:
+        """The keys of keyframe ``k`` (and, with ``constants``, of the run's constants)."""
+        keys = [X(k), V(k), B(k), *self.scale_values(k).keys()]
+        keys += [self.states.key(v, k) for v in self.states.variables if v.per_keyframe]
+        if constants:
+            keys += [self.states.key(v, 0) for v in self.states.variables if not v.per_keyframe]
+        return keys
 
     def scale_values(self, k: int) -> gtsam.Values:
         """Initial values of keyframe ``k``'s scale factors ``sg, sa`` (zero: the factors

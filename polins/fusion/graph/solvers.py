@@ -8,8 +8,7 @@ diagnostics to ``info``, and returns the keyframe
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any
 
 import gtsam
@@ -19,11 +18,18 @@ from numpy.typing import NDArray
 from scipy.linalg.lapack import dtrtri
 
 from polins.fusion.config import MAX_GATE_ROUNDS, MAX_ITERATIONS
-from polins.fusion.graph.batched import FactorBatch, ScaleImuBatch
-from polins.fusion.graph.batched import linearize as batched_linearize
+from polins.fusion.graph import windows as windows_module
 from polins.fusion.graph.estimates import Estimates
 from polins.fusion.graph.incremental import solve_incremental
 from polins.fusion.graph.problem import Problem
+from polins.fusion.graph.windows import (
+    OVERLAP_S,
+    BatchGraph,
+    batch_graph,
+    past_prior,
+    window_values,
+    windows,
+)
 from polins.fusion.items import UpdateRecord, gate_limit
 
 FloatArray = NDArray[np.float64]
@@ -195,80 +201,20 @@ def optimize(
     return levenberg_marquardt_qr(graph, values, max_iterations=5 * MAX_ITERATIONS)
 
 
-@dataclass(eq=False)
-class BatchGraph:
-    """The whole-log graph of the batch solver (:func:`batch_graph`): the graph, its
-    initial values, the batches of its Python factors (:mod:`polins.fusion.graph.batched`)
-    and the index in the graph of each measurement factor (index into ``Problem.meas``)."""
-
-    graph: gtsam.NonlinearFactorGraph
-    values: gtsam.Values
-    batches: list[FactorBatch]
-    where: dict[int, int]
-
-    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
-        """The graph linearized at ``values``, its Python factors evaluated by type."""
-        return batched_linearize(self.graph, values, self.batches)
-
-    def remove(self, gated: Iterable[int]) -> None:
-        """Take the measurement factors ``gated`` (indices into ``Problem.meas``) out."""
-        for i in gated:
-            self.graph.remove(self.where.pop(i))
-
-
-def batch_graph(
-    prob: Problem, rejected: set[int], linearization: gtsam.Values | None
-) -> BatchGraph:
-    """Whole-log graph without the ``rejected`` measurement factors, with initial values
-    (dead reckoning, or ``linearization``, whose velocity, position and bias also set the
-    transport rate and the bias of the preintegration)."""
-    imu_batch = ScaleImuBatch()
-    graph = gtsam.NonlinearFactorGraph()
-    for f in prob.priors:
-        graph.add(f)
-    values = gtsam.Values()
-    state, bias = prob.state0, prob.bias0
-    values.insert(X(0), state.pose())
-    values.insert(V(0), state.velocity())
-    values.insert(B(0), bias)
-    values.insert(prob.scale_values(0))
-    values.insert(prob.states.initial(0, prob.states.guess))
-    where: dict[int, int] = {}
-    for k in range(len(prob.t_key)):
-        for f in prob.aux[k] + prob.scale_factors_at(k):
-            graph.add(f)
-        for i in prob.meas_at[k]:
-            if i not in rejected:
-                where[i] = graph.size()
-                graph.add(prob.meas[i].factor)
-        if k == len(prob.t_key) - 1:
-            break
-        if linearization is not None:
-            state = gtsam.NavState(linearization.atPose3(X(k)), linearization.atVector(V(k)))
-            bias = linearization.atConstantBias(B(k))
-        pim = prob.preintegrate(k, bias, prob.imu_correction(state))
-        graph.add(prob.imu_factor(k, pim, batch=imu_batch))
-        if linearization is None:
-            state = pim.predict(state, bias)
-            values.insert(X(k + 1), state.pose())
-            values.insert(V(k + 1), state.velocity())
-            values.insert(B(k + 1), bias)
-            values.insert(prob.states.initial(k + 1, prob.states.guess))
-            values.insert(prob.scale_values(k + 1))
-    values = values if linearization is None else linearization
-    return BatchGraph(graph, values, [*prob.batches(), imu_batch], where)
-
-
 def keyframe_estimates(
-    prob: Problem, result: gtsam.Values, bayes_tree: gtsam.GaussianBayesTree
-) -> Estimates:
-    """The keyframes' values and marginals (:func:`marginal_covariances`) of a solve."""
-    est = Estimates.empty(len(prob.t_key), prob.states.n)
+    prob: Problem,
+    result: gtsam.Values,
+    bayes_tree: gtsam.GaussianBayesTree,
+    frames: range,
+    est: Estimates,
+) -> None:
+    """The values and marginals (:func:`marginal_covariances`) of keyframes ``frames`` of a
+    solve into ``est``."""
     marginal = marginal_covariances(bayes_tree, result.dims()).__getitem__
     # the scale factors are constants: one marginal (the last keyframe's) for all
-    last = prob.scale_values(len(prob.t_key) - 1).keys()
+    last = prob.scale_values(frames[-1]).keys() if result.exists(X(frames[-1])) else []
     scale_cov = [marginal(key) for key in last]
-    for k in range(len(prob.t_key)):
+    for k in frames:
         est.store(
             k,
             result.atPose3(X(k)),
@@ -283,7 +229,6 @@ def keyframe_estimates(
         if prob.scale_jac is not None:
             cov_of = dict(zip(prob.scale_values(k).keys(), scale_cov, strict=True))
             est.store_scale(k, result.atVector, cov_of.__getitem__)
-    return est
 
 
 def solve_batch(
@@ -293,8 +238,11 @@ def solve_batch(
     causal: dict[int, tuple[float, str]] | None = None,
     progress: Callable[[str], None] | None = None,
     start: gtsam.Values | None = None,
+    window_s: float | None = None,
 ) -> Estimates:
-    """Gauss-Newton (QR) over the whole log, post-fit gating, QR marginals.
+    """Gauss-Newton (QR) over the log, post-fit gating, QR marginals; a log longer than
+    ``window_s`` [s] (default ``windows.WINDOW_S``) in overlapping windows
+    (:mod:`polins.fusion.graph.windows`).
 
     The zero-velocity factors of the standstill detector (``Problem.detected``) are gated
     first by a causal pass, as the ESKF gates them: the detector also fires at constant
@@ -304,9 +252,9 @@ def solve_batch(
     ISAM2 pass (:func:`solve_incremental`) gates them. ``progress`` is told each stage.
     ``start``: initial values of every key, also the linearization point of the
     preintegration (:func:`polins.fusion.graph.start.filter_values`); without them, dead
-    reckoning, and with the Earth rate a first solve from there gives the linearization
-    point of the preintegration. Each gate round re-solves the same graph without the
-    gated factors, from the last result.
+    reckoning (one window), and with the Earth rate a first solve from there gives the
+    linearization point of the preintegration. Each gate round re-solves the same graph
+    without the gated factors, from the last result.
     """
     rejected: dict[int, tuple[float, str]] = {}
     if prob.detected and causal is None:
@@ -316,15 +264,52 @@ def solve_batch(
     if prob.detected and causal:
         rejected = {i: (nis, f"causal {why}") for i, (nis, why) in causal.items()
                     if i in prob.detected}  # fmt: skip
-    iterations: list[int] = []
-    built = batch_graph(prob, set(rejected), start)
+    span_s = windows_module.WINDOW_S if window_s is None else window_s
+    spans = windows(prob.t_key, span_s if start is not None else np.inf, OVERLAP_S)
+    est = Estimates.empty(len(prob.t_key), prob.states.n)
+    info.update(iterations=[], error=0.0, n_factors=0, rejected=[], windows=len(spans))
+    priors: list[gtsam.NonlinearFactor] | None = None
+    result = None
+    for w, (frames, join) in enumerate(spans):
+        if progress is not None and len(spans) > 1:
+            progress(f"window {w + 1} of {len(spans)}")
+        init = start
+        if start is not None and result is not None:  # the overlap from the last window
+            init = window_values(prob, start, frames, result)
+        built, result = solve_window(prob, frames, join, priors, init, dict(rejected), records,
+                                     info, est, progress)  # fmt: skip
+        if join < len(prob.t_key):
+            priors = past_prior(prob, built, result, join)
+        del built
+    return est
+
+
+def solve_window(
+    prob: Problem,
+    frames: range,
+    join: int,
+    priors: list[gtsam.NonlinearFactor] | None,
+    start: gtsam.Values | None,
+    rejected: dict[int, tuple[float, str]],
+    records: list[UpdateRecord],
+    info: dict[str, Any],
+    est: Estimates,
+    progress: Callable[[str], None] | None,
+) -> tuple[BatchGraph, gtsam.Values]:
+    """One window's solve and gate rounds (:func:`solve_batch`): its keyframes before
+    ``join`` into ``est``, their measurements' verdicts into ``records``; returns the
+    window's graph and result."""
+    built = batch_graph(prob, set(rejected), start, frames, priors)
+    iterations = info["iterations"]
     if prob.earth_rate and start is None:
         if progress is not None:
             progress("solve 1 from dead reckoning")
         first, it, _tree, _error = optimize(built.graph, built.values, prob, built.linearize)
         iterations.append(it)
-        built = batch_graph(prob, set(rejected), first)
+        built = batch_graph(prob, set(rejected), first, frames, priors)
     result = built.values
+    inside = [i for k in frames for i in prob.meas_at[k]]
+    owned = {i for k in frames if k < join for i in prob.meas_at[k]}
     for gate_round in range(1 + MAX_GATE_ROUNDS):
         if progress is not None:
             progress(f"gate round {gate_round + 1}, solve {len(iterations) + 1}")
@@ -332,16 +317,19 @@ def solve_batch(
         iterations.append(it)
         if progress is not None:
             progress(f"gate round {gate_round + 1}, marginals")
-        est = keyframe_estimates(prob, result, bayes_tree)
+        keyframe_estimates(prob, result, bayes_tree, range(frames[0], join), est)
         del bayes_tree  # (memory)
-        new = post_fit_gate(prob, est, rejected, records, final=gate_round == MAX_GATE_ROUNDS)
+        final = gate_round == MAX_GATE_ROUNDS
+        new = post_fit_gate(prob, est, rejected, records, final=final, indices=inside,
+                            owned=owned)  # fmt: skip
         if not new:
             break
         rejected.update(new)
         built.remove(new)
-    info.update(iterations=iterations, error=error, n_factors=built.graph.nrFactors(),
-                rejected=sorted(rejected))  # fmt: skip
-    return est
+    info["error"] += error
+    info["n_factors"] += built.graph.nrFactors()
+    info["rejected"] = sorted({*info["rejected"], *(i for i in rejected if i in owned)})
+    return built, result
 
 
 def post_fit_gate(
@@ -351,6 +339,8 @@ def post_fit_gate(
     records: list[UpdateRecord],
     *,
     final: bool,
+    indices: Sequence[int] | None = None,
+    owned: Collection[int] | None = None,
 ) -> dict[int, tuple[float, str]]:
     """Post-fit chi-square gate of the yaw, sun and zero-velocity factors.
 
@@ -361,16 +351,20 @@ def post_fit_gate(
     ``GATE_SPAN_S`` of it, :func:`local_worst`); the graph is re-solved and the gate
     repeated. Outliers further apart are gated in the same round: the rounds do not grow
     with the log's length. Returns the newly gated factors (empty: ``records``, one per
-    factor, has been written).
+    factor, has been written). ``indices``: the factors to gate (default all; a window's),
+    ``owned``: those to write to ``records`` (default all).
     """
     rows: list[UpdateRecord] = []
     exceed: dict[int, tuple[float, str]] = {}
-    for i, mf in enumerate(prob.meas):
+    for i in range(len(prob.meas)) if indices is None else indices:
+        mf = prob.meas[i]
         lin = prob.states.model(mf.item, est.mat_nb[mf.k], est.vel_n[mf.k], prob.tilt_coupling,
                                 est.extra[mf.k], est.bias[mf.k, :3])  # fmt: skip
+        report = owned is None or i in owned
         if i in rejected:
             nis, reason = rejected[i]
-            rows.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
+            if report:
+                rows.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, False, reason))
             continue
         s = lin.R - lin.H @ est.cov[mf.k] @ lin.H.T
         s = 0.5 * (s + s.T) + 1e-6 * lin.R  # kept regular when the measurement dominates
@@ -379,7 +373,8 @@ def post_fit_gate(
         if nis > limit and not final:
             reason = f"post-fit NIS {nis:.3g} > gate {limit:.3g} (chi2, {lin.dim} dof)"
             exceed[i] = (nis, reason)
-        rows.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, True, ""))
+        if report:
+            rows.append(UpdateRecord(mf.item.t, mf.item.kind, lin.dim, nis, True, ""))
     if not exceed:
         records.extend(rows)
         return {}
