@@ -550,9 +550,9 @@ class NavigationStream:
             t_wait = max(self._screen.t_latest - self.options.max_image_delay_s,
                          self._queue.t_last)  # fmt: skip
         times = self._buf.t  # increasing
-        before = min(np.searchsorted(times, t_image, side="left"),
-                     np.searchsorted(times, t_wait, side="right"))  # fmt: skip
-        return max(1, int(before))
+        n_ready = min(np.searchsorted(times, t_image, side="left"),
+                      np.searchsorted(times, t_wait, side="right"))  # fmt: skip
+        return max(1, int(n_ready))
 
     def _trim(self) -> None:
         """Forget snapshots and IMU history that no future prior can need."""

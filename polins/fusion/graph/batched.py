@@ -26,7 +26,6 @@ tests/test_graph_batched.py:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -34,7 +33,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from polins.frames import skew
+from polins.frames import skew, wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -163,12 +162,6 @@ def body_columns(h_att_n: FloatArray, mat_nb: FloatArray) -> FloatArray:
     return out
 
 
-def wrap(angle: FloatArray) -> FloatArray:
-    """Angles wrapped to (-pi, pi] [rad] (``math.remainder`` by 2 pi, -pi to pi)."""
-    out = angle - 2.0 * math.pi * np.rint(angle / (2.0 * math.pi))
-    return np.where(out <= -math.pi, out + 2.0 * math.pi, out)
-
-
 def vehicle_velocity(
     mat_nb: FloatArray, vel_n: FloatArray, mat_vb: FloatArray, lever_vel_b: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
@@ -255,7 +248,7 @@ class YawBatch(FactorBatch):
             predicted = (np.arctan2(sun_n[:, 1], sun_n[:, 0])
                          + np.arctan2(prior[:, 1, 0], prior[:, 0, 0])
                          - np.arctan2(b[:, 1], b[:, 0]))  # fmt: skip
-        residual = wrap(yaw - predicted)
+        residual = wrap_angle(yaw - predicted)
         jac = [body_columns(h_att[:, None, :], mat_nb)]
         return -residual[:, None], jac, horiz2 >= 1e-12
 
